@@ -1,0 +1,317 @@
+"""Model parameter pytrees and their TOML files.
+
+A :class:`Model` gathers one parameter pytree per stage (ball, flight, table, racket), the
+optional racket residual network and a tuple of effects. Every numeric leaf is an array, so models
+can be batched along a leading axis (domain randomisation, see :func:`stack_models`) and
+``jax.grad`` reaches every parameter. Structural choices (coefficient model families, racket model
+kind, network architecture, which effects) are part of the pytree structure: changing them
+recompiles, changing values does not.
+
+TOML layout (see ``configs/models/*.toml``): every number is either a bare value in the SI unit of
+:data:`SCHEMA` or an inline table ``{ value = ..., unit = "..." }``; a few alternative units are
+converted (mm, cm, g). Loading validates names, shapes, units and physical ranges and raises
+:class:`ConfigError` naming the file, the key and the value.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, DragTable, DurrMagnus, MagnusTable
+from ttsim_jax.physics.racket import RACKET_KINDS, RacketParams
+from ttsim_jax.physics.table import TableParams
+
+SCHEMA_VERSION = 1
+
+
+class ConfigError(ValueError):
+    """A model file that cannot be loaded; the message names the file, the key and the value."""
+
+
+@struct.dataclass
+class BallParams:
+    """Attributes: radius [m], mass [kg]."""
+
+    radius: jnp.ndarray
+    mass: jnp.ndarray
+
+
+@struct.dataclass
+class Model:
+    """All parameters of one simulator model.
+
+    Attributes:
+        ball: :class:`BallParams`.
+        aero: :class:`~ttsim_jax.physics.aero.AeroParams`.
+        table: :class:`~ttsim_jax.physics.table.TableParams`.
+        racket: :class:`~ttsim_jax.physics.racket.RacketParams`.
+        residual: the racket residual network (a ``ResidualModel``) or None.
+        effects: tuple of effects acting at the stages' hook points (see ``physics/hooks.py``).
+        name: the model's name (static).
+    """
+
+    ball: BallParams
+    aero: AeroParams
+    table: TableParams
+    racket: RacketParams
+    residual: Any = None
+    effects: tuple = ()
+    name: str = struct.field(pytree_node=False, default="")
+
+
+# --------------------------------------------------------------------------- schema
+@dataclass(frozen=True)
+class Entry:
+    unit: str
+    shape: tuple = ()
+    lo: float = -math.inf
+    hi: float = math.inf
+    default: Any = None  # None: required
+
+
+_R = dict(lo=0.0, hi=1.2)  # restitution-like coefficients
+_POS = dict(lo=0.0, hi=math.inf)
+
+SCHEMA: dict[str, dict[str, Entry]] = {
+    "ball": {"radius": Entry("m", lo=1e-4, hi=0.1), "mass": Entry("kg", lo=1e-5, hi=0.1)},
+    "aero": {
+        "rho_air": Entry("kg/m^3", lo=1e-3, hi=10.0),
+        "nu": Entry("m^2/s", lo=1e-7, hi=1e-3),
+        "gravity": Entry("m/s^2", lo=0.0, hi=100.0),
+        "buoyancy": Entry("bool", default=True),
+    },
+    "aero.drag:constant": {"value": Entry("1", **_POS)},
+    "aero.drag:table": {
+        "re_ref": Entry("1", (-1,), **_POS), "sp": Entry("1", (-1, -1), **_POS), "cd": Entry("1", (-1, -1), **_POS),
+        "re_cap": Entry("1", **_POS), "cd_min": Entry("1", lo=0.0, hi=2.0, default=0.1),
+    },
+    "aero.magnus:constant": {"value": Entry("1", **_POS)},
+    "aero.magnus:durr": {"gain": Entry("1", **_POS), "offset": Entry("1"), "cap": Entry("1", **_POS)},
+    "aero.magnus:table": {
+        "v_ref": Entry("m/s", (-1,), **_POS), "m1": Entry("s/rad", (-1,)), "s": Entry("1", (-1,)),
+        "w_b": Entry("rad/s", (-1,), **_POS), "a": Entry("s^2/rad^2", (-1,)), "b": Entry("s/rad", (-1,)),
+        "c": Entry("1", (-1,)),
+    },
+    "table": {
+        "e0": Entry("1", **_R), "e1": Entry("s/m", lo=-1.0, hi=1.0), "e_min": Entry("1", **_R, default=0.0),
+        "e_max": Entry("1", **_R, default=1.0), "mu": Entry("1", lo=0.0, hi=2.0), "kappa": Entry("1", lo=0.1, hi=10.0),
+        "alpha_roll": Entry("1", lo=0.0, hi=1.0, default=0.4),
+    },
+    "table.residual": {
+        "dA_vv": Entry("1", (3, 3), default=0.0), "dA_vw": Entry("m", (3, 3), default=0.0),
+        "dA_wv": Entry("1/m", (3, 3), default=0.0), "dA_ww": Entry("1", (3, 3), default=0.0),
+    },
+    "table.geometry": {
+        "length": Entry("m", **_POS, default=2.74), "width": Entry("m", **_POS, default=1.525),
+        "net_height": Entry("m", **_POS, default=0.1525), "net_overhang": Entry("m", **_POS, default=0.1525),
+        "floor_z": Entry("m", hi=0.0, default=-0.76),
+    },
+    "racket": {
+        "kind": Entry("str"),
+        "e0": Entry("1", **_R), "e1": Entry("s/m", lo=-1.0, hi=1.0, default=0.0),
+        "et0": Entry("1", **_R, default=0.0), "et1": Entry("s/m", lo=-1.0, hi=1.0, default=0.0),
+        "e_s": Entry("1", **_R, default=1.0), "k_p": Entry("kg", **_POS, default=0.0),
+        "kappa": Entry("1", lo=0.1, hi=10.0), "e_max": Entry("1", **_R, default=1.0),
+    },
+}
+
+_CONVERT = {"mm": ("m", 1e-3), "cm": ("m", 1e-2), "g": ("kg", 1e-3), "mm^2/s": ("m^2/s", 1e-6)}
+_SECTIONS = {"ball", "aero", "table", "racket", "schema", "name", "description", "source"}
+
+
+def _error(file, key, value, why):
+    raise ConfigError(f"{file}: key '{key}' = {value!r}: {why}")
+
+
+def _read_entry(file, key, raw, entry: Entry):
+    if entry.unit == "str":
+        if not isinstance(raw, str):
+            _error(file, key, raw, "expected a string")
+        return raw
+    if entry.unit == "bool":
+        if not isinstance(raw, bool):
+            _error(file, key, raw, "expected true or false")
+        return raw
+    unit = entry.unit
+    if isinstance(raw, dict):
+        extra = set(raw) - {"value", "unit"}
+        if extra or "value" not in raw:
+            _error(file, key, raw, "an inline table needs exactly 'value' and 'unit'")
+        unit = raw.get("unit", entry.unit)
+        raw = raw["value"]
+    try:
+        arr = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        _error(file, key, raw, f"expected a number or nested list of numbers in {entry.unit}")
+    if unit != entry.unit:
+        target, factor = _CONVERT.get(unit, (None, None))
+        if target != entry.unit:
+            _error(file, key, raw, f"unit '{unit}' is not '{entry.unit}' nor convertible to it")
+        arr = arr * factor
+    if len(entry.shape) != arr.ndim or any(s not in (-1, a) for s, a in zip(entry.shape, arr.shape)):
+        want = "scalar" if not entry.shape else "x".join("N" if s == -1 else str(s) for s in entry.shape)
+        _error(file, key, raw, f"expected shape {want}, got {arr.shape or 'scalar'}")
+    if not np.all(np.isfinite(arr)):
+        _error(file, key, raw, "must be finite")
+    if np.any(arr < entry.lo) or np.any(arr > entry.hi):
+        _error(file, key, raw, f"outside the physical range [{entry.lo}, {entry.hi}] {entry.unit}")
+    return arr
+
+
+def _read_section(file, data: dict, section: str, schema_key: str | None = None, skip=()):
+    schema = SCHEMA[schema_key or section]
+    table = data
+    for part in section.split("."):
+        table = table.get(part, {}) if isinstance(table, dict) else {}
+    if not isinstance(table, dict):
+        _error(file, section, table, "expected a table")
+    unknown = set(table) - set(schema) - set(skip)
+    if unknown:
+        k = sorted(unknown)[0]
+        _error(file, f"{section}.{k}", table[k], f"unknown key; known keys of [{section}]: {sorted(schema)}")
+    out = {}
+    for key, entry in schema.items():
+        if key in table:
+            out[key] = _read_entry(file, f"{section}.{key}", table[key], entry)
+        elif entry.default is None:
+            _error(file, f"{section}.{key}", None, f"missing (unit {entry.unit})")
+        else:
+            out[key] = entry.default if entry.unit in ("bool", "str") else np.broadcast_to(
+                np.float64(entry.default), tuple(3 if s == -1 else s for s in entry.shape)).copy()
+    return out
+
+
+def _coefficient(file, data, section, families):
+    table = data.get("aero", {}).get(section.split(".")[1], None)
+    if not isinstance(table, dict) or "kind" not in table:
+        _error(file, f"{section}.kind", None, f"missing; one of {sorted(families)}")
+    kind = table["kind"]
+    if kind not in families:
+        _error(file, f"{section}.kind", kind, f"unknown coefficient model; one of {sorted(families)}")
+    vals = _read_section(file, data, section, f"{section}:{kind}", skip=("kind",))
+    return families[kind], kind, vals
+
+
+def _check_tables(file, kind, vals):
+    if kind == "table" and "sp" in vals:
+        k = vals["re_ref"].shape[0]
+        if vals["sp"].shape != vals["cd"].shape or vals["sp"].shape[0] != k or k < 2:
+            _error(file, "aero.drag.sp", vals["sp"].tolist(), f"sp and cd must both be ({k}, P) for {k} >= 2 re_ref rows")
+        if np.any(np.diff(vals["sp"], axis=1) <= 0) or np.any(np.diff(vals["re_ref"]) <= 0):
+            _error(file, "aero.drag.sp", vals["sp"].tolist(), "breakpoints and re_ref must increase")
+        if vals["re_cap"] < vals["re_ref"][-1]:
+            _error(file, "aero.drag.re_cap", float(vals["re_cap"]), "must be at least the last re_ref")
+    if kind == "table" and "v_ref" in vals:
+        k = vals["v_ref"].shape[0]
+        for key in ("m1", "s", "w_b", "a", "b", "c"):
+            if vals[key].shape != (k,):
+                _error(file, f"aero.magnus.{key}", vals[key].tolist(), f"must have {k} entries like v_ref")
+        if k < 2 or np.any(np.diff(vals["v_ref"]) <= 0):
+            _error(file, "aero.magnus.v_ref", vals["v_ref"].tolist(), "needs >= 2 increasing speeds")
+
+
+def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
+    """Builds and validates a :class:`Model` from a parsed TOML document."""
+    unknown = set(data) - _SECTIONS
+    if unknown:
+        k = sorted(unknown)[0]
+        _error(file, k, data[k], f"unknown top-level key; known: {sorted(_SECTIONS)}")
+    if data.get("schema", SCHEMA_VERSION) != SCHEMA_VERSION:
+        _error(file, "schema", data.get("schema"), f"this version of ttsim-jax reads schema {SCHEMA_VERSION}")
+    dtype = dtype or jnp.zeros(()).dtype
+    arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+
+    ball = _read_section(file, data, "ball")
+    aero = _read_section(file, data, "aero", skip=("drag", "magnus"))
+    drag_cls, drag_kind, drag = _coefficient(file, data, "aero.drag", {"constant": ConstantCoefficient, "table": DragTable})
+    magnus_cls, magnus_kind, magnus = _coefficient(
+        file, data, "aero.magnus", {"constant": ConstantCoefficient, "durr": DurrMagnus, "table": MagnusTable})
+    _check_tables(file, drag_kind, drag)
+    _check_tables(file, magnus_kind, magnus)
+    table = _read_section(file, data, "table", skip=("residual", "geometry"))
+    residual = _read_section(file, data, "table.residual")
+    geometry = _read_section(file, data, "table.geometry")
+    racket = _read_section(file, data, "racket")
+    if racket["kind"] not in RACKET_KINDS:
+        _error(file, "racket.kind", racket["kind"], f"one of {RACKET_KINDS}")
+    if racket["kind"] != "updated" and racket["k_p"] <= 0:
+        _error(file, "racket.k_p", float(racket["k_p"]), f"the '{racket['kind']}' model needs k_p > 0")
+
+    return Model(
+        ball=BallParams(radius=arr(ball["radius"]), mass=arr(ball["mass"])),
+        aero=AeroParams(
+            rho_air=arr(aero["rho_air"]), nu=arr(aero["nu"]), gravity=arr([0.0, 0.0, -aero["gravity"]]),
+            buoyancy=arr(1.0 if aero["buoyancy"] else 0.0),
+            drag=drag_cls(**{k: arr(v) for k, v in drag.items()}),
+            magnus=magnus_cls(**{k: arr(v) for k, v in magnus.items()})),
+        table=TableParams(
+            **{k: arr(v) for k, v in table.items()},
+            residual=arr(np.stack([residual[k] for k in ("dA_vv", "dA_vw", "dA_wv", "dA_ww")])),
+            **{k: arr(v) for k, v in geometry.items()}),
+        racket=RacketParams(kind=racket.pop("kind"), **{k: arr(v) for k, v in racket.items()}),
+        name=str(data.get("name", Path(file).stem)),
+    )
+
+
+def config_dir() -> Path:
+    """The folder holding ``models/*.toml`` (the checkout's ``configs/``)."""
+    here = Path(__file__).resolve().parents[1] / "configs"
+    if here.is_dir():
+        return here
+    return Path(str(resources.files("ttsim_jax"))) / "configs"
+
+
+def available_models() -> list[str]:
+    return sorted(p.stem for p in (config_dir() / "models").glob("*.toml"))
+
+
+def resolve_model_path(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such model file")
+        return path
+    path = config_dir() / "models" / f"{name_or_path}.toml"
+    if not path.is_file():
+        raise ConfigError(f"unknown model {str(name_or_path)!r}; bundled models: {available_models()} "
+                          "(or give a path to a .toml file)")
+    return path
+
+
+def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tuple = ()) -> Model:
+    """Loads a model by bundled name (``"conti2026"``) or TOML path.
+
+    Arguments:
+        name_or_path: bundled model name or path to a ``.toml`` file.
+        dtype: float dtype of the parameters (default: JAX's default float).
+        residual: optional racket residual network (``ResidualModel``) or a path to its checkpoint.
+        effects: tuple of effects to attach.
+
+    Returns:
+        A validated :class:`Model`.
+    """
+    path = resolve_model_path(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    model = model_from_dict(data, str(path), dtype)
+    if isinstance(residual, (str, Path)):
+        from ttsim_jax.physics.residual import load_residual
+        residual = load_residual(residual)
+    return model.replace(residual=residual, effects=tuple(effects))
+
+
+def stack_models(models) -> Model:
+    """Stacks models of identical structure along a new leading axis (for batched simulation)."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *models)

@@ -1,0 +1,145 @@
+"""Racket contact: the Nakashima base model, its "refined" variant and the paper's updated model.
+
+Racket frame (one convention everywhere, as in the authors' code): x is the face normal, y and z
+are tangential, so the contact position on the face is d = (d_y, d_z). The paper writes the base
+model with the normal along z; we solve it in the contact frame (y, z, x) (a cyclic permutation of
+the racket axes, so still right-handed), where the normal is last as in the table model.
+
+A ball that arrives at the back face (n . (p_ball - p_racket) < 0) sees the frame turned 180 degrees
+about the racket z-axis: x -> -x, y -> -y.
+
+Models (``RacketParams.kind``, static):
+    nakashima: alpha = k_p / m, constant e_n, racket angular velocity ignored, no spin damping.
+    refined:   the same coefficients, with the racket's angular velocity: the surface moves with
+               v_R + w_R x r at the contact point and spin is taken relative to w_R.
+    updated:   the paper's: e_n = e0 + e1 |v_n|, alpha = (1 + e_t) / (1 + kappa) with
+               e_t = et0 + et1 |u_T|, normal spin damping e_s; racket angular velocity included.
+
+The contact point is the point of the face under the ball centre (p_ball - r n).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+from ttsim_jax.physics import hooks
+from ttsim_jax.physics.contact import ContactCoefficients, apply_matrices, contact_matrices, surface_velocity
+from ttsim_jax.physics.numerics import safe_norm
+
+RACKET_KINDS = ("nakashima", "refined", "updated")
+
+# racket frame (x=normal, y, z) -> contact frame (y, z, x) and back
+_TO_CONTACT = jnp.array([1, 2, 0])
+_FROM_CONTACT = jnp.array([2, 0, 1])
+
+
+@struct.dataclass
+class RacketParams:
+    """Racket contact parameters.
+
+    Attributes:
+        e0, e1: normal restitution e_n = e0 + e1 |v_n| (e1 = 0 for the baselines), clipped to
+            [0, e_max].
+        et0, et1: tangential restitution e_t = et0 + et1 |u_T| ("updated"), clipped to [0, 1].
+        e_s: factor on the normal spin component ("updated"; 1 = no damping).
+        k_p: tangential impulse coefficient [kg] of the base model: alpha = k_p / m.
+        kappa: m r^2 / I of the ball.
+        e_max: upper clip of e_n.
+        kind: ``"nakashima"``, ``"refined"`` or ``"updated"`` (static).
+    """
+
+    e0: jnp.ndarray
+    e1: jnp.ndarray
+    et0: jnp.ndarray
+    et1: jnp.ndarray
+    e_s: jnp.ndarray
+    k_p: jnp.ndarray
+    kappa: jnp.ndarray
+    e_max: jnp.ndarray
+    kind: str = struct.field(pytree_node=False, default="updated")
+
+
+def uses_racket_spin(params: RacketParams) -> bool:
+    return params.kind != "nakashima"
+
+
+def contact_frame(racket, pos):
+    """(rot, side): the racket frame turned to face the ball, and +1 / -1 for front / back face."""
+    n = racket.rot[:, 0]
+    side = jnp.where(jnp.dot(n, pos - racket.pos) >= 0.0, 1.0, -1.0).astype(pos.dtype)
+    flip = jnp.stack([side, side, jnp.ones_like(side)])
+    return racket.rot * flip[None, :], side
+
+
+def racket_frame_state(params: RacketParams, racket, radius, pos, vel, spin):
+    """The ball's pre-contact state in the racket frame.
+
+    Returns:
+        dict with ``v`` (3,) velocity relative to the face at the contact point, ``w`` (3,) spin
+        relative to the racket, ``d`` (2,) contact position on the face, ``rot`` (3, 3) the
+        (possibly turned) racket frame, ``v_surf`` and ``w_surf`` (3,) the face's world-frame
+        velocity at the contact point and the racket spin used (zero for "nakashima").
+    """
+    rot, side = contact_frame(racket, pos)
+    n = rot[:, 0]
+    offset = pos - radius * n - racket.pos  # contact point relative to the face centre
+    w_surf = racket.ang_vel if uses_racket_spin(params) else jnp.zeros_like(racket.ang_vel)
+    v_surf = racket.vel + jnp.cross(w_surf, offset)
+    local = rot.T @ offset
+    return dict(v=rot.T @ (vel - v_surf), w=rot.T @ (spin - w_surf), d=local[1:3], rot=rot,
+                v_surf=v_surf, w_surf=w_surf)
+
+
+def coefficients(params: RacketParams, v_c, w_c, radius, mass, d, effects=()):
+    """Contact coefficients for a contact-frame pre-contact state (normal last)."""
+    u = surface_velocity(v_c, w_c, radius)
+    vn = jnp.abs(v_c[2])
+    e_n = jnp.clip(params.e0 + params.e1 * vn, 0.0, params.e_max)
+    if params.kind == "updated":
+        e_t = jnp.clip(params.et0 + params.et1 * safe_norm(u), 0.0, 1.0)
+        alpha = (1.0 + e_t) / (1.0 + params.kappa)
+        e_s = params.e_s
+    else:
+        alpha = params.k_p / mass
+        e_s = jnp.ones_like(e_n)
+    coef = ContactCoefficients(e_n=e_n, alpha=jnp.stack([alpha, alpha]), e_s=e_s)
+    return hooks.apply(effects, "racket_coefficients", coef, d=d, vn=vn, ut=u[:2])
+
+
+def base_response(params: RacketParams, v_tilde, w_tilde, d, radius, mass, effects=()):
+    """Post-contact racket-frame (v, w) predicted by the base model (no residual network).
+
+    Arguments:
+        params: racket parameters.
+        v_tilde, w_tilde: (3,) pre-contact velocity and spin in the racket frame, relative to the
+            face (x = normal; v_tilde[0] < 0 for a ball arriving at the face).
+        d: (2,) contact position on the face [m] (used by effects only).
+        radius, mass: ball radius [m] and mass [kg].
+        effects: tuple of effects (hook ``racket_coefficients``).
+
+    Returns:
+        (v_plus, w_plus) in the racket frame.
+    """
+    v_c, w_c = v_tilde[_TO_CONTACT], w_tilde[_TO_CONTACT]
+    coef = coefficients(params, v_c, w_c, radius, mass, d, effects)
+    v_p, w_p = apply_matrices(contact_matrices(coef, radius, params.kappa), v_c, w_c)
+    return v_p[_FROM_CONTACT], w_p[_FROM_CONTACT]
+
+
+def network_input(params: RacketParams, state, n_inputs: int):
+    """The residual network's input x = (v~, w~, d)[:n_inputs] from :func:`racket_frame_state`."""
+    return jnp.concatenate([state["v"], state["w"], state["d"]])[:n_inputs]
+
+
+def racket_contact(params: RacketParams, racket, radius, mass, pos, vel, spin, effects=()):
+    """Base-model racket contact in the world frame.
+
+    Returns:
+        (vel+, spin+, state) with ``state`` from :func:`racket_frame_state`, which the rally
+        kernel uses to add the residual network's racket-frame correction.
+    """
+    state = racket_frame_state(params, racket, radius, pos, vel, spin)
+    v_p, w_p = base_response(params, state["v"], state["w"], state["d"], radius, mass, effects)
+    rot = state["rot"]
+    return rot @ v_p + state["v_surf"], rot @ w_p + state["w_surf"], state
