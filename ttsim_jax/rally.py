@@ -196,7 +196,7 @@ def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: 
     post_pos = jnp.where(kind == ev.TABLE, tp, pre.pos)
     post_vel = jnp.where(kind == ev.TABLE, tv, pre.vel)
     post_spin = jnp.where(kind == ev.TABLE, tw, pre.spin)
-    racket_index = jnp.where(kind == ev.RACKET, index - n_fixed, -1)
+    racket_index = jnp.where(kind == ev.RACKET, index - n_fixed, -1).astype(jnp.int32)
     x = jnp.zeros(8, p0.dtype)
     rot = jnp.eye(3, dtype=p0.dtype)
     if rackets is not None:

@@ -112,7 +112,7 @@ def earliest(candidates: list[tuple[int, Candidate]]):
     ``index`` is the position in the list (to find which racket was hit).
     """
     taus = jnp.stack([jnp.where(c.hit, c.tau, jnp.inf) for _, c in candidates])
-    kinds = jnp.asarray([k for k, _ in candidates])
-    i = jnp.argmin(taus)
+    kinds = jnp.asarray([k for k, _ in candidates], jnp.int32)
+    i = jnp.argmin(taus).astype(jnp.int32)
     hit = jnp.isfinite(taus[i])
     return jnp.where(hit, kinds[i], NONE), jnp.where(hit, taus[i], 1.0), i

@@ -1,0 +1,158 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import Ball, Racket, RacketPolicy, load_model, simulate, stack_models
+from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
+from ttsim_jax.rally import _simulate
+
+
+def serve_batch(n=6, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = np.stack([rng.uniform(-1.6, -1.3, n), rng.uniform(-0.4, 0.4, n), rng.uniform(0.15, 0.35, n)], -1)
+    vel = np.stack([rng.uniform(4, 9, n), rng.uniform(-1, 1, n), rng.uniform(-2, 1, n)], -1)
+    spin = rng.uniform(-300, 300, (n, 3))
+    return Ball.create(pos, vel, spin)
+
+
+def racket_schedule(n, x=1.6):
+    racket = Racket.create(jnp.array([x, 0.0, 0.2]), rot=jnp.diag(jnp.array([-1.0, -1.0, 1.0])),
+                           vel=jnp.array([-0.5, 0.0, 0.1]))
+    t = jnp.arange(n)[:, None] * 1e-3
+    return jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), racket).replace(
+        pos=racket.pos + t * racket.vel)
+
+
+@pytest.mark.parametrize("name", ["nakashima2011", "durr2026", "conti2026"])
+def test_vmapped_batch_equals_loop_of_single_balls(name):
+    m = load_model(name)
+    balls = serve_batch()
+    sched = racket_schedule(700)
+    batch = simulate(m, balls, 700, racket=sched)
+    for i in range(6):
+        one = simulate(m, jax.tree.map(lambda a: a[i], balls), 700, racket=sched)
+        np.testing.assert_allclose(np.asarray(one.final.as_array()[0]), np.asarray(batch.final.as_array()[i]),
+                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(one.events.kind[0]), np.asarray(batch.events.kind[i]))
+
+
+def test_no_retrace_when_parameters_or_dt_change():
+    balls = serve_batch(4)
+    a = load_model("conti2026")
+    simulate(a, balls, 100, 1e-3)
+    size = _simulate._cache_size()
+    b = a.replace(table=a.table.replace(e0=a.table.e0 * 0.9), aero=a.aero.replace(rho_air=a.aero.rho_air * 1.1))
+    simulate(b, serve_batch(4, seed=1), 100, 2e-3)
+    assert _simulate._cache_size() == size
+
+
+def test_batched_parameters_domain_randomisation():
+    base = load_model("conti2026")
+    models = [base.replace(table=base.table.replace(e0=base.table.e0 * s)) for s in (0.9, 1.0, 1.05)]
+    balls = jax.tree.map(lambda a: jnp.repeat(a[:1], 3, 0), serve_batch(1))
+    r = simulate(stack_models(models), balls, 600, model_batched=True)
+    for i, mi in enumerate(models):
+        one = simulate(mi, jax.tree.map(lambda a: a[i], balls), 600)
+        np.testing.assert_allclose(np.asarray(one.final.pos[0]), np.asarray(r.final.pos[i]), atol=1e-12)
+    assert len({round(float(x), 6) for x in r.final.pos[:, 0]}) == 3
+
+
+@pytest.mark.parametrize("name", ["nakashima2011", "durr2026", "conti2026"])
+def test_no_nan_for_extreme_inputs(name, dtype):
+    m = load_model(name, dtype=dtype)
+    balls = Ball.create(
+        [[-1.3, 0.0, 0.3], [0.2, 0.1, 0.02], [0.0, 0.0, 0.5], [-1.3, 0.3, 0.1], [0.5, 0.0, 0.02], [0.0, 0.0, 0.3]],
+        [[35.0, 0.0, -2.0], [0.0, 0.0, 0.0], [0.0, 0.0, -8.0], [35.0, -5.0, 3.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        [[0.0, 1000.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-700.0, -700.0, 0.0], [0.0, 0.0, 1000.0],
+         [1000.0, 0.0, 0.0]], dtype=dtype)
+    sched = jax.tree.map(lambda a: a.astype(dtype) if a.dtype.kind == "f" else a, racket_schedule(800))
+    r = simulate(m, balls, 800, racket=sched)
+    for leaf in jax.tree.leaves((r.final, r.events.pre, r.events.post)):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    # a ball at rest on the table stays there; a vertical drop bounces straight up
+    assert float(r.final.pos[1, 2]) == pytest.approx(0.02, abs=1e-3)
+    assert int(r.events.kind[2, 0]) == TABLE
+    assert abs(float(r.events.post.vel[2, 0, 0])) < 1e-3
+
+
+def test_invalid_state_is_flagged_and_frozen_not_nan():
+    m = load_model("conti2026")
+    b = Ball.create([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5]], [[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0]])
+    r = simulate(m, b, 50)
+    assert bool(r.alive[0]) and not bool(r.alive[1])
+    assert int(r.status[1]) == 6  # invalid
+    assert np.all(np.isfinite(np.asarray(r.final.pos[0])))
+
+
+def landing_after_bounce(m, dt, integrator="rk4"):
+    # a topspin drive: bounces once on the far half, then we take where it next crosses z = r
+    b = Ball.create([[-1.5, -0.2, 0.3]], [[9.0, 0.8, 1.2]], [[50.0, 250.0, -60.0]])
+    t_end = 0.36
+    n = int(round(t_end / dt))
+    r = simulate(m, b, n, dt, integrator=integrator)
+    assert int(r.events.kind[0, 0]) == TABLE
+    return np.asarray(r.events.pre.pos[0, 0]), np.asarray(r.final.pos[0])
+
+
+@pytest.mark.parametrize("name", ["nakashima2011", "conti2026"])
+def test_dt_convergence_landing_point(name):
+    m = load_model(name)
+    l1, f1 = landing_after_bounce(m, 1e-3)
+    l4, f4 = landing_after_bounce(m, 0.25e-3)
+    assert np.linalg.norm(l1 - l4) < 1e-3  # bounce point
+    assert np.linalg.norm(f1 - f4) < 1e-3  # point after the bounce
+
+
+def test_racket_policy_inside_scan_matches_schedule():
+    m = load_model("conti2026")
+    balls = Ball.create([[-1.2, 0.0, 0.3], [-1.2, 0.05, 0.3]], [[6.0, 0.0, 1.0], [6.5, 0.0, 1.0]],
+                        [[0.0, 150.0, 0.0], [0.0, 100.0, 0.0]])
+    sched = racket_schedule(600)
+
+    def policy(params, ball, t):
+        r0 = jax.tree.map(lambda a: a[0], sched)
+        return jax.tree.map(lambda a: a[None], r0.replace(pos=r0.pos + t * params["vel"]))
+
+    r1 = simulate(m, balls, 600, racket=sched)
+    r2 = simulate(m, balls, 600, racket=RacketPolicy(params={"vel": sched.vel[0]}, fn=policy))
+    np.testing.assert_allclose(np.asarray(r1.final.pos), np.asarray(r2.final.pos), atol=1e-9)
+    for i in range(2):
+        assert np.asarray(r1.events.kind[i, :2]).tolist() == [TABLE, RACKET]
+
+
+def test_event_log_records_sequence_and_counts_overflow():
+    m = load_model("conti2026")
+    b = Ball.create([[0.0, 0.0, 0.3]], [[0.0, 0.0, 0.0]])  # bounces in place many times
+    r = simulate(m, b, 2000, max_events=4)
+    assert np.all(np.asarray(r.events.kind[0]) == TABLE)
+    assert int(r.events.count[0]) > 4
+    times = np.asarray(r.events.time[0])
+    assert np.all(np.diff(times) > 0)
+
+
+def test_net_is_reported_not_modelled():
+    m = load_model("conti2026")
+    b = Ball.create([[-0.6, 0.0, 0.08]], [[5.0, 0.0, 0.5]])
+    r = simulate(m, b, 300)
+    kinds = np.asarray(r.events.kind[0]).tolist()
+    assert NET in kinds
+    free = simulate(m, b, 60)
+    assert float(free.final.vel[0, 0]) > 4.0  # passes through unchanged
+
+
+def test_recording_above_memory_budget_is_refused_with_size():
+    m = load_model("conti2026")
+    b = serve_batch(2)
+    with pytest.raises(ValueError, match=r"needs .* GiB.*budget"):
+        simulate(m, b, 1000, record_every=1, memory_budget_bytes=1000)
+    r = simulate(m, b, 1000, record_every=100)
+    assert r.trajectory.pos.shape == (2, 10, 3)
+
+
+def test_floor_stops_the_ball():
+    m = load_model("conti2026")
+    b = Ball.create([[1.0, 0.0, 0.3]], [[3.0, 0.0, 0.0]])
+    r = simulate(m, b, 1500)
+    assert not bool(r.alive[0]) and int(r.status[0]) == FLOOR
+    assert float(r.final.pos[0, 2]) == pytest.approx(-0.74, abs=1e-6)
