@@ -1,0 +1,114 @@
+"""Shared fixtures of the data-layer tests: synthetic trajectories and datasets, real-data path."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ttsim_jax.data import Dataset, Metadata
+
+RADIUS = 0.02
+
+
+def real_data_root() -> Path:
+    """Where the public measured data lives: $TTSIM_REAL_DATA, else ../shared/data/real."""
+    env = os.environ.get("TTSIM_REAL_DATA")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
+
+
+def simulate(p0, v0, *, duration, rate=180.0, kd=0.11, e=0.9, hit_at=None, hit_vel=None, seed=None, noise=0.0, t0=0.0):
+    """Ball flight with drag and table bounces at z = radius, sampled at ``rate``.
+
+    Returns:
+        t (T,), pos (T, 3), bounce_times list, bounce_positions list.
+    """
+    h = 1e-4
+    p = np.array(p0, float)
+    v = np.array(v0, float)
+    g = np.array([0.0, 0.0, -9.81])
+    t_out, p_out, bt, bp = [], [], [], []
+    n_steps = int(round(duration / h))
+    every = int(round(1.0 / (rate * h)))
+    hit_done = False
+    for k in range(n_steps + 1):
+        t = k * h
+        if k % every == 0:
+            t_out.append(t0 + t)
+            p_out.append(p.copy())
+        if hit_at is not None and not hit_done and t >= hit_at:
+            v = np.array(hit_vel, float)
+            hit_done = True
+        v = v + h * (g - kd * np.linalg.norm(v) * v)
+        p_new = p + h * v
+        if p_new[2] < RADIUS and v[2] < 0 and abs(p_new[0]) < 1.37 and abs(p_new[1]) < 0.7625:
+            frac = (p[2] - RADIUS) / (p[2] - p_new[2])
+            bt.append(t0 + t + frac * h)
+            bp.append(p + frac * (p_new - p))
+            p_new = p + frac * h * v
+            p_new[2] = RADIUS
+            v = np.array([v[0] * 0.85, v[1] * 0.85, -e * v[2]])
+        p = p_new
+    pos = np.array(p_out)
+    if noise:
+        pos = pos + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
+    return np.array(t_out), pos, bt, [np.asarray(b) for b in bp]
+
+
+@pytest.fixture
+def rally():
+    """One serve-like flight with two table bounces: (t, pos, bounce_times, bounce_positions)."""
+    return simulate([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.9)
+
+
+@pytest.fixture
+def small_dataset():
+    """A valid dataset with observations, all event kinds used by a rally, a racket state."""
+    t1, p1, bt1, bp1 = simulate([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.6)
+    t2, p2, bt2, bp2 = simulate([1.4, 0.0, 0.35], [-6.0, 0.3, 0.0], duration=0.5, t0=10.0)
+    session = np.r_[np.zeros(len(t1), int), np.ones(len(t2), int)]
+    t = np.r_[t1, t2]
+    pos = np.r_[p1, p2]
+    spin = np.tile([0.0, 150.0, 0.0], (len(t), 1))
+    conf = np.r_[np.full(len(t1), 0.9), np.zeros(len(t2))]
+    ev_t = bt1 + bt2 + [t1[-1] + 0.001]
+    ev_pos = bp1 + bp2 + [p1[-1]]
+    ev_sid = [0] * len(bt1) + [1] * len(bt2) + [0]
+    ev_kind = ["table"] * (len(bt1) + len(bt2)) + ["racket"]
+    ds = Dataset.from_arrays(
+        session,
+        t,
+        pos,
+        spin=spin,
+        spin_conf=conf,
+        events=dict(session_id=ev_sid, t=ev_t, kind=ev_kind, pos=np.array(ev_pos)),
+        rackets=dict(
+            pos=[[p1[-1][0] + 0.03, p1[-1][1], p1[-1][2]]],
+            quat=[[np.cos(0.2), 0.0, 0.0, np.sin(0.2)]],
+            vel=[[-3.0, 0.1, 0.5]],
+            ang_vel=[[0.0, 2.0, 0.0]],
+            contact=[[0.01, -0.02]],
+        ),
+        sessions=dict(session_id=[0, 1], name=["serve", "return"], notes=["", '{"k": 1}']),
+        metadata=Metadata(source="unit test", equipment={"ball": "40+", "table": {"length": 2.74}}, notes="synthetic"),
+    )
+    return ds
+
+
+@pytest.fixture
+def simulate_flight():
+    """The :func:`simulate` function (fixtures avoid importing conftest by name)."""
+    return simulate
+
+
+@pytest.fixture
+def real_root():
+    """Root of the public measured data; skips the test when it is absent."""
+    root = real_data_root()
+    if not root.is_dir():
+        pytest.skip(f"public measured data not found at {root} (set TTSIM_REAL_DATA to its folder)")
+    return root

@@ -1,0 +1,75 @@
+"""``data import`` and ``data info`` through argparse, as ttsim_jax/cli.py will call them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from ttsim_jax.data import commands, load
+
+
+@pytest.fixture
+def parser():
+    p = argparse.ArgumentParser(prog="ttsim")
+    commands.register(p.add_subparsers(dest="command"))
+    return p
+
+
+def run(parser, argv):
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_every_option_has_help(parser):
+    data = next(a for a in parser._subparsers._group_actions[0].choices.values())
+    sub = data._subparsers._group_actions[0]
+    assert set(sub.choices) == {"import", "info"}
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"data {name}: {action.dest} has no help"
+
+
+def test_import_csv_then_info(parser, rally, tmp_path, capsys):
+    t, pos, bt, _ = rally
+    lines = ["session_id,t,x,y,z"] + [f"0,{float(a)!r},{float(p[0])!r},{float(p[1])!r},{float(p[2])!r}" for a, p in zip(t, pos)]
+    (tmp_path / "log.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "ds"
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 0
+    ds = load(out)
+    np.testing.assert_array_equal(ds.observations["t"], t)
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 1  # exists
+    capsys.readouterr()
+    assert run(parser, ["data", "info", str(out), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["sessions"] == 1 and d["events"]["table"] == len(bt) and d["segments"] == len(bt) + 1
+    assert d["problems"] == [] and 1.0 < d["speed_p1_p50_p99"][1] < 6.0
+    assert run(parser, ["data", "info", str(out)]) == 0
+    assert "validation:    ok" in capsys.readouterr().out
+
+
+def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from ttsim_jax.data import save
+    from ttsim_jax.data.io import table_path
+
+    save(small_dataset, tmp_path / "ds")
+    f = table_path(tmp_path / "ds", "observations")
+    t = pq.read_table(f)
+    x = t.column("x").to_numpy().copy()
+    x[3] = np.inf
+    pq.write_table(t.set_column(t.column_names.index("x"), "x", pa.array(x)), f)
+    assert run(parser, ["data", "info", str(tmp_path / "ds")]) == 1
+    text = capsys.readouterr().out
+    assert "1 problem" in text and "row 3" in text and "'x'" in text
+
+
+def test_import_bad_path_is_an_error(parser, tmp_path, capsys):
+    assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 1
+    assert "no such file" in capsys.readouterr().err

@@ -1,0 +1,296 @@
+"""The in-memory dataset: five column tables of numpy arrays plus metadata.
+
+A table is a plain ``dict`` mapping column name -> 1-D numpy array, all of one length, with the
+columns and dtypes of :mod:`ttsim_jax.data.schema`. That is what Parquet stores, what pandas or
+polars hand back, and what is cheapest to build from simulation output.
+
+The simplest way to make one from arrays (what the reality generator does)::
+
+    ds = Dataset.from_arrays(
+        session_id=sid, t=t, pos=pos,                 # (N,), (N,), (N, 3)
+        spin=spin, spin_conf=conf,                    # optional (N, 3), (N,)
+        events=dict(session_id=..., t=..., kind=..., pos=...),
+        rackets=dict(event_id=..., pos=..., quat=..., vel=..., ang_vel=..., contact=...),
+        metadata=Metadata(source="generator v1", equipment={...}),
+    )
+
+Segments are derived from the events unless given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import schema
+from .errors import DataError
+
+Table = dict  # column name -> 1-D numpy array
+
+
+@dataclasses.dataclass
+class Metadata:
+    """Dataset-level facts stored next to the tables.
+
+    Attributes:
+        source: where the data came from (lab, public dataset and citation, or generator version).
+        equipment: free-form description of ball, table, racket, tracking system (JSON-able dict).
+        frame: name of the coordinate frame; must be :data:`schema.CANONICAL_FRAME`.
+        units: unit of each kind of quantity (:data:`schema.UNITS`).
+        schema_version: layout version (:data:`schema.SCHEMA_VERSION`).
+        notes: anything else worth keeping (free text), e.g. how the frame was established.
+    """
+
+    source: str = ""
+    equipment: dict = dataclasses.field(default_factory=dict)
+    frame: str = schema.CANONICAL_FRAME
+    units: dict = dataclasses.field(default_factory=lambda: dict(schema.UNITS))
+    schema_version: str = schema.SCHEMA_VERSION
+    notes: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-able dict (inverse of :meth:`from_dict`)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], file=None) -> "Metadata":
+        """Builds metadata from a dict, naming the unknown key if there is one."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        for key in d:
+            if key not in known:
+                raise DataError(f"unknown metadata key; known keys: {sorted(known)}", file=file, column=key)
+        return cls(**dict(d))
+
+
+@dataclasses.dataclass
+class Dataset:
+    """Measured (or generated) ball data in the canonical frame; the unit passed around.
+
+    Attributes:
+        sessions, observations, events, rackets, segments: column tables (see
+            :mod:`ttsim_jax.data.schema` for columns, dtypes and units).
+        metadata: :class:`Metadata`.
+    """
+
+    sessions: Table
+    observations: Table
+    events: Table
+    rackets: Table
+    segments: Table
+    metadata: Metadata = dataclasses.field(default_factory=Metadata)
+
+    def table(self, name: str) -> Table:
+        """The table called ``name``."""
+        if name not in schema.TABLES:
+            raise KeyError(f"unknown table {name!r}; tables: {tuple(schema.TABLES)}")
+        return getattr(self, name)
+
+    def tables(self) -> dict[str, Table]:
+        """All tables by name, in schema order."""
+        return {name: getattr(self, name) for name in schema.TABLES}
+
+    @staticmethod
+    def n_rows(table: Table) -> int:
+        return len(next(iter(table.values()))) if table else 0
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) observed ball positions [m]."""
+        o = self.observations
+        return np.stack([o["x"], o["y"], o["z"]], axis=-1)
+
+    @property
+    def spins(self) -> np.ndarray:
+        """(N, 3) observed spin [rad/s] (zeros where unknown)."""
+        o = self.observations
+        return np.stack([o["spin_x"], o["spin_y"], o["spin_z"]], axis=-1)
+
+    def replace(self, **changes) -> "Dataset":
+        """A copy with some tables (or the metadata) replaced."""
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        session_id,
+        t,
+        pos,
+        *,
+        spin=None,
+        spin_conf=None,
+        events: Mapping[str, Any] | None = None,
+        rackets: Mapping[str, Any] | None = None,
+        sessions: Mapping[str, Any] | None = None,
+        segments: Mapping[str, Any] | str | None = "events",
+        metadata: Metadata | None = None,
+    ) -> "Dataset":
+        """Builds a dataset from numpy arrays, filling every optional column with its default.
+
+        Arguments:
+            session_id: (N,) int session of each observation; rows of one session must be
+                contiguous and in time order.
+            t: (N,) times [s].
+            pos: (N, 3) ball centre positions [m], canonical frame.
+            spin: optional (N, 3) spin [rad/s]; zeros when absent.
+            spin_conf: optional (N,) confidence in [0, 1]; 1 where ``spin`` is given, else 0.
+            events: optional dict with ``session_id`` (E,), ``t`` (E,), ``kind`` (E,) strings from
+                :data:`schema.EVENT_KINDS`, ``pos`` (E, 3) ball centre at contact, and optionally
+                ``event_id`` (E,) (default ``0..E-1``).
+            rackets: optional dict of racket states, one per racket event: ``pos`` (R, 3),
+                ``quat`` (R, 4) (w, x, y, z), ``vel`` (R, 3), ``ang_vel`` (R, 3), ``contact`` (R, 2)
+                (d_y, d_z), and optionally ``event_id`` (R,) (default: the racket events in order).
+            sessions: optional dict with ``session_id`` and optional ``name``, ``notes`` (default:
+                one row per distinct ``session_id``).
+            segments: ``"events"`` to split each session at its events (default), ``None`` for no
+                segments, or a segments column table.
+            metadata: :class:`Metadata` (default: empty source, canonical frame).
+
+        Returns:
+            The dataset (not yet validated: call :func:`ttsim_jax.data.validate.validate`).
+        """
+        session_id = np.asarray(session_id, np.int64)
+        t = np.asarray(t, np.float64)
+        pos = np.asarray(pos, np.float64).reshape(-1, 3)
+        n = len(session_id)
+        if len(t) != n or len(pos) != n:
+            raise ValueError(f"session_id, t and pos must have the same length, got {n}, {len(t)}, {len(pos)}")
+        obs = {"session_id": session_id, "t": t, "x": pos[:, 0].copy(), "y": pos[:, 1].copy(), "z": pos[:, 2].copy()}
+        if spin is None:
+            spin_arr = np.zeros((n, 3))
+            conf = np.zeros(n) if spin_conf is None else np.asarray(spin_conf, np.float64)
+        else:
+            spin_arr = np.asarray(spin, np.float64).reshape(n, 3)
+            conf = np.ones(n) if spin_conf is None else np.asarray(spin_conf, np.float64)
+        obs.update(spin_x=spin_arr[:, 0].copy(), spin_y=spin_arr[:, 1].copy(), spin_z=spin_arr[:, 2].copy())
+        obs["spin_conf"] = np.broadcast_to(conf, (n,)).astype(np.float64)
+        obs["segment_id"] = np.full(n, -1, np.int64)
+
+        ev = events_table(**events) if events is not None else schema.empty_table("events")
+        if rackets is not None:
+            rackets = dict(rackets)
+            if "event_id" not in rackets:
+                rackets["event_id"] = ev["event_id"][ev["kind"] == "racket"]
+            rk = rackets_table(**rackets)
+        else:
+            rk = schema.empty_table("rackets")
+
+        if sessions is None:
+            ids = np.unique(np.concatenate([session_id, ev["session_id"]]))
+            ses = {"session_id": ids, "name": np.full(len(ids), "", object), "notes": np.full(len(ids), "", object)}
+        else:
+            ses = sessions_table(**sessions)
+
+        ds = cls(
+            sessions=ses,
+            observations=obs,
+            events=ev,
+            rackets=rk,
+            segments=schema.empty_table("segments"),
+            metadata=metadata if metadata is not None else Metadata(),
+        )
+        if isinstance(segments, str):
+            if segments != "events":
+                raise ValueError(f"segments must be 'events', None or a table, got {segments!r}")
+            from .segment import segments_from_events
+
+            ds = segments_from_events(ds)
+        elif segments is not None:
+            seg = fill_defaults("segments", segments)
+            ds = ds.replace(segments=seg)
+        return ds
+
+
+def fill_defaults(table: str, columns: Mapping[str, Any]) -> Table:
+    """Makes a full table from the given columns, filling optional ones with their defaults.
+
+    Arguments:
+        table: table name in :data:`schema.TABLES`.
+        columns: column name -> array-like; every required column must be present.
+
+    Returns:
+        Column dict in schema order with numpy arrays of the schema dtypes.
+    """
+    cols = schema.TABLES[table]
+    known = {c.name for c in cols}
+    for name in columns:
+        if name not in known:
+            raise DataError(f"unknown column; known: {sorted(known)}", table=table, column=name)
+    n = None
+    for name, values in columns.items():
+        m = len(np.atleast_1d(values))
+        if n is not None and m != n:
+            raise DataError(f"column has {m} rows, others have {n}", table=table, column=name)
+        n = m
+    n = 0 if n is None else n
+    out = {}
+    for c in cols:
+        if c.name in columns:
+            values = np.atleast_1d(np.asarray(columns[c.name]))
+        elif c.required:
+            raise DataError("missing required column", table=table, column=c.name)
+        else:
+            values = np.full(n, c.default)
+        if c.dtype == "string":
+            out[c.name] = np.array([str(v) for v in values], dtype=object)
+        else:
+            out[c.name] = values.astype(c.numpy_dtype)
+    return out
+
+
+def events_table(session_id, t, kind, pos, event_id=None) -> Table:
+    """Events column table from (E,) arrays and (E, 3) ``pos``; ids default to ``0..E-1``."""
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    n = len(pos)
+    return fill_defaults(
+        "events",
+        {
+            "event_id": np.arange(n) if event_id is None else event_id,
+            "session_id": np.broadcast_to(session_id, (n,)),
+            "t": t,
+            "kind": np.broadcast_to(np.asarray(kind, object), (n,)),
+            "x": pos[:, 0],
+            "y": pos[:, 1],
+            "z": pos[:, 2],
+        },
+    )
+
+
+def rackets_table(event_id, pos, quat, vel, ang_vel, contact) -> Table:
+    """Rackets column table from (R, 3) ``pos``/``vel``/``ang_vel``, (R, 4) ``quat`` (w, x, y, z)
+    and (R, 2) ``contact`` (d_y, d_z)."""
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    quat = np.asarray(quat, np.float64).reshape(-1, 4)
+    vel = np.asarray(vel, np.float64).reshape(-1, 3)
+    ang_vel = np.asarray(ang_vel, np.float64).reshape(-1, 3)
+    contact = np.asarray(contact, np.float64).reshape(-1, 2)
+    cols = {"event_id": event_id}
+    cols.update(x=pos[:, 0], y=pos[:, 1], z=pos[:, 2])
+    cols.update(qw=quat[:, 0], qx=quat[:, 1], qy=quat[:, 2], qz=quat[:, 3])
+    cols.update(vx=vel[:, 0], vy=vel[:, 1], vz=vel[:, 2])
+    cols.update(wx=ang_vel[:, 0], wy=ang_vel[:, 1], wz=ang_vel[:, 2])
+    cols.update(d_y=contact[:, 0], d_z=contact[:, 1])
+    return fill_defaults("rackets", cols)
+
+
+def sessions_table(session_id, name=None, notes=None) -> Table:
+    """Sessions column table; ``name`` and ``notes`` default to empty strings."""
+    cols = {"session_id": session_id}
+    if name is not None:
+        cols["name"] = name
+    if notes is not None:
+        cols["notes"] = notes
+    return fill_defaults("sessions", cols)
+
+
+def select_rows(table: Table, index) -> Table:
+    """Rows ``index`` (bool mask or integer indices) of every column."""
+    return {k: v[index] for k, v in table.items()}
+
+
+def concat_tables(tables: list[Table], name: str) -> Table:
+    """Row-wise concatenation of tables of kind ``name`` (an empty list gives an empty table)."""
+    if not tables:
+        return schema.empty_table(name)
+    return {c.name: np.concatenate([t[c.name] for t in tables]).astype(c.numpy_dtype) for c in schema.TABLES[name]}

@@ -1,0 +1,452 @@
+"""Contact detection, segmentation into flight segments, and filtering of segments.
+
+A raw observation stream (a session) is split at contacts:
+
+* table bounces: a local minimum of z where the vertical velocity reverses (falling faster than
+  ``min_speed`` before, rising faster than ``min_speed`` after), whose contact height is within
+  ``height_tol`` of the ball radius and which lies over the table;
+* other contacts: an abrupt change of the (gravity-compensated) velocity between the samples
+  before and after, away from any bounce. Near the net line and below its top they are labelled
+  ``net``, near the floor ``out``, else ``other`` (a racket, a hand, the launcher, a wall: without a
+  measured racket state it cannot be called a racket contact).
+
+Contact times and positions come from intersecting the flight curves fitted just before and just
+after the contact, so they fall between samples.
+
+:func:`filter_segments` then drops segments that are too short, whose spin is not known with enough
+confidence, or that a flight model cannot fit to within ``max_rmse``, and says how many and why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from . import schema
+from .dataset import Dataset, concat_tables, fill_defaults, select_rows
+
+GRAVITY = 9.81
+
+
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """A contact found in a stream of samples.
+
+    Attributes:
+        kind: event kind (``table``, ``net``, ``out``, ``other``).
+        t: contact time [s] (between samples).
+        pos: (3,) ball centre at the contact [m].
+        index: index of the last sample before the contact.
+        dv: size of the velocity change [m/s].
+        clean: True when the samples around the contact are evenly spaced (no dropped frames), so
+            the contact height is trustworthy to a few millimetres.
+    """
+
+    kind: str
+    t: float
+    pos: np.ndarray
+    index: int
+    dv: float
+    clean: bool
+
+
+def _line_fit(tau, values):
+    """Least-squares lines through (tau, values) along the last-but-one axis; returns (a, b)."""
+    tm = tau.mean(axis=-1, keepdims=True)
+    vm = values.mean(axis=-2, keepdims=True)
+    dt = tau - tm
+    b = np.sum(dt[..., None] * (values - vm), axis=-2) / np.sum(dt**2, axis=-1)[..., None]
+    a = vm[..., 0, :] - b * tm
+    return a, b
+
+
+def _sampling_clean(t: np.ndarray, lo: int, hi: int) -> bool:
+    dt = np.diff(t)
+    if len(dt) == 0:
+        return False
+    return bool(np.max(dt[max(lo, 0) : min(hi, len(dt))]) <= 2.5 * np.median(dt))
+
+
+def find_bounces(
+    t,
+    pos,
+    *,
+    window: int = 4,
+    min_window: int = 2,
+    min_speed: float = 0.5,
+    height: tuple[float, float] | None = (schema.BALL_RADIUS - 0.03, schema.BALL_RADIUS + 0.03),
+    on_table: bool = True,
+) -> list[Contact]:
+    """Finds ball bounces (z-velocity reversals) in one session.
+
+    Arguments:
+        t: (T,) strictly increasing times [s].
+        pos: (T, 3) ball centre positions [m].
+        window: samples fitted on each side of a candidate (fewer next to the ends of the
+            session, down to ``min_window``).
+        min_window: fewest samples on a side.
+        min_speed: least vertical speed [m/s] before and after for a reversal to count.
+        height: accepted range of contact heights [m] (default: ball radius +- 3 cm), or None to
+            accept any height (to measure where the bounces of an unknown frame sit).
+        on_table: also require the contact to lie over the table (canonical frame).
+
+    Returns:
+        Contacts of kind ``table``, in time order.
+    """
+    t = np.asarray(t, np.float64)
+    pos = np.asarray(pos, np.float64)
+    z = pos[:, 2]
+    n = len(t)
+    out: list[Contact] = []
+    for i in range(min_window, n - min_window):
+        if not (z[i] <= z[i - 1] and z[i] < z[i + 1]):
+            continue
+        w = min(window, i, n - 1 - i)
+        tau = t - t[i]
+        # With the gravity term moved to the left, free flight is a straight line in tau.
+        zg = z + 0.5 * GRAVITY * tau**2
+        _, vin = _line_fit(tau[i - w : i + 1], z[i - w : i + 1, None])
+        _, vout = _line_fit(tau[i : i + w + 1], z[i : i + w + 1, None])
+        if vin[0] > -min_speed or vout[0] < min_speed:
+            continue
+        best = None
+        for split in (i, i + 1):
+            pre = slice(max(split - w, 0), split)
+            post = slice(split, min(split + w, n))
+            if split - pre.start < min_window or post.stop - split < min_window:
+                continue
+            a1, b1 = _line_fit(tau[pre], zg[pre, None])
+            a2, b2 = _line_fit(tau[post], zg[post, None])
+            if b1[0] == b2[0]:
+                continue
+            tc = (a2[0] - a1[0]) / (b1[0] - b2[0])
+            if not (tau[split - 1] - 1e-9 <= tc <= tau[split] + 1e-9):
+                continue
+            resid = np.concatenate([zg[pre] - (a1[0] + b1[0] * tau[pre]), zg[post] - (a2[0] + b2[0] * tau[post])])
+            cost = float(np.mean(resid**2))
+            if best is None or cost < best[0]:
+                best = (cost, tc, a1[0] + b1[0] * tc - 0.5 * GRAVITY * tc**2)
+        if best is None:
+            best = (0.0, 0.0, z[i])
+        _, tc, zc = best
+        if height is not None and not (height[0] <= zc <= height[1]):
+            continue
+        tabs = t[i] + tc
+        xc = float(np.interp(tabs, t, pos[:, 0]))
+        yc = float(np.interp(tabs, t, pos[:, 1]))
+        if on_table and not (
+            abs(xc) <= schema.TABLE_LENGTH / 2 + schema.BALL_RADIUS and abs(yc) <= schema.TABLE_WIDTH / 2 + schema.BALL_RADIUS
+        ):
+            continue
+        index = i if tc >= 0 else i - 1
+        clean = w >= 3 and _sampling_clean(t, i - 2, i + 2)
+        out.append(Contact("table", float(tabs), np.array([xc, yc, zc]), index, float(vout[0] - vin[0]), clean))
+    return out
+
+
+def _robust_lines(tau, values):
+    """Theil-Sen lines per window: tau (K, w), values (K, w, 3) -> (a, b) of shape (K, 3).
+
+    A single bad sample (tracking outliers are common) cannot fake a velocity change this way.
+    """
+    w = tau.shape[-1]
+    i, j = np.triu_indices(w, 1)
+    slopes = (values[:, j] - values[:, i]) / (tau[:, j] - tau[:, i])[..., None]
+    b = np.median(slopes, axis=1)
+    a = np.median(values - b[:, None, :] * tau[..., None], axis=1)
+    return a, b
+
+
+def find_kinks(
+    t, pos, *, window: int = 5, min_dv: float = 2.0, min_rel_dv: float = 0.5, max_gap: float = 0.03, exclude=()
+) -> list[Contact]:
+    """Finds abrupt velocity changes (contacts other than table bounces) in one session.
+
+    The velocity just before and just after each sample boundary is estimated from robust
+    straight-line fits to ``window`` samples on each side, after removing gravity, so free flight
+    shows only the small changes due to drag and lift.
+
+    Arguments:
+        t: (T,) strictly increasing times [s].
+        pos: (T, 3) positions [m].
+        window: samples per side.
+        min_dv: least velocity change [m/s] to call a contact.
+        min_rel_dv: least velocity change relative to the speed at the contact. Camera timestamps
+            jitter by milliseconds, which at 10 m/s fakes changes of a few m/s; real contacts
+            (rackets, edges, the net) change the velocity by a good fraction of the speed.
+        max_gap: largest distance [m] between the two fitted paths where they meet; a larger gap
+            means a jump in the measurements, not a contact.
+        exclude: sample indices of known contacts (bounces); kinks within ``window`` samples of
+            them are ignored.
+
+    Returns:
+        Contacts of kind ``net``, ``out`` or ``other``, in time order.
+    """
+    t = np.asarray(t, np.float64)
+    pos = np.asarray(pos, np.float64)
+    n = len(t)
+    if n < 2 * window:
+        return []
+    t0 = t[0]
+    tau = t - t0
+    p = pos.copy()
+    p[:, 2] += 0.5 * GRAVITY * tau**2
+    idx = np.arange(n - window + 1)[:, None] + np.arange(window)[None, :]
+    a, b = _robust_lines(tau[idx], p[idx])  # fit k covers samples k .. k+window-1
+    # Split s separates samples < s from samples >= s: pre fit starts at s-window, post at s.
+    s = np.arange(window, n - window + 1)
+    a1, b1, a2, b2 = a[s - window], b[s - window], a[s], b[s]
+    dv = np.linalg.norm(b2 - b1, axis=-1)
+    taken: list[Contact] = []
+    excluded = np.asarray(list(exclude), int)
+    order = np.argsort(-dv)
+    used = np.zeros(len(s), bool)
+    for k in order:
+        if dv[k] < min_dv:
+            break
+        if used[max(0, k - window) : k + window + 1].any():
+            continue
+        split = s[k]
+        if excluded.size and np.min(np.abs(excluded - (split - 1))) <= window:
+            continue
+        da, db = a2[k] - a1[k], b2[k] - b1[k]
+        tc = float(np.clip(-np.dot(da, db) / max(np.dot(db, db), 1e-12), tau[split - 1], tau[split]))
+        gap = float(np.linalg.norm(da + db * tc))
+        if gap > max_gap:
+            continue
+        g_tc = np.array([0.0, 0.0, GRAVITY * tc])
+        speed = max(np.linalg.norm(b1[k] - g_tc), np.linalg.norm(b2[k] - g_tc))
+        if dv[k] < min_rel_dv * speed:
+            continue
+        used[k] = True
+        pc = a1[k] + b1[k] * tc
+        pc[2] -= 0.5 * GRAVITY * tc**2
+        taken.append(Contact(_kind_of(pc), float(t0 + tc), pc, int(split - 1), float(dv[k]), _sampling_clean(t, split - 3, split + 2)))
+    return sorted(taken, key=lambda c: c.t)
+
+
+def _kind_of(pc) -> str:
+    x, y, z = pc
+    if z < schema.FLOOR_Z + 0.1:
+        return "out"
+    if abs(x) < 0.05 + schema.BALL_RADIUS and z < schema.NET_HEIGHT + schema.BALL_RADIUS + 0.03 and abs(y) < 0.92:
+        return "net"
+    return "other"
+
+
+def detect_contacts(t, pos, *, bounce_kw: dict | None = None, kink_kw: dict | None = None) -> list[Contact]:
+    """Table bounces and other contacts of one session, in time order.
+
+    Arguments:
+        t: (T,) times [s]; pos: (T, 3) positions [m], canonical frame.
+        bounce_kw: keyword arguments for :func:`find_bounces`.
+        kink_kw: keyword arguments for :func:`find_kinks`.
+
+    Returns:
+        List of :class:`Contact`.
+    """
+    bounces = find_bounces(t, pos, **(bounce_kw or {}))
+    # Floor bounces end play ("out"); a floor is no table, so look for them separately.
+    floor = find_bounces(
+        t, pos, height=(schema.FLOOR_Z + schema.BALL_RADIUS - 0.05, schema.FLOOR_Z + schema.BALL_RADIUS + 0.05), on_table=False
+    )
+    floor = [dataclasses.replace(c, kind="out") for c in floor]
+    kinks = find_kinks(t, pos, exclude=[c.index for c in bounces + floor] + [c.index + 1 for c in bounces + floor], **(kink_kw or {}))
+    return sorted(bounces + floor + kinks, key=lambda c: c.t)
+
+
+def _session_slices(session_id: np.ndarray) -> list[tuple[int, int, int]]:
+    """(session, start, stop) row ranges of contiguous session blocks."""
+    if len(session_id) == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(session_id)) + 1
+    starts = np.concatenate([[0], cuts])
+    stops = np.concatenate([cuts, [len(session_id)]])
+    return [(int(session_id[a]), int(a), int(b)) for a, b in zip(starts, stops)]
+
+
+def detect_events(ds: Dataset, *, bounce_kw: dict | None = None, kink_kw: dict | None = None) -> Dataset:
+    """Detects contacts in every session that has no labelled events, then re-derives segments.
+
+    Arguments:
+        ds: dataset in the canonical frame (observations grouped by session, in time order).
+        bounce_kw, kink_kw: passed to :func:`find_bounces` / :func:`find_kinks`.
+
+    Returns:
+        The dataset with detected events added (ids after the existing ones) and segments split at
+        all events (existing segment spins are recomputed from the observations).
+    """
+    obs = ds.observations
+    labelled = set(np.unique(ds.events["session_id"]).tolist())
+    next_id = int(ds.events["event_id"].max()) + 1 if len(ds.events["event_id"]) else 0
+    rows = {"event_id": [], "session_id": [], "t": [], "kind": [], "x": [], "y": [], "z": []}
+    pos = ds.positions
+    for sid, a, b in _session_slices(obs["session_id"]):
+        if sid in labelled:
+            continue
+        for c in detect_contacts(obs["t"][a:b], pos[a:b], bounce_kw=bounce_kw, kink_kw=kink_kw):
+            rows["event_id"].append(next_id)
+            next_id += 1
+            rows["session_id"].append(sid)
+            rows["t"].append(c.t)
+            rows["kind"].append(c.kind)
+            rows["x"].append(c.pos[0])
+            rows["y"].append(c.pos[1])
+            rows["z"].append(c.pos[2])
+    new = fill_defaults("events", {k: np.asarray(v, object if k == "kind" else None) for k, v in rows.items()})
+    events = concat_tables([ds.events, new], "events")
+    order = np.lexsort((events["t"], events["session_id"]))
+    return segments_from_events(ds.replace(events=select_rows(events, order)))
+
+
+def segments_from_events(ds: Dataset) -> Dataset:
+    """Splits every session at its events into flight segments.
+
+    Observations before the first event, between consecutive events and after the last event form
+    one segment each (empty spans make none). A segment's spin is the confidence-weighted mean of
+    its observations' spin, and its confidence the largest among them.
+
+    Arguments:
+        ds: dataset whose observations are grouped by session and in time order.
+
+    Returns:
+        The dataset with a new ``segments`` table and ``observations.segment_id`` filled in.
+    """
+    obs = ds.observations
+    ev = ds.events
+    seg_id = np.full(len(obs["t"]), -1, np.int64)
+    cols = {c.name: [] for c in schema.SEGMENTS}
+    ev_by_session: dict[int, np.ndarray] = {}
+    if len(ev["t"]):
+        order = np.lexsort((ev["t"], ev["session_id"]))
+        for sid, a, b in _session_slices(ev["session_id"][order]):
+            ev_by_session[sid] = order[a:b]
+    spin = ds.spins
+    conf = obs["spin_conf"]
+    next_id = 0
+    for sid, a, b in _session_slices(obs["session_id"]):
+        t = obs["t"][a:b]
+        rows = ev_by_session.get(sid, np.zeros(0, int))
+        et = ev["t"][rows]
+        part = np.searchsorted(et, t, side="right")  # number of events at or before each sample
+        for k in np.unique(part):
+            members = np.flatnonzero(part == k)
+            seg_id[a + members] = next_id
+            cols["segment_id"].append(next_id)
+            cols["session_id"].append(sid)
+            cols["start_event_id"].append(int(ev["event_id"][rows[k - 1]]) if k > 0 else -1)
+            cols["end_event_id"].append(int(ev["event_id"][rows[k]]) if k < len(rows) else -1)
+            cols["t_start"].append(et[k - 1] if k > 0 else t[members[0]])
+            cols["t_end"].append(et[k] if k < len(rows) else t[members[-1]])
+            w = conf[a + members]
+            if np.any(w > 0):
+                s = np.sum(spin[a + members] * w[:, None], axis=0) / np.sum(w)
+                c = float(np.max(w))
+            else:
+                s, c = np.zeros(3), 0.0
+            cols["spin_x"].append(s[0])
+            cols["spin_y"].append(s[1])
+            cols["spin_z"].append(s[2])
+            cols["spin_conf"].append(c)
+            next_id += 1
+    segments = fill_defaults("segments", {k: np.asarray(v) for k, v in cols.items()}) if next_id else schema.empty_table("segments")
+    observations = dict(obs)
+    observations["segment_id"] = seg_id
+    return ds.replace(observations=observations, segments=segments)
+
+
+@dataclasses.dataclass
+class FilterReport:
+    """What :func:`filter_segments` kept and dropped.
+
+    Attributes:
+        total: segments examined.
+        kept: segments kept.
+        dropped: reason -> segment ids dropped for it (first failing reason only). Reasons:
+            ``too_short``, ``low_spin_conf``, ``rmse``.
+        rmse: segment id -> fitted RMSE [m] for every segment that was fitted.
+        thresholds: the thresholds used.
+    """
+
+    total: int = 0
+    kept: int = 0
+    dropped: dict = dataclasses.field(default_factory=lambda: {"too_short": [], "low_spin_conf": [], "rmse": []})
+    rmse: dict = dataclasses.field(default_factory=dict)
+    thresholds: dict = dataclasses.field(default_factory=dict)
+
+    def counts(self) -> dict:
+        """reason -> number of segments dropped for it."""
+        return {k: len(v) for k, v in self.dropped.items()}
+
+    def __str__(self) -> str:
+        parts = ", ".join(f"{n} {reason}" for reason, n in self.counts().items())
+        th = ", ".join(f"{k}={v}" for k, v in self.thresholds.items())
+        return f"kept {self.kept} of {self.total} segments; dropped: {parts} ({th})"
+
+
+def filter_segments(
+    ds: Dataset,
+    *,
+    min_spin_conf: float | None = 0.5,
+    max_rmse: float | None = 0.02,
+    min_samples: int = 5,
+    rmse_fn: Callable | None = None,
+) -> tuple[Dataset, FilterReport]:
+    """Drops segments unfit for model fitting, as in the paper, and reports why.
+
+    Arguments:
+        ds: segmented dataset.
+        min_spin_conf: drop segments whose spin confidence is below this (None: keep all).
+        max_rmse: drop segments whose flight-model fit has a larger RMSE [m] (None: no fit).
+        min_samples: drop segments with fewer observations.
+        rmse_fn: ``rmse_fn(times (T,), positions (T, 3), spin (3,)) -> rmse_m``; default: the
+            drag + Magnus flight fit of :mod:`ttsim_jax.data.flightfit` (run batched).
+
+    Returns:
+        (dataset, report): the dataset without the dropped segments (their observations stay, with
+        ``segment_id = -1``; events stay), and a :class:`FilterReport`.
+    """
+    seg = ds.segments
+    obs = ds.observations
+    report = FilterReport(thresholds={"min_spin_conf": min_spin_conf, "max_rmse": max_rmse, "min_samples": min_samples})
+    ids = seg["segment_id"]
+    report.total = len(ids)
+    counts = dict(zip(*np.unique(obs["segment_id"], return_counts=True)))
+    alive = np.ones(len(ids), bool)
+    for k, sid in enumerate(ids):
+        if counts.get(sid, 0) < min_samples:
+            report.dropped["too_short"].append(int(sid))
+            alive[k] = False
+        elif min_spin_conf is not None and seg["spin_conf"][k] < min_spin_conf:
+            report.dropped["low_spin_conf"].append(int(sid))
+            alive[k] = False
+    if max_rmse is not None and alive.any():
+        order = np.argsort(obs["segment_id"], kind="stable")
+        sorted_ids = obs["segment_id"][order]
+        todo = np.flatnonzero(alive)
+        times, positions, spins = [], [], []
+        pos = ds.positions
+        for k in todo:
+            lo, hi = np.searchsorted(sorted_ids, [ids[k], ids[k] + 1])
+            rows = order[lo:hi]
+            times.append(obs["t"][rows])
+            positions.append(pos[rows])
+            spins.append([seg["spin_x"][k], seg["spin_y"][k], seg["spin_z"][k]])
+        if rmse_fn is None:
+            from .flightfit import ballistic_rmse_many
+
+            rmse = ballistic_rmse_many(times, positions, np.asarray(spins))
+        else:
+            rmse = np.array([float(rmse_fn(tt, pp, np.asarray(ss))) for tt, pp, ss in zip(times, positions, spins)])
+        for k, r in zip(todo, rmse):
+            report.rmse[int(ids[k])] = float(r)
+            if not (r <= max_rmse):  # NaN fails too
+                report.dropped["rmse"].append(int(ids[k]))
+                alive[k] = False
+    report.kept = int(alive.sum())
+    kept_ids = ids[alive]
+    observations = dict(obs)
+    observations["segment_id"] = np.where(np.isin(obs["segment_id"], kept_ids), obs["segment_id"], -1)
+    return ds.replace(segments=select_rows(seg, alive), observations=observations), report

@@ -1,0 +1,78 @@
+"""Counts and ranges of a dataset, for ``ttsim data info``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import schema
+from .dataset import Dataset
+
+
+def _speeds(ds: Dataset) -> np.ndarray:
+    """Finite-difference speeds between consecutive samples of the same segment [m/s]."""
+    o = ds.observations
+    seg = o["segment_id"]
+    same = (seg[1:] == seg[:-1]) & (seg[1:] >= 0)
+    if not same.any():
+        return np.zeros(0)
+    d = np.diff(ds.positions, axis=0)[same]
+    dt = np.diff(o["t"])[same]
+    return np.linalg.norm(d, axis=-1) / dt
+
+
+def info(ds: Dataset, problems=None) -> dict:
+    """Summary of ``ds``.
+
+    Arguments:
+        ds: the dataset.
+        problems: optional list of validation problems to report.
+
+    Returns:
+        dict with counts (sessions, observations, segments, events by kind, racket states),
+        speed percentiles [m/s], spin magnitude range over segments with spin [rad/s], time span,
+        and the validation summary.
+    """
+    seg = ds.segments
+    kinds = {k: int(np.sum(ds.events["kind"] == k)) for k in schema.EVENT_KINDS}
+    speeds = _speeds(ds)
+    spin = np.stack([seg["spin_x"], seg["spin_y"], seg["spin_z"]], -1)
+    has_spin = seg["spin_conf"] > 0
+    mags = np.linalg.norm(spin[has_spin], axis=-1)
+    pct = lambda a, q: [float(v) for v in np.percentile(a, q)] if len(a) else []  # noqa: E731
+    return {
+        "source": ds.metadata.source,
+        "schema_version": ds.metadata.schema_version,
+        "frame": ds.metadata.frame,
+        "sessions": len(ds.sessions["session_id"]),
+        "observations": len(ds.observations["t"]),
+        "segments": len(seg["segment_id"]),
+        "segments_with_spin": int(has_spin.sum()),
+        "events": kinds,
+        "racket_states": len(ds.rackets["event_id"]),
+        "speed_p1_p50_p99": pct(speeds, [1, 50, 99]),
+        "spin_min_median_max": [float(mags.min()), float(np.median(mags)), float(mags.max())] if len(mags) else [],
+        "problems": [str(p) for p in (problems or [])],
+    }
+
+
+def format_info(d: dict) -> str:
+    """Human-readable text of :func:`info`'s dict."""
+    ev = ", ".join(f"{k} {n}" for k, n in d["events"].items())
+    lines = [
+        f"source:        {d['source']}",
+        f"schema:        {d['schema_version']}, frame {d['frame']}",
+        f"sessions:      {d['sessions']}",
+        f"observations:  {d['observations']}",
+        f"segments:      {d['segments']} ({d['segments_with_spin']} with spin)",
+        f"events:        {ev}",
+        f"racket states: {d['racket_states']}",
+    ]
+    if d["speed_p1_p50_p99"]:
+        lo, mid, hi = d["speed_p1_p50_p99"]
+        lines.append(f"speed [m/s]:   {lo:.2f} .. {hi:.2f} (1st..99th percentile), median {mid:.2f}")
+    if d["spin_min_median_max"]:
+        lo, mid, hi = d["spin_min_median_max"]
+        lines.append(f"spin [rad/s]:  {lo:.0f} .. {hi:.0f}, median {mid:.0f}")
+    lines.append("validation:    " + ("ok" if not d["problems"] else f"{len(d['problems'])} problem(s)"))
+    lines += [f"  - {p}" for p in d["problems"]]
+    return "\n".join(lines)
