@@ -1,0 +1,138 @@
+"""Residual checkpoints: bit-exact round trip, clear errors for bad files, resumable training."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax.fit import residual as F
+from ttsim_jax.physics import residual as R
+
+CFG = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=12, dropout=0.1)
+
+
+def _model(seed=0, config=CFG):
+    m = R.init_model(config, jax.random.key(seed))
+    keys = iter(jax.random.split(jax.random.key(seed + 1), 64))
+    v = jax.tree_util.tree_map(lambda a: a + jax.random.normal(next(keys), a.shape, a.dtype), m.variables)
+    return m.replace(variables=v, x_min=m.x_min - 3.0, centres=jax.random.uniform(next(keys), m.centres.shape))
+
+
+def _leaves_equal(a, b):
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    def same(x, y):
+        x, y = np.asarray(x), np.asarray(y)
+        return x.dtype == y.dtype and np.array_equal(x, y)
+
+    return len(la) == len(lb) and all(same(x, y) for x, y in zip(la, lb))
+
+
+def test_round_trip_bit_exact(tmp_path):
+    m = _model()
+    path = tmp_path / "net.ttres"
+    R.save_residual(path, m, metadata={"note": "test"})
+    back = R.load_residual(path, expected_config=CFG)
+    assert back.config == m.config
+    assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(m)
+    assert _leaves_equal(back, m)
+    assert R.checkpoint_metadata(path) == {"note": "test"}
+    # the atomic writer leaves no temporary file behind
+    assert sorted(os.listdir(tmp_path)) == ["net.ttres"]
+
+
+def test_truncated_file_is_named(tmp_path):
+    path = tmp_path / "net.ttres"
+    R.save_residual(path, _model())
+    data = path.read_bytes()
+    for cut in (len(data) - 10, len(data) // 2, 30, 5):
+        bad = tmp_path / f"cut{cut}.ttres"
+        bad.write_bytes(data[:cut])
+        with pytest.raises(R.CheckpointError, match=str(bad).replace("\\", "\\\\")):
+            R.load_residual(bad)
+    with pytest.raises(R.CheckpointError, match="payload_bytes"):
+        R.load_residual(tmp_path / f"cut{len(data) - 10}.ttres")
+
+
+def test_corrupted_byte_and_version(tmp_path):
+    path = tmp_path / "net.ttres"
+    R.save_residual(path, _model())
+    data = bytearray(path.read_bytes())
+    data[-20] ^= 0xFF
+    bad = tmp_path / "flip.ttres"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(R.CheckpointError, match="payload_sha256"):
+        R.load_residual(bad)
+
+    raw = path.read_bytes()
+    end = raw.index(b"\n", len(R.CHECKPOINT_MAGIC))
+    header = json.loads(raw[len(R.CHECKPOINT_MAGIC):end])
+    header["format_version"] = 99
+    newer = tmp_path / "v99.ttres"
+    newer.write_bytes(R.CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
+    with pytest.raises(R.CheckpointError, match="format_version"):
+        R.load_residual(newer)
+    with pytest.raises(R.CheckpointError, match="no such checkpoint"):
+        R.load_residual(tmp_path / "missing.ttres")
+
+
+def test_mismatched_shapes_name_the_key(tmp_path):
+    m8 = _model()
+    # a self-consistent file (valid checksum) whose arrays do not fit its configuration
+    six = R.ResidualConfig(n_inputs=6, trunk=(16, 16), head_width=8, n_clusters=12, dropout=0.1)
+    path = tmp_path / "mixed.ttres"
+    R.write_container(path, "residual-model", dict(config=six.to_dict(), metadata={}), R._model_arrays(m8))
+    with pytest.raises(R.CheckpointError, match=r"mixed\.ttres.*'variables/params/trunk_0/kernel' has shape \(8, 16\)"):
+        R.load_residual(path)
+
+    good = tmp_path / "good.ttres"
+    R.save_residual(good, m8)
+    other = R.ResidualConfig(trunk=(32, 16), head_width=8, n_clusters=12, dropout=0.1)
+    with pytest.raises(R.CheckpointError, match="does not match the expected configuration"):
+        R.load_residual(good, expected_config=other)
+
+    arrays = R._model_arrays(m8)
+    del arrays["centres"]
+    partial = tmp_path / "partial.ttres"
+    R.write_container(partial, "residual-model", dict(config=CFG.to_dict(), metadata={}), arrays)
+    with pytest.raises(R.CheckpointError, match="missing array 'centres'"):
+        R.load_residual(partial)
+
+
+def _data(n=600, seed=3):
+    return F.make_synthetic_contacts(n, seed)
+
+
+def test_training_resume_matches_uninterrupted(tmp_path):
+    d = _data()
+    tc = F.TrainConfig(batch_size=32, max_epochs=5, patience=100, kmeans_iters=5, seed=1)
+    ref_model, ref = F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=tmp_path / "a.state",
+                                      progress=False)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_2(epoch, logs):
+        if epoch == 2:
+            raise Stop()
+
+    ck = tmp_path / "b.state"
+    with pytest.raises(Stop):
+        F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, progress=False, callback=stop_at_2)
+    with pytest.raises(FileExistsError, match="resume=True"):
+        F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, progress=False)
+    model, rep = F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, resume=True,
+                                  progress=False)
+    assert rep["history"] == ref["history"] and rep["epochs"] == 5
+    assert _leaves_equal(model, ref_model)
+    # a finished run resumes to its result without training
+    again, rep2 = F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, resume=True,
+                                   progress=False)
+    assert _leaves_equal(again, ref_model) and rep2["history"] == ref["history"]
+
+    other = _data(seed=4)
+    with pytest.raises(R.CheckpointError, match="data_sha256"):
+        F.train_residual(other["x"], other["y_base"], other["y_obs"], CFG, tc, checkpoint=ck, resume=True,
+                         progress=False)

@@ -1,0 +1,123 @@
+"""Residual training: recovery of a known residual, configs, splits, base-model adapters."""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax.fit import residual as F
+from ttsim_jax.physics import residual as R
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "residual"
+
+SMALL = R.ResidualConfig(trunk=(32, 32, 16), head_width=16, n_clusters=50, dropout=0.1)
+# Equal component weights: with the authors' velocity x100 the small shared trunk spends itself on
+# the velocity residual and the spin residual is barely learnt (see recovery_experiment's notes).
+FAST = F.TrainConfig(batch_size=64, max_epochs=40, patience=10, learning_rate=3e-3,
+                     loss_weights=(1.0,) * 6, kmeans_iters=20, seed=0)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    data = F.make_synthetic_contacts(4000, seed=0)
+    model, report = F.train_residual(data["x"], data["y_base"], data["y_obs"], SMALL, FAST, progress=False)
+    return data, model, report
+
+
+def test_training_recovers_known_residual(trained):
+    _, _, rep = trained
+    assert rep["median_vel_error_drop_pct"] >= 50.0, rep
+    assert rep["median_spin_error_drop_pct"] >= 50.0, rep
+    assert rep["n_train"] == 3200 and rep["n_val"] == 400 and rep["n_test"] == 400
+    # predicted sigmas are of the right order: between 40 % and 95 % of errors inside one sigma
+    assert 0.4 < rep["within_one_sigma_overall"] < 0.95
+    assert all(np.isfinite(v) for v in rep["median_abs_error_residual"].values())
+
+
+def test_beta_on_training_inputs_and_far_away(trained):
+    data, model, rep = trained
+    train_idx, _, _ = F.split_by_contact(len(data["x"]), FAST.split, FAST.seed)
+    out = R.residual_outputs(model, jnp.asarray(data["x"][train_idx]))
+    assert float(jnp.mean(out["beta"])) > 0.97
+    assert rep["beta_mean"] > 0.97
+    x = data["x"]
+    fast = (np.linalg.norm(x[:, :3], axis=1) > 25.0) & (np.linalg.norm(x[:, 3:6], axis=1) > 700.0)
+    far = x[fast][:5] * 3.0  # speeds > 75 m/s and spins > 2100 rad/s: no training data there
+    assert float(jnp.max(R.residual_outputs(model, jnp.asarray(far))["beta"])) < 0.05
+    assert len(rep["attenuation"]["coefficients"]) == 3
+
+
+def test_six_input_training_runs():
+    data = F.make_synthetic_contacts(1200, seed=1, n_inputs=6)
+    cfg = R.ResidualConfig(n_inputs=6, trunk=(16, 16), head_width=8, n_clusters=20)
+    model, rep = F.train_residual(data["x"], data["y_base"], data["y_obs"], cfg,
+                                  F.TrainConfig(batch_size=64, max_epochs=3, kmeans_iters=5), progress=False)
+    assert model.config.n_inputs == 6 and model.x_min.shape == (6,)
+    assert np.isfinite(rep["best_val_loss"])
+
+
+def test_training_rejects_bad_arrays():
+    data = F.make_synthetic_contacts(100, seed=2)
+    with pytest.raises(ValueError, match=r"x has shape \(100, 8\).*n_inputs = 6"):
+        F.train_residual(data["x"], data["y_base"], data["y_obs"], R.ResidualConfig(n_inputs=6), progress=False)
+    y = data["y_obs"].copy()
+    y[7, 2] = np.nan
+    with pytest.raises(ValueError, match="y_obs has non-finite values.*row 7"):
+        F.train_residual(data["x"], data["y_base"], y, SMALL, progress=False)
+    with pytest.raises(ValueError, match="n_clusters = 1000 exceeds"):
+        F.train_residual(data["x"], data["y_base"], data["y_obs"], R.ResidualConfig(),
+                         F.TrainConfig(max_epochs=1), progress=False)
+
+
+def test_split_by_contact_keeps_groups_together():
+    groups = np.repeat(np.arange(50), 3)
+    tr, va, te = F.split_by_contact(150, (0.8, 0.1, 0.1), 0, groups)
+    assert len(tr) + len(va) + len(te) == 150
+    assert set(groups[tr]).isdisjoint(groups[va]) and set(groups[tr]).isdisjoint(groups[te])
+    assert len(set(groups[va])) == 5 and len(set(groups[te])) == 5
+
+
+def test_repo_configs_load():
+    cfg, tc = F.load_train_config(CONFIGS / "conti2026.toml")
+    assert cfg.n_inputs == 8 and cfg.trunk == (64, 64, 32) and cfg.head_width == 32 and cfg.n_clusters == 1000
+    assert cfg.dropout == 0.2 and cfg.dropout_after == 2
+    assert (cfg.beta_a, cfg.beta_b, cfg.beta_c) == R.PAPER_BETA
+    assert tc.learning_rate == 1.5e-3 and tc.weight_decay == 5e-4 and tc.patience == 50
+    assert tc.loss_weights == (100.0, 100.0, 100.0, 1.0, 1.0, 1.0)
+    durr, _ = F.load_train_config(CONFIGS / "durr2026.toml")
+    assert durr.n_inputs == 6
+    assert R.load_residual_config(CONFIGS / "durr2026.toml") == durr
+
+
+def test_config_errors_name_file_and_key(tmp_path):
+    text = (CONFIGS / "conti2026.toml").read_text()
+    cases = {
+        "unknown": (text.replace("head_width = 32", "head_width = 32\nhead_widht = 32"),
+                    r"unknown key\(s\) \['head_widht'\] in \[model\]"),
+        "missing": (text.replace("n_clusters = 1000", ""), r"missing key\(s\) \['n_clusters'\] in \[model\]"),
+        "badvalue": (text.replace("n_inputs = 8", "n_inputs = 7"), "n_inputs = 7"),
+        "badtype": (text.replace("batch_size = 16", 'batch_size = "16"'), r"\[training\] batch_size = '16'"),
+        "unknowntrain": (text.replace("seed = 0", "seed = 0\nlr = 1"), r"unknown key\(s\) \['lr'\] in \[training\]"),
+        "badtable": (text + "\n[extra]\nx = 1\n", r"unknown table\(s\) \['extra'\]"),
+        "toml": ("[model\n", "not valid TOML"),
+    }
+    for name, (body, pattern) in cases.items():
+        path = tmp_path / f"{name}.toml"
+        path.write_text(body)
+        with pytest.raises(R.ConfigError, match=pattern) as err:
+            F.load_train_config(path)
+        assert str(path) in str(err.value), name
+
+
+def test_standin_base_matches_racket_stage_when_available():
+    racket = pytest.importorskip("ttsim_jax.physics.racket")
+    params = racket.RacketParams(e0=0.878, e1=-0.020, et0=0.819, et1=-0.010, e_s=0.805, k_p=0.0, kappa=1.5,
+                                 e_max=1.0, kind="updated")
+    x = jnp.asarray(F.sample_racket_inputs(64, 3))
+    try:
+        theirs = F.racket_base_fn(params)(x)
+    except TypeError as e:  # the racket stage's signature moved on
+        pytest.skip(f"racket.base_response signature differs: {e}")
+    np.testing.assert_allclose(np.asarray(theirs), np.asarray(F.standin_base_fn(x)), rtol=1e-4, atol=1e-3)
