@@ -29,6 +29,7 @@ from flax import struct
 from ttsim_jax.params import Model
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import events as ev
+from ttsim_jax.physics import hooks
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
 from ttsim_jax.state import Ball, Racket
@@ -161,6 +162,11 @@ def init_state(ball: Ball, max_events: int = 8, t0=0.0) -> RallyState:
 
 
 # --------------------------------------------------------------------------- one ball
+def ball_properties(model: Model):
+    """(radius, mass) of the ball after effects (hook ``ball_properties``)."""
+    return hooks.apply(model.effects, "ball_properties", (model.ball.radius, model.ball.mass))
+
+
 def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: str = "rk4") -> Proposal:
     """Free flight over a step and the earliest contact in it, for one ball.
 
@@ -174,7 +180,8 @@ def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: 
     Returns:
         A :class:`Proposal`.
     """
-    radius, mass, fx = model.ball.radius, model.ball.mass, model.effects
+    fx = model.effects
+    radius, mass = ball_properties(model)
     p0, v0, w0 = ball.pos, ball.vel, ball.spin
     p1, v1, w1 = aero_stage.flight_step(model.aero, radius, mass, p0, v0, w0, t, dt, fx, integrator)
     free = Ball(p1, v1, w1)
@@ -232,7 +239,7 @@ def resolve(model: Model, ball: Ball, alive, status, log: EventLog, prop: Propos
     # The rest of the step after a contact is short and happens once per contact: a second-order
     # Taylor step (one acceleration) costs a quarter of an RK4 step and errs by O(dt^3) once.
     rest = (1.0 - prop.tau) * dt
-    f = aero_stage.derivative(model.aero, model.ball.radius, model.ball.mass, model.effects)
+    f = aero_stage.derivative(model.aero, *ball_properties(model), model.effects)
     _, acc, dspin = f((post.pos, post.vel, post.spin), t + prop.tau * dt)
     after = Ball(post.pos + rest * post.vel + 0.5 * rest * rest * acc, post.vel + rest * acc, post.spin + rest * dspin)
 

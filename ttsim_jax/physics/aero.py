@@ -91,11 +91,23 @@ class MagnusTable:
     c: jnp.ndarray
 
 
-def _interp_rows(x, xp, fp):
-    """Linear interpolation in x of every column of fp (K, ...) given at xp (K,), held outside."""
-    i = jnp.clip(jnp.searchsorted(xp, x, side="right") - 1, 0, xp.shape[0] - 2)
-    w = jnp.clip((x - xp[i]) / (xp[i + 1] - xp[i]), 0.0, 1.0)
-    return (1.0 - w) * fp[i] + w * fp[i + 1]
+def _ramps(x, xp, last=1.0):
+    """Weights s_k = clip((x - xp[k-1]) / (xp[k] - xp[k-1]), 0, 1), k = 1..K-1.
+
+    A piecewise-linear f through (xp, fp) is fp[0] + sum_k (fp[k] - fp[k-1]) s_k: the same as
+    interpolation held outside [xp[0], xp[-1]], but as plain arithmetic with no search, which is
+    several times faster under vmap on CPU. ``last`` is the upper clip of the last ramp
+    (> 1 extrapolates beyond xp[-1]).
+    """
+    s = (x - xp[:-1]) / (xp[1:] - xp[:-1])
+    upper = jnp.ones_like(s).at[-1].set(last)
+    return jnp.clip(s, 0.0, upper)
+
+
+def _piecewise(x, xp, fp, last=1.0):
+    """Piecewise-linear interpolation of fp (K, ...) at x over xp (K,); see :func:`_ramps`."""
+    s = _ramps(x, xp, last)
+    return fp[0] + jnp.tensordot(s, fp[1:] - fp[:-1], axes=1)
 
 
 def drag_constant(p: ConstantCoefficient, speed, spin_rate, radius, nu):
@@ -105,12 +117,9 @@ def drag_constant(p: ConstantCoefficient, speed, spin_rate, radius, nu):
 def drag_table(p: DragTable, speed, spin_rate, radius, nu):
     re = 2.0 * speed * radius / nu
     sp = spin_rate * radius / jnp.maximum(speed, 1e-6)
-    curves = jax.vmap(jnp.interp, in_axes=(None, 0, 0))(sp, p.sp, p.cd)  # (K,)
-    k = p.re_ref.shape[0]
-    re_c = jnp.clip(re, p.re_ref[0], p.re_cap)
-    i = jnp.clip(jnp.searchsorted(p.re_ref, re_c, side="right") - 1, 0, k - 2)
-    w = (re_c - p.re_ref[i]) / (p.re_ref[i + 1] - p.re_ref[i])  # > 1 only in the last interval
-    cd = (1.0 - w) * curves[i] + w * curves[i + 1]
+    curves = jax.vmap(_piecewise, in_axes=(None, 0, 0))(sp, p.sp, p.cd)  # (K,) each curve at Sp
+    last = (p.re_cap - p.re_ref[-2]) / (p.re_ref[-1] - p.re_ref[-2])  # extrapolate up to the cap
+    cd = _piecewise(re, p.re_ref, curves, last)
     return jnp.maximum(cd, p.cd_min)
 
 
@@ -126,7 +135,7 @@ def magnus_durr(p: DurrMagnus, speed, spin_rate, radius, nu):
 
 def magnus_table(p: MagnusTable, speed, spin_rate, radius, nu):
     coef = jnp.stack([p.m1, p.s, p.w_b, p.a, p.b, p.c], axis=-1)  # (K, 6)
-    m1, s, w_b, a, b, c = _interp_rows(speed, p.v_ref, coef)
+    m1, s, w_b, a, b, c = _piecewise(speed, p.v_ref, coef)
     w = spin_rate
     cm = jnp.where(w <= w_b, m1 * w + s, (a * w + b) * w + c)
     return jnp.maximum(cm, 0.0)

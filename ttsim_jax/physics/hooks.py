@@ -12,6 +12,7 @@ Hook points, the value they receive, and the context passed as keyword arguments
 =====================  ==============================================  =========================
 hook                   value (neutral)                                 context
 =====================  ==============================================  =========================
+``ball_properties``    (radius, mass) of the ball [m, kg]              none
 ``air_velocity``       (3,) air velocity in the world frame (zeros)    ``pos``, ``t``
 ``spin_derivative``    (3,) d(spin)/dt in flight (zeros)               ``vel``, ``spin``, ``t``
 ``table_surface``      (height, normal): surface height [m] above      ``pos`` (contact point)
@@ -32,6 +33,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 HOOK_POINTS = (
+    "ball_properties",
     "air_velocity",
     "spin_derivative",
     "table_surface",

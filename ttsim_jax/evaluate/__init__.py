@@ -1,0 +1,1 @@
+"""Metrics and summaries of simulated or measured rallies."""
