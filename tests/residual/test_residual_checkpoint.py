@@ -16,9 +16,11 @@ CFG = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=12, dropout=0.1)
 
 def _model(seed=0, config=CFG):
     m = R.init_model(config, jax.random.key(seed))
-    keys = iter(jax.random.split(jax.random.key(seed + 1), 64))
-    v = jax.tree_util.tree_map(lambda a: a + jax.random.normal(next(keys), a.shape, a.dtype), m.variables)
-    return m.replace(variables=v, x_min=m.x_min - 3.0, centres=jax.random.uniform(next(keys), m.centres.shape))
+    rng = np.random.default_rng(seed + 1)  # host-side noise: op-by-op device calls are slow
+    v = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a) + rng.normal(size=a.shape).astype(a.dtype)),
+                               m.variables)
+    return m.replace(variables=v, x_min=m.x_min - 3.0,
+                     centres=jnp.asarray(rng.uniform(size=m.centres.shape).astype(np.float32)))
 
 
 def _leaves_equal(a, b):
@@ -136,3 +138,46 @@ def test_training_resume_matches_uninterrupted(tmp_path):
     with pytest.raises(R.CheckpointError, match="data_sha256"):
         F.train_residual(other["x"], other["y_base"], other["y_obs"], CFG, tc, checkpoint=ck, resume=True,
                          progress=False)
+
+
+def test_version_1_model_loads_uncalibrated_with_a_warning(tmp_path):
+    m = _model().replace(sigma_scale=jnp.full((6,), 2.0, jnp.float32))
+    arrays = R._model_arrays(m)
+    del arrays["sigma_scale"]
+    path = tmp_path / "v1.ttres"
+    R.write_container(path, "residual-model", dict(config=CFG.to_dict(), metadata={}), arrays)
+    raw = path.read_bytes()
+    end = raw.index(b"\n", len(R.CHECKPOINT_MAGIC))
+    header = json.loads(raw[len(R.CHECKPOINT_MAGIC):end])
+    header["format_version"] = 1
+    path.write_bytes(R.CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
+    with pytest.warns(UserWarning, match="version 1 has no sigma calibration"):
+        back = R.load_residual(path)
+    assert np.all(np.asarray(back.sigma_scale) == 1.0)
+    assert _leaves_equal(back.variables, m.variables)
+    # a version-2 file must hold sigma_scale
+    v2 = tmp_path / "v2.ttres"
+    R.write_container(v2, "residual-model", dict(config=CFG.to_dict(), metadata={}), arrays)
+    with pytest.raises(R.CheckpointError, match="missing array 'sigma_scale'"):
+        R.load_residual(v2)
+    # training states are read in the current version only
+    state = tmp_path / "old.state"
+    header["kind"] = "residual-train-state"
+    state.write_bytes(R.CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
+    with pytest.raises(R.CheckpointError, match="format_version' = 1.*version 2"):
+        R.read_container(state, "residual-train-state")
+
+
+def test_sigma_scale_round_trips_and_scales_sigmas(tmp_path):
+    m = _model().replace(sigma_scale=jnp.asarray([1.0, 2.0, 3.0, 0.5, 1.0, 4.0], jnp.float32))
+    path = tmp_path / "s.ttres"
+    R.save_residual(path, m)
+    back = R.load_residual(path)
+    assert _leaves_equal(back, m)
+    x = jnp.zeros((3, 8)) + 0.5
+    outputs = jax.jit(R.residual_outputs)
+    a = outputs(m, x)
+    b = outputs(m.replace(sigma_scale=jnp.ones(6, jnp.float32)), x)
+    np.testing.assert_allclose(np.asarray(a["sigma_v"]), np.asarray(b["sigma_v"]) * [1.0, 2.0, 3.0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(a["sigma_w"]), np.asarray(b["sigma_w"]) * [0.5, 1.0, 4.0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(a["dv"]), np.asarray(b["dv"]))

@@ -14,8 +14,10 @@ TINY = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1
 def _random_model(config, seed):
     """A model with random (non-trivial) parameters and statistics, no training needed."""
     model = R.init_model(config, jax.random.key(seed))
-    keys = iter(jax.random.split(jax.random.key(seed + 100), 64))
-    variables = jax.tree_util.tree_map(lambda a: a + 0.3 * jax.random.normal(next(keys), a.shape), model.variables)
+    rng = np.random.default_rng(seed + 100)  # host-side noise: op-by-op device calls are slow
+    variables = jax.tree_util.tree_map(
+        lambda a: jnp.asarray(np.asarray(a) + 0.3 * rng.normal(size=a.shape).astype(np.asarray(a).dtype)),
+        model.variables)
     variables["batch_stats"] = jax.tree_util.tree_map(jnp.abs, variables["batch_stats"])
     x = jnp.asarray(F.sample_racket_inputs(500, seed))[:, :config.n_inputs]
     x_min, x_max = x.min(0), x.max(0)

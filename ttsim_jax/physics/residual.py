@@ -20,7 +20,14 @@ Implementation choices beyond the paper (each documented where it is made):
 * log sigma is soft-clamped to +-``log_sigma_bound`` (in standardised units) with a tanh, so
   exp() stays finite and the NLL cannot collapse on duplicated points; gradients never vanish.
 * Everything here is inference-mode (batch-norm running statistics, no dropout), hence row-wise:
-  this is what makes :func:`gathered_residual`'s gather/scatter exact.
+  this is what makes :func:`gathered_residual`'s gather/scatter exact. Training replaces the
+  running averages (an exponential average over the last few mini-batches, i.e. over the last
+  ~10 batches of 16 contacts) by the exact population statistics of the whole training split
+  (:func:`population_batch_stats`), which do not depend on the order of the batches.
+* Sigma calibration: the predicted sigmas are multiplied by ``sigma_scale`` (6,), fitted on the
+  validation split after training so that ~68.3 % of held-out errors fall inside one sigma
+  (:func:`calibration_scale`). The Gaussian NLL alone leaves them over- or under-confident
+  (early stopping, weight decay and dropout all bias them).
 
 Checkpoint file (``save_residual`` / ``load_residual``): one file,
 
@@ -28,7 +35,9 @@ Checkpoint file (``save_residual`` / ``load_residual``): one file,
 
 The header holds the format version, the configuration, the payload's length and SHA-256, and
 every array's shape and dtype; the payload (``flax.serialization`` msgpack) holds the arrays
-bit-exactly.
+bit-exactly. Format versions: 1 had no ``sigma_scale``; 2 (current) adds it. Version-1 model
+files are still read, with ``sigma_scale`` = 1 (uncalibrated sigmas) and a warning; training-state
+files must be of the current version.
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ import math
 import os
 import tempfile
 import tomllib
+import warnings
 from functools import partial
 from typing import Any
 
@@ -53,7 +63,11 @@ from flax import serialization, struct
 PAPER_BETA = (7.282, 12.899, 0.052)
 
 CHECKPOINT_MAGIC = b"TTSIM-RESIDUAL\n"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
+# Model-file versions this code reads (version 1 predates ``sigma_scale``; it loads as 1).
+READABLE_MODEL_VERSIONS = (1, 2)
+# The fraction of a Gaussian inside one standard deviation, erf(1 / sqrt(2)).
+ONE_SIGMA_COVERAGE = 0.6826894921370859
 
 # Width of the (v~, w~) part of the input, on which the attenuation depends.
 N_ATTENUATION_INPUTS = 6
@@ -293,8 +307,14 @@ def init_variables(config: ResidualConfig, key) -> dict:
     Returns:
         The variables dict.
     """
+    return dict(_init_variables(key, config))
+
+
+@partial(jax.jit, static_argnames=("config",))
+def _init_variables(key, config: ResidualConfig):
+    # jitted: initialising op by op dispatches dozens of small computations
     x = jnp.zeros((2, config.n_inputs), jnp.float32)
-    return dict(ResidualNet(config).init({"params": key}, x, train=False))
+    return ResidualNet(config).init({"params": key}, x, train=False)
 
 
 def variable_shapes(config: ResidualConfig) -> dict:
@@ -322,6 +342,8 @@ class ResidualModel:
             physical units; the heads predict (target - y_mean) / y_scale.
         centres: (n_clusters, 6) k-means centres of the scaled training (v~, w~).
         beta_coef: (3,) attenuation coefficients (a, b, c) as fitted / validated in training.
+        sigma_scale: (6,) calibration factors of the predicted sigmas (v_x .. w_z), fitted on
+            the validation split after training (1 = uncalibrated).
         config: the architecture (static).
     """
 
@@ -332,6 +354,7 @@ class ResidualModel:
     y_scale: jnp.ndarray
     centres: jnp.ndarray
     beta_coef: jnp.ndarray
+    sigma_scale: jnp.ndarray
     config: ResidualConfig = struct.field(pytree_node=False)
 
 
@@ -341,7 +364,7 @@ def model_shapes(config: ResidualConfig) -> dict:
     return dict(
         variables=variable_shapes(config),
         x_min=(n,), x_max=(n,), y_mean=(6,), y_scale=(6,),
-        centres=(config.n_clusters, N_ATTENUATION_INPUTS), beta_coef=(3,),
+        centres=(config.n_clusters, N_ATTENUATION_INPUTS), beta_coef=(3,), sigma_scale=(6,),
     )
 
 
@@ -362,6 +385,7 @@ def init_model(config: ResidualConfig, key) -> ResidualModel:
         y_mean=jnp.zeros((6,), jnp.float32), y_scale=jnp.ones((6,), jnp.float32),
         centres=jnp.full((config.n_clusters, N_ATTENUATION_INPUTS), 0.5, jnp.float32),
         beta_coef=jnp.asarray([config.beta_a, config.beta_b, config.beta_c], jnp.float32),
+        sigma_scale=jnp.ones((6,), jnp.float32),
         config=config,
     )
 
@@ -413,11 +437,12 @@ def attenuation(model: ResidualModel, x_scaled):
 
 def network_outputs(model: ResidualModel, x_scaled):
     """Raw inference-mode outputs in physical units: (dv, dw, sigma_v, sigma_w), each (N, 3),
-    without attenuation."""
+    without attenuation; the sigmas include the calibration ``sigma_scale``."""
     dv_n, dw_n, ls_v, ls_w = ResidualNet(model.config).apply(model.variables, x_scaled, train=False)
     mean, scale = model.y_mean, model.y_scale
+    s_scale = scale * model.sigma_scale
     return (mean[:3] + scale[:3] * dv_n, mean[3:] + scale[3:] * dw_n,
-            scale[:3] * jnp.exp(ls_v), scale[3:] * jnp.exp(ls_w))
+            s_scale[:3] * jnp.exp(ls_v), s_scale[3:] * jnp.exp(ls_w))
 
 
 def residual_outputs(model: ResidualModel, x, attenuate: bool = True) -> dict:
@@ -517,6 +542,90 @@ def gathered_residual(model: ResidualModel, x, mask, capacity: int, key=None, sa
     count = jnp.sum(mask)
     branch = (count > 0).astype(jnp.int32) + (count > capacity).astype(jnp.int32)
     return jax.lax.switch(branch, (none, buffered, full), None)
+
+
+# ----------------------------------------------------------------------------------------------
+# Batch-norm statistics and sigma calibration (after training)
+
+
+@partial(jax.jit, static_argnames=("config",))
+def _population_stats(params, x_scaled, weights, config: ResidualConfig):
+    h = x_scaled
+    stats = {}
+    total = jnp.sum(weights)
+    for i, _ in enumerate(config.trunk):
+        dense = params[f"trunk_{i}"]
+        h = h @ dense["kernel"] + dense["bias"]
+        # Two-pass (centred) moments: no cancellation when |mean| >> std.
+        mean = jnp.sum(weights[:, None] * h, axis=0) / total
+        var = jnp.sum(weights[:, None] * (h - mean) ** 2, axis=0) / total
+        stats[f"bn_{i}"] = {"mean": mean, "var": var}
+        bn = params[f"bn_{i}"]
+        h = (h - mean) * jax.lax.rsqrt(var + 1e-5) * bn["scale"] + bn["bias"]  # as flax.linen.BatchNorm
+        h = jax.nn.relu(h)
+        # dropout is the identity in inference mode
+    return stats
+
+
+def population_batch_stats(variables, config: ResidualConfig, x_scaled, weights=None) -> dict:
+    """Exact batch-norm statistics of a data set, replacing the running averages.
+
+    Training keeps an exponential moving average of mini-batch statistics, which reflects the
+    last few batches (and their order). This recomputes, layer by layer in inference mode (no
+    dropout, earlier layers already normalised with their recomputed statistics), the mean and
+    the (biased, as Flax's) variance of every batch-norm input over the whole of ``x_scaled``:
+    one pass over the data, independent of any order. With them, inference mode on a data set
+    reproduces training mode with the whole set as one batch (dropout off).
+
+    Arguments:
+        variables: {'params', 'batch_stats'} of :class:`ResidualNet` (batch_stats is replaced).
+        config: the architecture.
+        x_scaled: (N, n_inputs) min-max scaled inputs (normally the whole training split).
+        weights: optional (N,) non-negative row weights (e.g. 0 for padding rows).
+
+    Returns:
+        New variables {'params', 'batch_stats'} with the population statistics (dtype of the
+        old statistics).
+    """
+    x_scaled = jnp.asarray(x_scaled)
+    if x_scaled.ndim != 2 or x_scaled.shape[1] != config.n_inputs or x_scaled.shape[0] < 1:
+        raise ValueError(f"population_batch_stats: x_scaled has shape {tuple(x_scaled.shape)}, "
+                         f"expected (N >= 1, {config.n_inputs})")
+    w = jnp.ones((x_scaled.shape[0],), x_scaled.dtype) if weights is None else jnp.asarray(weights, x_scaled.dtype)
+    params = variables["params"]
+    stats = _population_stats(params, x_scaled, w, config)
+    old = variables["batch_stats"]
+    stats = {k: {n: v.astype(jnp.asarray(old[k][n]).dtype) for n, v in d.items()} for k, d in stats.items()}
+    return {"params": params, "batch_stats": stats}
+
+
+def calibration_scale(abs_error, sigma, groups=None, target=ONE_SIGMA_COVERAGE, floor=1e-6):
+    """Factors that make a fraction ``target`` of the errors fall inside one scaled sigma.
+
+    For each group of components, the factor s is the ``target`` quantile of |error| / sigma
+    over all rows and components of the group, so that |error| <= s sigma for that fraction of
+    them (the empirical coverage; it does not assume Gaussian errors).
+
+    Arguments:
+        abs_error: (M, 6) absolute errors of the (corrected) prediction on held-out data.
+        sigma: (M, 6) the predicted sigmas (uncalibrated).
+        groups: (6,) group label of each component (default: each its own group); e.g.
+            (0, 0, 0, 1, 1, 1) for one factor for velocity and one for spin.
+        target: wanted coverage (default: a Gaussian's one-sigma mass, 0.6827).
+        floor: lower bound of a factor (keeps sigmas positive).
+
+    Returns:
+        (6,) float64 factors.
+    """
+    ratio = np.asarray(abs_error, np.float64) / np.maximum(np.asarray(sigma, np.float64), 1e-30)
+    if ratio.ndim != 2 or ratio.shape[1] != 6 or ratio.shape[0] < 1:
+        raise ValueError(f"calibration_scale: need (M >= 1, 6) errors and sigmas, got {ratio.shape}")
+    groups = np.arange(6) if groups is None else np.asarray(groups)
+    out = np.ones(6)
+    for g in np.unique(groups):
+        cols = groups == g
+        out[cols] = max(float(np.quantile(ratio[:, cols], target)), floor)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -620,7 +729,8 @@ def _model_arrays(model: ResidualModel) -> dict:
     return dict(variables=jax.tree_util.tree_map(np.asarray, dict(model.variables)),
                 x_min=np.asarray(model.x_min), x_max=np.asarray(model.x_max),
                 y_mean=np.asarray(model.y_mean), y_scale=np.asarray(model.y_scale),
-                centres=np.asarray(model.centres), beta_coef=np.asarray(model.beta_coef))
+                centres=np.asarray(model.centres), beta_coef=np.asarray(model.beta_coef),
+                sigma_scale=np.asarray(model.sigma_scale))
 
 
 def _to_plain(tree):
@@ -681,12 +791,13 @@ def write_container(path, kind: str, header: dict, arrays: dict) -> None:
     atomic_write(path, CHECKPOINT_MAGIC + line + b"\n" + payload)
 
 
-def read_container(path, kind: str) -> tuple[dict, dict]:
+def read_container(path, kind: str, versions=(CHECKPOINT_VERSION,)) -> tuple[dict, dict]:
     """Reads and verifies a checkpoint container written by :func:`write_container`.
 
     Arguments:
         path: the file.
         kind: the expected kind.
+        versions: the format versions accepted (default: the current one only).
 
     Returns:
         (header, arrays). Raises :class:`CheckpointError` naming the file (and key) if it is
@@ -709,9 +820,12 @@ def read_container(path, kind: str) -> tuple[dict, dict]:
     if not isinstance(header, dict):
         raise CheckpointError(f"{path}: header is not a JSON object (corrupted)")
     version = header.get("format_version")
-    if version != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: key 'format_version' = {version!r}; "
-                              f"this code reads version {CHECKPOINT_VERSION}")
+    if version not in versions:
+        readable = " or ".join(str(v) for v in versions)
+        hint = (" (a newer format: update ttsim_jax)" if isinstance(version, int) and version > max(versions)
+                else " (written by an older ttsim_jax: retrain)")
+        raise CheckpointError(f"{path}: key 'format_version' = {version!r}; this code reads "
+                              f"{kind!r} files of version {readable}{hint}")
     if header.get("kind") != kind:
         raise CheckpointError(f"{path}: key 'kind' = {header.get('kind')!r}, expected {kind!r}")
     for key in ("payload_bytes", "payload_sha256", "arrays"):
@@ -771,7 +885,8 @@ def model_from_arrays(arrays: dict, config: ResidualConfig, path="<arrays>", pre
         variables=jax.tree_util.tree_map(to_jnp, arrays["variables"]),
         x_min=to_jnp(arrays["x_min"]), x_max=to_jnp(arrays["x_max"]),
         y_mean=to_jnp(arrays["y_mean"]), y_scale=to_jnp(arrays["y_scale"]),
-        centres=to_jnp(arrays["centres"]), beta_coef=to_jnp(arrays["beta_coef"]), config=config,
+        centres=to_jnp(arrays["centres"]), beta_coef=to_jnp(arrays["beta_coef"]),
+        sigma_scale=to_jnp(arrays["sigma_scale"]), config=config,
     )
 
 
@@ -798,7 +913,14 @@ def load_residual(path, expected_config: ResidualConfig | None = None) -> Residu
         The :class:`ResidualModel`. Raises :class:`CheckpointError` naming the file and key for a
         truncated, corrupted, wrong-version or mismatched file.
     """
-    header, arrays = read_container(path, "residual-model")
+    header, arrays = read_container(path, "residual-model", READABLE_MODEL_VERSIONS)
+    if header["format_version"] == 1:
+        if isinstance(arrays, dict) and "sigma_scale" in arrays:
+            raise CheckpointError(f"{path}: a version-1 file must not hold 'sigma_scale' (corrupted header)")
+        warnings.warn(f"{path}: residual checkpoint format version 1 has no sigma calibration; "
+                      "loading it with sigma_scale = 1 (predicted sigmas uncalibrated). Retrain to calibrate.",
+                      UserWarning, stacklevel=2)
+        arrays = dict(arrays, sigma_scale=np.ones((6,), np.float32))
     if "config" not in header:
         raise CheckpointError(f"{path}: header lacks key 'config'")
     config = _config_from_header(header["config"], path)
@@ -812,5 +934,5 @@ def load_residual(path, expected_config: ResidualConfig | None = None) -> Residu
 
 def checkpoint_metadata(path) -> dict:
     """The ``metadata`` stored by :func:`save_residual` (verified like :func:`load_residual`)."""
-    header, _ = read_container(path, "residual-model")
+    header, _ = read_container(path, "residual-model", READABLE_MODEL_VERSIONS)
     return header.get("metadata", {})
