@@ -2,13 +2,13 @@
 
 A step, for a batch of balls:
 
-1. ``detect`` (vmapped, one ball): free flight over the step, then the earliest contact of the
-   step (table, racket faces, net, floor) with its time of impact, the state there, and the base
-   models' post-contact state.
-2. The racket residual network, at batch level: only the balls in racket contact this step are
-   gathered into a fixed-capacity buffer and evaluated (``physics.residual.gathered_residual``).
-3. ``resolve`` (vmapped, one ball): adds the network's correction, flies the rest of the step from
-   the contact, logs the event, masks invalid states and retires balls that left play.
+1. ``detect`` (vmapped, one ball): free flight over the step, then the earliest event of the step
+   (table, racket faces, net, floor) with its time of impact and the state there.
+2. Contacts, at batch level: only the balls with a table or racket contact this step are gathered
+   into a fixed-capacity buffer, where ``respond`` (contact models), the racket residual network
+   and ``finish`` (the rest of the step after the contact) run.
+3. ``resolve`` (vmapped, one ball): picks the next state, logs the event, masks invalid states
+   and retires balls that left play.
 
 Racket plans: ``None``; a :class:`~ttsim_jax.state.Racket` schedule with a leading time axis
 (``(T, R, ...)`` shared by all balls, or ``(B, T, R, ...)`` per ball; R rackets, the R axis may be
@@ -92,8 +92,9 @@ class RallyState:
 
     Attributes:
         ball: :class:`Ball` with (B, 3) fields.
-        alive: (B,) False once the ball hit the floor, left play or became invalid (then frozen).
-        status: (B,) why it stopped (``FLOOR``, ``OUT``, ``INVALID``), 0 while alive.
+        alive: (B,) False once the ball hit the floor, left play, came to rest on the table or
+            became invalid (then frozen).
+        status: (B,) why it stopped (``FLOOR``, ``OUT``, ``REST``, ``INVALID``), 0 while alive.
         events: :class:`EventLog` with a leading (B,) axis.
         time: () current time [s].
     """
@@ -119,16 +120,38 @@ class RacketPolicy:
 
 @struct.dataclass
 class Proposal:
-    """Result of :func:`detect` for one ball and step."""
+    """Result of :func:`detect` for one ball and step: the earliest event and the states around it.
+
+    Attributes:
+        kind: event kind (``physics.events``), NONE if nothing happens in the step.
+        tau: time of the event as a fraction of the step (1 if none).
+        racket: index of the racket hit, -1 otherwise.
+        free: :class:`Ball` at the end of the step in free flight.
+        pre: :class:`Ball` at the event (the free-flight path at tau).
+    """
 
     kind: jnp.ndarray
     tau: jnp.ndarray
     racket: jnp.ndarray
     free: Ball
     pre: Ball
+
+
+@struct.dataclass
+class Response:
+    """What a contact does to one ball.
+
+    Attributes:
+        post: :class:`Ball` just after the contact (residual correction included).
+        after: :class:`Ball` at the end of the step, flown on from the contact.
+        contact: (2,) contact position on the racket face (zeros for the table).
+        sigma: (6,) the residual network's predicted std (zeros without one).
+    """
+
     post: Ball
-    x: jnp.ndarray
-    rot: jnp.ndarray
+    after: Ball
+    contact: jnp.ndarray
+    sigma: jnp.ndarray
 
 
 @struct.dataclass
@@ -168,10 +191,10 @@ def ball_properties(model: Model):
 
 
 def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: str = "rk4") -> Proposal:
-    """Free flight over a step and the earliest contact in it, for one ball.
+    """Free flight over a step and the earliest event in it, for one ball.
 
     Arguments:
-        model: model parameters (its ``residual`` is ignored here).
+        model: model parameters (its ``residual`` is not used here).
         ball: one ball, (3,) fields.
         rackets: :class:`Racket` with (R, ...) fields, or None.
         t, dt: time at the start of the step and step length [s].
@@ -184,7 +207,6 @@ def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: 
     radius, mass = ball_properties(model)
     p0, v0, w0 = ball.pos, ball.vel, ball.spin
     p1, v1, w1 = aero_stage.flight_step(model.aero, radius, mass, p0, v0, w0, t, dt, fx, integrator)
-    free = Ball(p1, v1, w1)
 
     cands = [(ev.TABLE, ev.table_candidate(model.table, fx, radius, p0, v0, p1, v1, dt)),
              (ev.FLOOR, ev.floor_candidate(model.table, radius, p0, v0, p1, v1, dt)),
@@ -195,57 +217,69 @@ def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: 
             rackets, radius, p0, v0, p1, v1, dt)
         cands += [(ev.RACKET, ev.Candidate(rc.hit[j], rc.tau[j])) for j in range(rc.hit.shape[0])]
     kind, tau, index = ev.earliest(cands)
-
     pos, vel = ev.hermite(p0, v0, p1, v1, dt, tau)
-    pre = Ball(pos, vel, w0 + tau * (w1 - w0))
-
-    tp, tv, tw = table_stage.table_contact(model.table, radius, pre.pos, pre.vel, pre.spin, fx)
-    post_pos = jnp.where(kind == ev.TABLE, tp, pre.pos)
-    post_vel = jnp.where(kind == ev.TABLE, tv, pre.vel)
-    post_spin = jnp.where(kind == ev.TABLE, tw, pre.spin)
     racket_index = jnp.where(kind == ev.RACKET, index - n_fixed, -1).astype(jnp.int32)
-    x = jnp.zeros(8, p0.dtype)
-    rot = jnp.eye(3, dtype=p0.dtype)
-    if rackets is not None:
-        hit = jax.tree.map(lambda a: a[jnp.maximum(racket_index, 0)], rackets)
-        hit = hit.replace(pos=hit.pos + tau * dt * hit.vel)
-        rv, rw, rstate = racket_stage.racket_contact(model.racket, hit, radius, mass, pre.pos, pre.vel, pre.spin, fx)
-        is_r = kind == ev.RACKET
-        post_vel = jnp.where(is_r, rv, post_vel)
-        post_spin = jnp.where(is_r, rw, post_spin)
-        x = jnp.where(is_r, jnp.concatenate([rstate["v"], rstate["w"], rstate["d"]]), x)
-        rot = jnp.where(is_r, rstate["rot"], rot)
-    return Proposal(kind=kind, tau=tau, racket=racket_index, free=free, pre=pre,
-                    post=Ball(post_pos, post_vel, post_spin), x=x, rot=rot)
+    return Proposal(kind=kind, tau=tau, racket=racket_index, free=Ball(p1, v1, w1),
+                    pre=Ball(pos, vel, w0 + tau * (w1 - w0)))
 
 
-def resolve(model: Model, ball: Ball, alive, status, log: EventLog, prop: Proposal, dv, dw, sigma, t, dt):
-    """Completes a step for one ball: network correction, rest of the step, event log, masks.
+def respond(model: Model, pre: Ball, kind, racket: Racket | None, tau, t, dt):
+    """Base-model response of one ball to its contact (table or racket).
 
     Arguments:
-        model: model parameters; ball: the state at the start of the step; alive, status, log:
-        the ball's bookkeeping; prop: from :func:`detect`; dv, dw: (3,) racket-frame residual
-        correction (zeros unless a racket contact); sigma: (6,) its predicted std; t, dt: time and
-        step.
+        model: model parameters; pre: the ball at the contact; kind: TABLE or RACKET;
+        racket: the racket hit, (...) fields at the contact time (None without rackets);
+        tau, t, dt: contact time as a fraction of the step, step start and length.
+
+    Returns:
+        (post, x, rot): post-contact :class:`Ball`, the residual network's racket-frame input (8,)
+        (zeros for the table) and the racket frame (3, 3) in which its correction is expressed.
+    """
+    fx = model.effects
+    radius, mass = ball_properties(model)
+    tp, tv, tw = table_stage.table_contact(model.table, radius, pre.pos, pre.vel, pre.spin, fx)
+    post = Ball(tp, tv, tw)
+    x = jnp.zeros(8, pre.pos.dtype)
+    rot = jnp.eye(3, dtype=pre.pos.dtype)
+    if racket is not None:
+        rv, rw, rstate = racket_stage.racket_contact(model.racket, racket, radius, mass, pre.pos, pre.vel,
+                                                     pre.spin, fx)
+        is_r = kind == ev.RACKET
+        post = Ball(jnp.where(is_r, pre.pos, tp), jnp.where(is_r, rv, tv), jnp.where(is_r, rw, tw))
+        x = jnp.where(is_r, jnp.concatenate([rstate["v"], rstate["w"], rstate["d"]]), x)
+        rot = jnp.where(is_r, rstate["rot"], rot)
+    return post, x, rot
+
+
+def finish(model: Model, post: Ball, tau, t, dt) -> Ball:
+    """Flies a ball on from its contact to the end of the step.
+
+    The rest of the step is short and happens once per contact: a second-order Taylor step (one
+    acceleration) costs a quarter of an RK4 step and errs by O(dt^3) once per contact.
+    """
+    rest = (1.0 - tau) * dt
+    f = aero_stage.derivative(model.aero, *ball_properties(model), model.effects)
+    _, acc, dspin = f((post.pos, post.vel, post.spin), t + tau * dt)
+    return Ball(post.pos + rest * post.vel + 0.5 * rest * rest * acc, post.vel + rest * acc, post.spin + rest * dspin)
+
+
+def resolve(ball: Ball, alive, status, log: EventLog, prop: Proposal, resp: Response, t, dt):
+    """Completes a step for one ball: picks the next state, masks invalid ones, logs the event.
+
+    Arguments:
+        ball: the state at the start of the step; alive, status, log: the ball's bookkeeping;
+        prop: from :func:`detect`; resp: the ball's :class:`Response` (used for table and racket
+        contacts only); t, dt: time and step.
 
     Returns:
         (ball, alive, status, log) after the step.
     """
     kind = prop.kind
-    is_r = kind == ev.RACKET
-    post = Ball(prop.post.pos, prop.post.vel + jnp.where(is_r, prop.rot @ dv, 0.0),
-                prop.post.spin + jnp.where(is_r, prop.rot @ dw, 0.0))
-
-    # The rest of the step after a contact is short and happens once per contact: a second-order
-    # Taylor step (one acceleration) costs a quarter of an RK4 step and errs by O(dt^3) once.
-    rest = (1.0 - prop.tau) * dt
-    f = aero_stage.derivative(model.aero, *ball_properties(model), model.effects)
-    _, acc, dspin = f((post.pos, post.vel, post.spin), t + prop.tau * dt)
-    after = Ball(post.pos + rest * post.vel + 0.5 * rest * rest * acc, post.vel + rest * acc, post.spin + rest * dspin)
-
-    bounced = (kind == ev.TABLE) | is_r
-    nxt = jax.tree.map(lambda a, b, c: jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c)),
-                       after, prop.pre, prop.free)
+    bounced = (kind == ev.TABLE) | (kind == ev.RACKET)
+    rest = (kind == ev.TABLE) & (jnp.abs(resp.post.vel[2]) < ev.REST_SPEED)
+    kind = jnp.where(rest, ev.REST, kind)
+    nxt = jax.tree.map(lambda a, b, c, d: jnp.where(rest, d, jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c))),
+                       resp.after, prop.pre, prop.free, resp.post)
     out = (kind == ev.NONE) & ev.out_of_play(nxt.pos)
     kind = jnp.where(out, ev.OUT, kind)
     finite = jnp.all(jnp.isfinite(nxt.as_array()))
@@ -258,34 +292,65 @@ def resolve(model: Model, ball: Ball, alive, status, log: EventLog, prop: Propos
 
     happened = alive & (kind != ev.NONE)
     time = t + jnp.where(out | invalid, 1.0, prop.tau) * dt
-    log_post = jax.tree.map(lambda a, b: jnp.where(bounced, a, b), post, prop.pre)
-    log = log.record(happened, kind, time, prop.racket, prop.pre, log_post, prop.x[6:8],
-                     jnp.where(is_r, sigma, 0.0))
-    stops = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.INVALID)
+    log_post = jax.tree.map(lambda a, b: jnp.where(bounced, a, b), resp.post, prop.pre)
+    is_r = kind == ev.RACKET
+    log = log.record(happened, kind, time, prop.racket, prop.pre, log_post, jnp.where(is_r, resp.contact, 0.0),
+                     jnp.where(is_r, resp.sigma, 0.0))
+    stops = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.INVALID) | (kind == ev.REST)
     new_status = jnp.where(alive & stops, kind, status)
     nxt = jax.tree.map(lambda a, b: jnp.where(alive, a, b), nxt, ball)
     return nxt, alive & ~stops, new_status, log
 
 
 # --------------------------------------------------------------------------- batch
-def _residual_correction(model: Model, prop: Proposal, alive, capacity, key, sample):
-    b = prop.kind.shape[0]
-    dtype = prop.x.dtype
-    if model.residual is None:
-        z = jnp.zeros((b, 3), dtype)
-        return z, z, jnp.zeros((b, 6), dtype)
-    from ttsim_jax.physics.residual import gathered_residual
+def _respond_gathered(model: Model, prop: Proposal, rackets, idx, t, dt, key, sample, model_batched,
+                      rackets_batched) -> Response:
+    """Contact responses of the balls ``idx`` (indices into the batch; out of range = unused slot).
 
-    n_in = model.residual.config.n_inputs
-    mask = (prop.kind == ev.RACKET) & alive
-    out = gathered_residual(model.residual, prop.x[:, :n_in], mask, capacity, key=key, sample=sample)
-    return out["dv"], out["dw"], jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1)
+    Returns a :class:`Response` for the whole batch: computed rows at ``idx``, zeros elsewhere.
+    """
+    b = prop.kind.shape[0]
+    valid = idx < b
+    safe = jnp.minimum(idx, b - 1)
+    take = lambda a: a[safe]  # noqa: E731
+    phys = model.replace(residual=None)
+    kind = jnp.where(valid, take(prop.kind), ev.NONE)
+    tau, pre = take(prop.tau), jax.tree.map(take, prop.pre)
+    m_c = jax.tree.map(take, phys) if model_batched else phys
+    hit = None
+    if rackets is not None:
+        per_ball = jax.tree.map(take, rackets) if rackets_batched else rackets  # ([C,] R, ...)
+        j = jnp.maximum(take(prop.racket), 0)
+        hit = (jax.tree.map(lambda a: a[jnp.arange(j.shape[0]), j], per_ball) if rackets_batched
+               else jax.tree.map(lambda a: a[j], per_ball))
+        hit = hit.replace(pos=hit.pos + (tau * dt)[:, None] * hit.vel)  # the racket at the contact time
+    m_ax = 0 if model_batched else None
+    post, x, rot = jax.vmap(respond, in_axes=(m_ax, 0, 0, 0 if hit is not None else None, 0, None, None))(
+        m_c, pre, kind, hit, tau, t, dt)
+    sigma = jnp.zeros(kind.shape + (6,), x.dtype)
+    if model.residual is not None:
+        from ttsim_jax.physics.residual import gathered_residual
+
+        is_r = kind == ev.RACKET
+        n_in = model.residual.config.n_inputs
+        out = gathered_residual(model.residual, x[:, :n_in], is_r, kind.shape[0], key=key, sample=sample)
+        post = post.replace(vel=post.vel + jnp.einsum("cij,cj->ci", rot, out["dv"]),
+                            spin=post.spin + jnp.einsum("cij,cj->ci", rot, out["dw"]))
+        sigma = jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1)
+    after = jax.vmap(finish, in_axes=(m_ax, 0, 0, None, None))(m_c, post, tau, t, dt)
+    resp = Response(post=post, after=after, contact=x[:, 6:8], sigma=sigma)
+    return jax.tree.map(lambda v: jnp.zeros((b,) + v.shape[1:], v.dtype).at[idx].set(v, mode="drop"), resp)
 
 
 def step(model: Model, state: RallyState, rackets: Racket | None, dt, *, integrator: str = "rk4",
          rackets_batched: bool = False, model_batched: bool = False, capacity: int = 64,
          key=None, sample: bool = False) -> RallyState:
     """Advances a batch by one step.
+
+    Contacts are rare (a few per ball per second), so their responses (contact models, the residual
+    network, the rest of the step) are computed only for the balls that have one this step,
+    gathered into a buffer of ``capacity`` rows; a step with more contacts than that runs them for
+    the whole batch instead (same result), and a step without contacts skips them.
 
     Arguments:
         model: model parameters (leaves with a leading (B,) axis if ``model_batched``).
@@ -294,7 +359,7 @@ def step(model: Model, state: RallyState, rackets: Racket | None, dt, *, integra
             ``rackets_batched``, or None.
         dt: step [s].
         integrator: flight integrator (static).
-        capacity: size of the residual network's contact buffer (static).
+        capacity: contact buffer size (static).
         key, sample: PRNG key and whether to sample the residual from its predicted std.
 
     Returns:
@@ -304,11 +369,20 @@ def step(model: Model, state: RallyState, rackets: Racket | None, dt, *, integra
     m_ax = 0 if model_batched else None
     r_ax = 0 if rackets_batched else None
     t = state.time
+    b = state.alive.shape[0]
     prop = jax.vmap(partial(detect, integrator=integrator), in_axes=(m_ax, 0, r_ax, None, None))(
         phys, state.ball, rackets, t, dt)
-    dv, dw, sigma = _residual_correction(model, prop, state.alive, capacity, key, sample)
-    ball, alive, status, log = jax.vmap(resolve, in_axes=(m_ax, 0, 0, 0, 0, 0, 0, 0, 0, None, None))(
-        phys, state.ball, state.alive, state.status, state.events, prop, dv, dw, sigma, t, dt)
+    mask = state.alive & ((prop.kind == ev.TABLE) | (prop.kind == ev.RACKET))
+    count = jnp.sum(mask)
+    capacity = min(capacity, b)
+    respond_idx = partial(_respond_gathered, model, prop, rackets, t=t, dt=dt, key=key, sample=sample,
+                          model_batched=model_batched, rackets_batched=rackets_batched)
+    buffered = lambda: respond_idx(jnp.nonzero(mask, size=capacity, fill_value=b)[0])  # noqa: E731
+    everyone = lambda: respond_idx(jnp.arange(b))  # noqa: E731
+    nothing = lambda: jax.tree.map(jnp.zeros_like, jax.eval_shape(everyone))  # noqa: E731
+    resp = jax.lax.switch(jnp.where(count == 0, 0, jnp.where(count <= capacity, 1, 2)), [nothing, buffered, everyone])
+    ball, alive, status, log = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, 0, None, None))(
+        state.ball, state.alive, state.status, state.events, prop, resp, t, dt)
     return RallyState(ball=ball, alive=alive, status=status, events=log, time=t + dt)
 
 
@@ -371,7 +445,7 @@ def recording_bytes(batch: int, n_steps: int, record_every: int, itemsize: int) 
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
-             record_every: int = 0, max_events: int = 8, residual_capacity: int | None = None,
+             record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
              sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
              memory_budget_bytes: int = 2 << 30) -> RallyResult:
     """Simulates a batch of balls for ``n_steps`` steps of ``dt``.
@@ -387,8 +461,9 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
         integrator: ``"rk4"``, ``"rk2"`` or ``"euler"``.
         record_every: record the ball every that many steps (0: no trajectory); must divide n_steps.
         max_events: capacity of each ball's event log.
-        residual_capacity: contacts per step the residual network evaluates at once (default B/32,
-            at least 8); more contacts are still handled correctly, at full-batch cost.
+        contact_capacity: contacts per step resolved in the gathered buffer (contact models and
+            residual network; default B/32, at least 8); a step with more contacts is still exact,
+            at full-batch cost.
         sample_residual: sample the residual from its predicted std (domain randomisation).
         key: PRNG key for sampling (default ``PRNGKey(0)``).
         t0: start time [s].
@@ -418,7 +493,7 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
         policy = racket
     elif racket is not None:
         schedule, batched = _normalise_schedule(racket, n_steps, batch)
-    capacity = residual_capacity or min(batch, max(8, math.ceil(batch / 32)))
+    capacity = contact_capacity or min(batch, max(8, math.ceil(batch / 32)))
     key = jax.random.PRNGKey(0) if key is None else key
     dtype = ball.pos.dtype
     return _simulate(model, ball, schedule, policy, jnp.asarray(dt, dtype), jnp.asarray(t0, dtype), key,

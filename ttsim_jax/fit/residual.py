@@ -798,7 +798,8 @@ def evaluate_by_band(model: ResidualModel, x, y_base, y_obs, distance, edges=DIS
         for key, e in (("base", e_base), ("residual", e_res)):
             med = np.median(e[sel], 0) if sel.any() else np.full(len(names), math.nan)
             row[key] = dict(zip(names, med.tolist()))
-        row["within_one_sigma"] = float(np.mean(np.abs(pred[sel] - y_obs[sel]) <= sigma[sel])) if sel.any() else math.nan
+        inside = np.abs(pred[sel] - y_obs[sel]) <= sigma[sel]
+        row["within_one_sigma"] = float(np.mean(inside)) if sel.any() else math.nan
         out.append(row)
     return out
 

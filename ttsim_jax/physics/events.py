@@ -22,8 +22,13 @@ from flax import struct
 from ttsim_jax.physics import table as table_stage
 from ttsim_jax.physics.numerics import safe_divide
 
-NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID = range(7)
-KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid")
+NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
+KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
+
+# A table contact that leaves the ball with less normal speed than this [m/s] (a bounce under
+# 0.5 mm) ends the ball as REST: it lies (or rolls) on the table, out of the game. Without it a
+# resting ball would "bounce" every step.
+REST_SPEED = 0.1
 
 # A contact is accepted if the ball started the step no deeper than this (fraction of its radius)
 # into the surface: a ball resting on the table or just released by a contact is re-detected.

@@ -911,7 +911,8 @@ def load_residual(path, expected_config: ResidualConfig | None = None) -> Residu
 
     Returns:
         The :class:`ResidualModel`. Raises :class:`CheckpointError` naming the file and key for a
-        truncated, corrupted, wrong-version or mismatched file.
+        truncated, corrupted, wrong-version or mismatched file. A version-1 file (written before
+        sigma calibration existed) loads with ``sigma_scale`` = 1 and a ``UserWarning``.
     """
     header, arrays = read_container(path, "residual-model", READABLE_MODEL_VERSIONS)
     if header["format_version"] == 1:

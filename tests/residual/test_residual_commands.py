@@ -1,0 +1,128 @@
+"""`train residual` / `evaluate residual` through a small argparse harness (until cli.py wires them)."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from ttsim_jax.data import save
+from ttsim_jax.fit import commands
+from ttsim_jax.fit import contacts as C
+from ttsim_jax.fit import residual as F
+from ttsim_jax.physics import residual as R
+
+TINY_TOML = """
+[model]
+n_inputs = 8
+trunk = [16, 16]
+dropout = 0.1
+head_width = 8
+n_clusters = 10
+
+[attenuation]
+a = 7.282
+b = 12.899
+c = 0.052
+
+[training]
+learning_rate = 3e-3
+weight_decay = 5e-4
+batch_size = 16
+max_epochs = 50
+patience = 50
+kmeans_iters = 5
+"""
+
+
+def parser():
+    ap = argparse.ArgumentParser(prog="ttsim")
+    sub = ap.add_subparsers(dest="command", required=True)
+    commands.register(sub)
+    return ap
+
+
+def run(argv):
+    args = parser().parse_args(argv)
+    return args.func(args)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    ds, _ = C.synthetic_contact_dataset(100, seed=5, residual_fn=F.true_residual, noise=0.0005)
+    save(ds, root / "data")
+    (root / "tiny.toml").write_text(TINY_TOML)
+    return root
+
+
+def test_help_text_for_every_option():
+    ap = parser()
+    for group in ("train", "evaluate"):
+        sub = ap._subparsers._group_actions[0].choices[group]
+        res = sub._subparsers._group_actions[0].choices["residual"]
+        for action in res._actions:
+            assert action.help, (group, action.option_strings)
+    with pytest.raises(SystemExit):
+        ap.parse_args(["train", "residual", "--data", "d"])  # --out is required
+
+
+def test_register_extends_an_existing_group():
+    ap = argparse.ArgumentParser(prog="ttsim")
+    sub = ap.add_subparsers(dest="command", required=True)
+    train = sub.add_parser("train").add_subparsers(dest="what", required=True)
+    train.add_parser("aero")
+    commands.register(sub)
+    assert ap.parse_args(["train", "aero"]).what == "aero"
+    args = ap.parse_args(["train", "residual", "--data", "d", "--out", "o"])
+    assert args.func is commands.cmd_train_residual and args.model == "conti2026"
+
+
+def test_train_then_evaluate(workdir, capsys):
+    out = workdir / "net.ttres"
+    argv = ["train", "residual", "--data", str(workdir / "data"), "--out", str(out), "--config",
+            str(workdir / "tiny.toml"), "--epochs", "3", "--seed", "2", "--quiet"]
+    assert run(argv) == 0
+    text = capsys.readouterr().out
+    assert "100 of 100 racket contacts usable" in text
+    for label in ("0-5 cm", "5-8 cm", "> 8 cm", "all (n=10)", "|v|", "|w|", "inside 1 sigma", "sigma calibration"):
+        assert label in text, label
+    model = R.load_residual(out)
+    meta = R.checkpoint_metadata(out)
+    assert meta["model"] == "conti2026" and meta["epochs"] == 3 and meta["train_config"]["seed"] == 2
+    assert meta["contacts"]["used"] == 100 and model.config.trunk == (16, 16)
+    assert np.all(np.asarray(model.sigma_scale) > 0)
+
+    # a second run refuses to overwrite; --resume of the finished run returns the same model
+    assert run(argv) == 1
+    assert "--resume" in capsys.readouterr().err
+    assert run(argv + ["--resume"]) == 0
+    assert "all (n=10)" in capsys.readouterr().out
+    again = R.load_residual(out)
+    np.testing.assert_array_equal(np.asarray(again.sigma_scale), np.asarray(model.sigma_scale))
+
+    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(out), "--split", "test",
+                "--json"]) == 0
+    captured = capsys.readouterr()
+    rep = json.loads(captured.out)
+    assert "100 of 100 racket contacts usable" in captured.err
+    assert rep["model"] == "conti2026" and rep["overall"]["n"] == 10
+    assert [b["band"] for b in rep["bands"]] == ["0-5 cm", "5-8 cm", "> 8 cm", "all"]
+    assert rep["bands"][-1]["n"] == 10
+    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(out)]) == 0
+    assert "all (n=100)" in capsys.readouterr().out
+
+
+def test_errors_exit_1_with_a_message(workdir, capsys):
+    bad = workdir / "bad.toml"
+    bad.write_text(TINY_TOML.replace("n_clusters = 10", "n_clusters = 10\nbogus = 1"))
+    argv = ["train", "residual", "--data", str(workdir / "data"), "--out", str(workdir / "x.ttres"), "--quiet"]
+    assert run(argv + ["--config", str(bad)]) == 1
+    assert "bogus" in capsys.readouterr().err
+    assert run(argv + ["--config", str(workdir / "tiny.toml"), "--resume"]) == 1
+    assert "no training state" in capsys.readouterr().err
+    assert run(["train", "residual", "--data", str(workdir / "missing"), "--out", str(workdir / "y.ttres"),
+                "--config", str(workdir / "tiny.toml"), "--quiet"]) == 1
+    assert "error:" in capsys.readouterr().err
+    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 1
+    assert "no such checkpoint" in capsys.readouterr().err

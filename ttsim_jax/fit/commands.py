@@ -1,0 +1,252 @@
+"""The ``ttsim train residual`` and ``ttsim evaluate residual`` commands. Thin: parsing and
+printing; the work is in :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
+
+``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
+``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status: 0 done,
+1 bad input or refused, 2 usage error from argparse).
+
+    ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
+                         [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
+                         [--resume | --force]
+    ttsim evaluate residual --data DATA --checkpoint CHECKPOINT [--model NAME] [--split all|test]
+                            [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+MODELS = ("conti2026", "durr2026")
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "residual"
+
+
+def _group(subparsers, name: str, help: str, description: str):
+    """The sub-subparsers of the top-level command ``name``, created if no other module did."""
+    parser = subparsers.choices.get(name) if hasattr(subparsers, "choices") else None
+    if parser is not None:
+        for action in parser._actions:  # another module registered the group: extend it
+            if isinstance(action, argparse._SubParsersAction):
+                return action
+    parser = subparsers.add_parser(name, help=help, description=description)
+    sub = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT")
+    sub.required = True
+    return sub
+
+
+def register(subparsers) -> None:
+    """Adds ``train residual`` and ``evaluate residual`` to an argparse subparsers object.
+
+    Arguments:
+        subparsers: what ``ArgumentParser.add_subparsers()`` returned. If a ``train`` or
+            ``evaluate`` command already exists there, ``residual`` is added to it.
+    """
+    train = _group(subparsers, "train", "fit model components to measured data",
+                   "Fit model components to measured data.")
+    p = train.add_parser(
+        "residual",
+        help="train the racket residual network on a dataset's racket contacts",
+        description="Convert DATA's racket contacts into racket-frame training arrays, train the residual network "
+        "(80/10/10 split by contact, early stopping, population batch-norm statistics, sigma calibration on the "
+        "validation split) and write CHECKPOINT. Ends with the test split's errors against the base model by "
+        "contact-distance band.",
+    )
+    p.add_argument("--data", required=True, metavar="DATA", help="dataset directory (see docs/data_format.md)")
+    p.add_argument("--out", required=True, metavar="CHECKPOINT",
+                   help="residual checkpoint to write (e.g. runs/net.ttres); the training state goes to "
+                   "CHECKPOINT.state")
+    p.add_argument("--model", choices=MODELS, default="conti2026",
+                   help="simulator model whose racket base model the network corrects (default conti2026: 8 inputs; "
+                   "durr2026: 6 inputs, racket spin ignored)")
+    p.add_argument("--config", metavar="TOML",
+                   help="residual config with [model], [attenuation], [training] "
+                   "(default configs/residual/MODEL.toml)")
+    p.add_argument("--epochs", type=int, metavar="N",
+                   help="maximum number of epochs (overrides the config's max_epochs)")
+    p.add_argument("--seed", type=int, metavar="S",
+                   help="seed of split, initialisation and shuffling (overrides the config's)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true",
+                      help="continue an interrupted run from CHECKPOINT.state (same data and settings)")
+    mode.add_argument("--force", action="store_true",
+                      help="discard an existing CHECKPOINT.state and overwrite CHECKPOINT")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train_residual)
+
+    evaluate = _group(subparsers, "evaluate", "evaluate model components on measured data",
+                      "Evaluate model components on measured data.")
+    e = evaluate.add_parser(
+        "residual",
+        help="errors of a trained residual network against its base model on a dataset",
+        description="Convert DATA's racket contacts like 'train residual' and print the errors of the base model "
+        "and of base + residual, by contact-distance band, and the fraction inside one predicted sigma.",
+    )
+    e.add_argument("--data", required=True, metavar="DATA", help="dataset directory")
+    e.add_argument("--checkpoint", required=True, metavar="CKPT",
+                   help="residual checkpoint written by 'train residual'")
+    e.add_argument("--model", choices=MODELS,
+                   help="base model (default: the one stored in the checkpoint, else by its number of inputs)")
+    e.add_argument("--split", choices=("all", "test"), default="all",
+                   help="evaluate all usable contacts (default) or only the test split of training "
+                   "(same data, split and seed as stored in the checkpoint)")
+    e.add_argument("--json", action="store_true", help="print the results as JSON")
+    e.set_defaults(func=cmd_evaluate_residual)
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _err(msg: str) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    return 1
+
+
+def _expected_errors():
+    from ttsim_jax.data.errors import DataError
+    from ttsim_jax.params import ConfigError as ModelConfigError
+    from ttsim_jax.physics.residual import CheckpointError, ConfigError
+
+    return (DataError, CheckpointError, ConfigError, ModelConfigError, FileExistsError, FileNotFoundError,
+            ValueError)
+
+
+def _convert(ds, model_name: str, n_inputs: int, stream=None):
+    from ttsim_jax.fit.contacts import contact_arrays
+
+    arrays = contact_arrays(ds, model_name, n_inputs=n_inputs)
+    print(arrays.summary(), file=stream or sys.stdout)
+    return arrays
+
+
+def format_band_table(bands: list[dict], title: str) -> str:
+    """A text table of :func:`ttsim_jax.fit.residual.evaluate_by_band` results: one row per
+    quantity, one column per band; cells 'base -> residual' median absolute errors."""
+    units = dict(v_x="m/s", v_y="m/s", v_z="m/s", w_x="rad/s", w_y="rad/s", w_z="rad/s")
+    units["|v|"], units["|w|"] = "m/s", "rad/s"
+
+    def cell(b, q):
+        if b["n"] == 0:
+            return "-"
+        fmt = "{:.3f}" if units[q] == "m/s" else "{:.1f}"
+        return f"{fmt.format(b['base'][q])} -> {fmt.format(b['residual'][q])}"
+
+    heads = [f"{b['band']} (n={b['n']})" for b in bands]
+    rows = [[q, units[q]] + [cell(b, q) for b in bands] for q in units]
+    rows.append(["inside 1 sigma", ""]
+                + ["-" if b["n"] == 0 else f"{100 * b['within_one_sigma']:.1f} %" for b in bands])
+    widths = [max(len(r[0]) for r in rows + [["quantity"]]), 5]
+    widths += [max(len(h), *(len(r[2 + i]) for r in rows)) for i, h in enumerate(heads)]
+    def line(cells):
+        return "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+    out = [title, line(["quantity", "unit"] + heads), line(["-" * w for w in widths])]
+    out += [line(r) for r in rows]
+    out.append("median absolute errors in the racket frame, base model -> base + residual; |v|, |w|: errors of the "
+               "speed and spin magnitudes")
+    return "\n".join(out)
+
+
+def _bands_with_total(model, x, y_base, y_obs, distance):
+    from ttsim_jax.fit.residual import evaluate_by_band
+
+    bands = evaluate_by_band(model, x, y_base, y_obs, distance)
+    total = evaluate_by_band(model, x, y_base, y_obs, distance, edges=())[0]
+    total["band"] = "all"
+    return bands + [total]
+
+
+def cmd_train_residual(args) -> int:
+    """``train residual``: convert, train, save, report on the test split."""
+    from ttsim_jax.data import load
+    from ttsim_jax.fit import residual as F
+    from ttsim_jax.physics.residual import save_residual
+
+    try:
+        config_path = args.config or CONFIG_DIR / f"{args.model}.toml"
+        config, tcfg = F.load_train_config(config_path)
+        if args.epochs is not None:
+            if args.epochs < 1:
+                return _err(f"--epochs {args.epochs}: must be >= 1")
+            tcfg = dataclasses.replace(tcfg, max_epochs=args.epochs)
+        if args.seed is not None:
+            tcfg = dataclasses.replace(tcfg, seed=args.seed)
+        out = Path(args.out)
+        state = Path(str(out) + ".state")
+        if not args.resume and not args.force and (out.exists() or state.exists()):
+            existing = " and ".join(str(p) for p in (out, state) if p.exists())
+            return _err(f"{existing} already exists: pass --resume to continue the run, or --force to start over")
+        if args.force and state.exists():
+            state.unlink()
+        if args.resume and not state.exists():
+            return _err(f"--resume: no training state {state} to continue")
+        ds = load(args.data)
+        arrays = _convert(ds, args.model, config.n_inputs)
+        if len(arrays) < 3:
+            return _err(f"{args.data}: only {len(arrays)} usable racket contacts; at least 3 are needed "
+                        "(train / validation / test)")
+        model, report = F.train_residual(arrays.x, arrays.y_base, arrays.y_obs, config, tcfg, checkpoint=state,
+                                         resume=args.resume, progress=not args.quiet)
+        meta = {k: v for k, v in report.items() if k != "history"}
+        meta.update(model=args.model, data=str(args.data), config_file=str(config_path), train_config=tcfg.to_dict(),
+                    contacts=dict(used=len(arrays), total=arrays.n_contacts, skipped=arrays.counts()))
+        save_residual(out, model, metadata=meta)
+    except KeyboardInterrupt:
+        return _err("interrupted; the last completed epoch is saved: rerun with --resume")
+    except _expected_errors() as exc:
+        return _err(str(exc))
+
+    _, _, test = F.split_by_contact(len(arrays), tcfg.split, tcfg.seed)
+    bands = _bands_with_total(model, arrays.x[test], arrays.y_base[test], arrays.y_obs[test], arrays.distance[test])
+    cal = report["sigma_calibration"]
+    print(f"trained {report['epochs']} epochs (best {report['best_epoch']}, validation loss "
+          f"{report['best_val_loss']:.4g}); wrote {out}")
+    print(f"sigma calibration ({cal['mode']}): factors "
+          + ", ".join(f"{k} {v:.3g}" for k, v in cal["factors"].items())
+          + f"; test split inside one sigma {100 * report['within_one_sigma_overall']:.1f} % "
+          f"(uncalibrated {100 * report['within_one_sigma_uncalibrated_overall']:.1f} %)")
+    print(format_band_table(bands, f"test split ({len(test)} contacts), model {args.model}:"))
+    return 0
+
+
+def cmd_evaluate_residual(args) -> int:
+    """``evaluate residual``: base vs base + residual on a dataset, by contact-distance band."""
+    from ttsim_jax.data import load
+    from ttsim_jax.fit import residual as F
+    from ttsim_jax.physics.residual import checkpoint_metadata, load_residual
+
+    try:
+        model = load_residual(args.checkpoint)
+        meta = checkpoint_metadata(args.checkpoint)
+        name = args.model or meta.get("model") or ("conti2026" if model.config.n_inputs == 8 else "durr2026")
+        ds = load(args.data)
+        arrays = _convert(ds, name, model.config.n_inputs, sys.stderr if args.json else None)
+        rows = slice(None)
+        if args.split == "test":
+            tc = meta.get("train_config")
+            if not tc:
+                return _err(f"{args.checkpoint}: no training configuration stored; use --split all")
+            _, _, rows = F.split_by_contact(len(arrays), tuple(tc["split"]), int(tc["seed"]))
+        if len(arrays.x[rows]) == 0:
+            return _err(f"{args.data}: no usable racket contacts")
+        x, yb, yo, dist = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows], arrays.distance[rows]
+        overall = F.evaluate_residual(model, x, yb, yo)
+        bands = _bands_with_total(model, x, yb, yo, dist)
+    except _expected_errors() as exc:
+        return _err(str(exc))
+    if args.json:
+        clean = lambda v: None if isinstance(v, float) and not math.isfinite(v) else v  # noqa: E731
+        bands = [{k: ({q: clean(e) for q, e in v.items()} if isinstance(v, dict) else clean(v)) for k, v in b.items()}
+                 for b in bands]
+        print(json.dumps(dict(model=name, checkpoint=str(args.checkpoint), split=args.split, overall=overall,
+                              bands=bands), indent=2))
+        return 0
+    print(f"inside one sigma: {100 * overall['within_one_sigma_overall']:.1f} %; median velocity error "
+          f"{overall['median_vel_error_base']:.3f} -> {overall['median_vel_error_residual']:.3f} m/s, spin "
+          f"{overall['median_spin_error_base']:.1f} -> {overall['median_spin_error_residual']:.1f} rad/s")
+    print(format_band_table(bands, f"{args.split} contacts of {os.fspath(args.data)} ({len(x)}), model {name}:"))
+    return 0
