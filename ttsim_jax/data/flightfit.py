@@ -1,13 +1,13 @@
-"""Default flight model for filtering segments: ballistic flight with quadratic drag (and Magnus
-lift from the given spin), fitted per segment by Levenberg-Marquardt in JAX.
+"""The flight fit that filters segments: the simulator's flight stage with constant aerodynamic
+coefficients, fitted per segment by Levenberg-Marquardt in JAX.
 
-This is the stand-in for the full aerodynamic model: :func:`ttsim_jax.data.segment.filter_segments`
-accepts any ``rmse_fn(times, positions, spin) -> rmse_m``. The model is
-
-    dv/dt = g - k_d |v| v + k_m (spin x v),      g = (0, 0, -9.81) m/s^2
-
-with free initial position, initial velocity, k_d and k_m (k_m has no effect when spin is zero).
-The RMSE is that of the 3-D position error, sqrt(mean_i |p_fit(t_i) - p_i|^2).
+As in the paper's data filtering (and the authors' code), a segment is kept when a
+constant-coefficient aerodynamic model fits it within 20 mm RMSE: the free parameters are the
+initial position, the initial velocity, C_D and C_M, and the model is exactly
+:func:`ttsim_jax.physics.aero.flight_step` (RK4) with :class:`~ttsim_jax.physics.aero.ConstantCoefficient`
+coefficients and the spin given (C_M has no effect when the spin is zero). The RMSE is that of
+the 3-D position error, sqrt(mean_i |p_fit(t_i) - p_i|^2). Any other ``rmse_fn(times,
+positions, spin) -> rmse_m`` can be given to :func:`ttsim_jax.data.segment.filter_segments`.
 """
 
 from __future__ import annotations
@@ -19,40 +19,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-GRAVITY = 9.81
-#: Nominal drag factor k_d = rho C_d A / (2 m) of a 40 mm, 2.7 g ball [1/m]; the fit starts here.
-K_DRAG_0 = 0.11
+from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, flight_step
+
+#: Where the fit starts: Nakashima's coefficients.
+CD_0, CM_0 = 0.54, 0.069
+#: Ball and air of the fit (the paper's ball; standard air at 20 C).
+RADIUS, MASS, RHO_AIR, NU = 0.02, 2.721e-3, 1.204, 1.506e-5
 _SUBSTEPS = 2
 _ITERATIONS = 20
 _BATCH = 64
 
 
-def _accel(v, spin, kd, km):
-    g = jnp.array([0.0, 0.0, -GRAVITY], v.dtype)
-    return g - kd * jnp.linalg.norm(v) * v + km * jnp.cross(spin, v)
+def _aero(cd, cm):
+    dtype = cd.dtype
+    return AeroParams(rho_air=jnp.asarray(RHO_AIR, dtype), nu=jnp.asarray(NU, dtype),
+                      gravity=jnp.array([0.0, 0.0, -9.81], dtype), buoyancy=jnp.asarray(1.0, dtype),
+                      drag=ConstantCoefficient(cd), magnus=ConstantCoefficient(cm))
 
 
 def _predict(theta, tau, spin):
-    """Positions at times ``tau`` (T,) from state at tau[0]; padded times repeat (dt = 0)."""
-    p0, v0, kd, km = theta[:3], theta[3:6], theta[6], theta[7]
-
-    def rk4(state, h):
-        p, v = state
-
-        def f(p_, v_):
-            return v_, _accel(v_, spin, kd, km)
-
-        k1p, k1v = f(p, v)
-        k2p, k2v = f(p + 0.5 * h * k1p, v + 0.5 * h * k1v)
-        k3p, k3v = f(p + 0.5 * h * k2p, v + 0.5 * h * k2v)
-        k4p, k4v = f(p + h * k3p, v + h * k3v)
-        return (p + h / 6 * (k1p + 2 * k2p + 2 * k3p + k4p), v + h / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+    """Positions at times ``tau`` (T,) from the state at tau[0]; padded times repeat (dt = 0)."""
+    p0, v0, cd, cm = theta[:3], theta[3:6], theta[6], theta[7]
+    aero = _aero(cd, cm)
 
     def interval(state, dt):
+        p, v = state
         h = dt / _SUBSTEPS
         for _ in range(_SUBSTEPS):
-            state = rk4(state, h)
-        return state, state[0]
+            p, v, _ = flight_step(aero, RADIUS, MASS, p, v, spin, 0.0, h)
+        return (p, v), p
 
     _, ps = jax.lax.scan(interval, (p0, v0), jnp.diff(tau))
     return jnp.concatenate([p0[None], ps], axis=0)
@@ -66,7 +61,7 @@ def _initial_guess(tau, pos, mask):
     # A per-axis parabola gives position and velocity at tau[0] well enough for LM to converge.
     a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
     coef, *_ = jnp.linalg.lstsq(a, pos * mask[:, None])
-    return jnp.concatenate([coef[0], coef[1], jnp.array([K_DRAG_0, 0.0], pos.dtype)])
+    return jnp.concatenate([coef[0], coef[1], jnp.array([CD_0, CM_0], pos.dtype)])
 
 
 def _fit_one(tau, pos, mask, spin):
@@ -103,7 +98,7 @@ def fit_flight_batch(tau, pos, mask, spin):
         spin: (S, 3) spin of each segment [rad/s] (zeros when unknown).
 
     Returns:
-        (theta, rmse): (S, 8) parameters ``[p0 (3), v0 (3), k_d, k_m]`` and (S,) RMSE [m].
+        (theta, rmse): (S, 8) parameters ``[p0 (3), v0 (3), C_D, C_M]`` and (S,) RMSE [m].
     """
     return jax.vmap(_fit_one)(tau, pos, mask, spin)
 

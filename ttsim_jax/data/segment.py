@@ -402,7 +402,7 @@ def filter_segments(
         max_rmse: drop segments whose flight-model fit has a larger RMSE [m] (None: no fit).
         min_samples: drop segments with fewer observations.
         rmse_fn: ``rmse_fn(times (T,), positions (T, 3), spin (3,)) -> rmse_m``; default: the
-            drag + Magnus flight fit of :mod:`ttsim_jax.data.flightfit` (run batched).
+            constant-coefficient aerodynamic fit of :mod:`ttsim_jax.data.flightfit` (run batched).
 
     Returns:
         (dataset, report): the dataset without the dropped segments (their observations stay, with
