@@ -38,18 +38,24 @@ def steps_for(batch: int, budget: float) -> int:
     return int(min(2000, max(200, budget // batch)))
 
 
-def run(model, balls, n_steps, repeats, rackets):
-    t0 = time.perf_counter()
-    jax.block_until_ready(simulate(model, balls, n_steps, racket=rackets, max_events=8).final.pos)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
+def run(variants, balls, n_steps, repeats, rackets):
+    """Times each (tag, model) variant; repeats are interleaved so machine drift hits all alike."""
+    def once(model):
         t0 = time.perf_counter()
         jax.block_until_ready(simulate(model, balls, n_steps, racket=rackets, max_events=8).final.pos)
-        times.append(time.perf_counter() - t0)
-    med = statistics.median(times)
-    return dict(compile_s=first - med, run_s=times, median_s=med,
-                ball_steps_per_s=balls.pos.shape[0] * n_steps / med)
+        return time.perf_counter() - t0
+
+    first = {tag: once(model) for tag, model in variants}
+    times = {tag: [] for tag, _ in variants}
+    for _ in range(repeats):
+        for tag, model in variants:
+            times[tag].append(once(model))
+    out = {}
+    for tag, _ in variants:
+        med = statistics.median(times[tag])
+        out[tag] = dict(compile_s=first[tag] - med, run_s=times[tag], median_s=med,
+                        ball_steps_per_s=balls.pos.shape[0] * n_steps / med)
+    return out
 
 
 def main(argv=None) -> int:
@@ -59,7 +65,7 @@ def main(argv=None) -> int:
     p.add_argument("--batches", default="1,16,256,1024,4096,16384,65536,262144",
                    help="comma-separated batch sizes (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="only batches 1, 1024 and 65536")
-    p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration (default: %(default)s)")
+    p.add_argument("--repeats", type=int, default=5, help="timed runs per configuration (default: %(default)s)")
     p.add_argument("--budget", type=float, default=2e7,
                    help="ball-steps per timed run; sets the step count per batch (default: %(default)g)")
     p.add_argument("--residual", action="store_true",
@@ -82,8 +88,9 @@ def main(argv=None) -> int:
             balls = Ball(*(jnp.asarray(a) for a in (shots.pos, shots.vel, shots.spin)))
             n_steps = steps_for(batch, args.budget)
             row = dict(model=name, batch=batch, n_steps=n_steps)
-            for tag, model in variants:
-                r = run(model, balls, n_steps, args.repeats, rackets)
+            timed = run(variants, balls, n_steps, args.repeats, rackets)
+            for tag, _ in variants:
+                r = timed[tag]
                 row[f"network_{tag}" if len(variants) > 1 else "result"] = r
                 print(f"{name:14s} batch {batch:7d} network {tag:3s}: {r['ball_steps_per_s']:12,.0f} ball-steps/s "
                       f"(median of {args.repeats}, compile {r['compile_s']:.1f} s)", flush=True)
