@@ -107,15 +107,17 @@ def cmd_simulate(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from ttsim_jax.data import commands as data_commands
+    from ttsim_jax.data import generator_cli
     from ttsim_jax.fit import commands as fit_commands
 
     parser = argparse.ArgumentParser(
-        prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import and "
-                                  "inspect data, train and evaluate the racket residual network. World frame: origin at the centre of the table surface, x "
+        prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import, "
+                                  "generate and inspect data, train and evaluate the racket residual network. World frame: origin at the centre of the table surface, x "
                                   "along the table, z up; SI units.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _simulate_command(sub)
     data_commands.register(sub)
+    generator_cli.register(sub)
     fit_commands.register(sub)
     return parser
 

@@ -1,0 +1,285 @@
+"""The effect catalogue: construction, exact neutrality, one test per effect that it changes what it
+should and nothing else, and finite gradients through every in-simulator effect's parameters."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import effects as fx
+from ttsim_jax.physics import aero as aero_stage
+from ttsim_jax.physics import racket as racket_stage
+from ttsim_jax.physics import table as table_stage
+from ttsim_jax.rally import ball_properties
+
+PLAIN = load_model("conti2026")
+SIM = fx.names("simulator")
+REC = fx.names("record")
+
+# A racket at the +x end facing -x (rotation diag(-1, -1, 1): x -> -x, y -> -y, z -> z).
+R_POS = jnp.array([1.6, 0.0, 0.25])
+R_ROT = jnp.diag(jnp.array([-1.0, -1.0, 1.0]))
+CONTACT_POINTS = {"centre": (0.0, 0.0), "mid": (0.03, 0.02), "logo": (0.0, -0.065), "edge": (0.0, 0.085)}
+
+
+def _racket_probe(model, d, speed):
+    """Post-contact (v, w) of a ball arriving at speed ``speed`` at contact point d."""
+    radius, mass = ball_properties(model)
+    racket = Racket(pos=R_POS, rot=R_ROT, vel=jnp.array([-1.0, 0.3, 0.5]), ang_vel=jnp.array([0.0, 2.0, -1.0]),
+                    face=jnp.array([0.09, 0.09]))
+    y_axis, z_axis = R_ROT[:, 1], R_ROT[:, 2]
+    pos = R_POS + d[0] * y_axis + d[1] * z_axis + radius * R_ROT[:, 0]
+    v, w, _ = racket_stage.racket_contact(model.racket, racket, radius, mass, pos, jnp.array([speed, 1.0, -2.0]),
+                                          jnp.array([30.0, 250.0, -40.0]), model.effects)
+    return jnp.concatenate([v, w])
+
+
+def probe(model) -> dict:
+    """Every stage's output at fixed states: what an effect may change."""
+    radius, mass = ball_properties(model)
+    out = {"ball": jnp.stack([radius, mass])}
+    f = aero_stage.derivative(model.aero, radius, mass, model.effects)
+    y = (jnp.array([-0.5, 0.2, 0.3]), jnp.array([9.0, -1.0, 2.0]), jnp.array([-50.0, 400.0, 80.0]))
+    out["flight"] = jnp.concatenate([jnp.concatenate(f(y, jnp.asarray(t))[1:]) for t in (0.3, 1.7)])
+    at = jnp.array([0.6, 0.25, 0.02])
+    h, n = table_stage.surface(model.effects, at)
+    out["surface"] = jnp.concatenate([h[None], n])
+    for name, vz in (("table_slow", -2.0), ("table_fast", -9.0)):
+        p, v, w = table_stage.table_contact(model.table, radius, at, jnp.array([5.0, 0.5, vz]),
+                                            jnp.array([20.0, -150.0, 30.0]), model.effects)
+        out[name] = jnp.concatenate([p, v, w])
+    for name, d in CONTACT_POINTS.items():
+        out[f"racket_{name}_slow"] = _racket_probe(model, jnp.asarray(d), 4.0)
+    out["racket_centre_fast"] = _racket_probe(model, jnp.asarray(CONTACT_POINTS["centre"]), 30.0)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+BASE = None
+
+
+def base_probe():
+    global BASE
+    if BASE is None:
+        BASE = probe(PLAIN)
+    return BASE
+
+
+def changed_keys(effect) -> set:
+    got = probe(PLAIN.replace(effects=(effect,)))
+    return {k for k, v in got.items() if not np.array_equal(v, base_probe()[k])}
+
+
+RACKET_ALL = {f"racket_{n}_slow" for n in CONTACT_POINTS} | {"racket_centre_fast"}
+TABLE = {"table_slow", "table_fast"}
+
+
+# ------------------------------------------------------------------------ the catalogue
+def test_catalogue_lists_every_effect_with_units_and_values():
+    assert set(SIM) == {"spin_decay", "air_flow", "table_tilt", "table_unevenness", "ball_variation", "worn_ball",
+                        "buckling", "racket_logo", "racket_edge", "rubber_anisotropy"}
+    assert set(REC) == {"racket_state_error", "position_noise", "spin_noise", "missing_frames"}
+    for name, cls in fx.CATALOGUE.items():
+        assert cls.NAME == name and cls.DESCRIPTION and cls.SCOPE in fx.SCOPES
+        assert cls.hooks(), name
+        for key, p in cls.PARAMS.items():
+            assert p.unit and p.doc, (name, key)
+        for inst in (cls.neutral(), cls.default(), cls.sample(np.random.default_rng(3))):
+            for key, p in cls.PARAMS.items():
+                assert np.shape(getattr(inst, key)) == p.shape, (name, key)
+                assert np.all(np.isfinite(np.asarray(getattr(inst, key))))
+        a, b = cls.sample(np.random.default_rng(7)), cls.sample(np.random.default_rng(7))
+        assert a.to_dict() == b.to_dict()
+        assert cls.from_dict(a.to_dict()).to_dict() == a.to_dict()
+    text = fx.describe()
+    assert "racket_logo" in text and "[m/s]" in text
+
+
+def test_bad_names_and_parameters_are_named():
+    with pytest.raises(fx.EffectError, match="unknown effect 'wind'.*air_flow"):
+        fx.parse_names("wind,spin_decay")
+    with pytest.raises(fx.EffectError, match="air_flow.*unknown parameter 'speed'"):
+        fx.make("air_flow", speed=3.0)
+    with pytest.raises(fx.EffectError, match="parameter 'wind' = .*shape"):
+        fx.make("air_flow", wind=[1.0, 2.0])
+    assert fx.parse_names("all") == fx.names() and fx.parse_names("none") == []
+    assert fx.parse_names("racket_edge,spin_decay") == ["spin_decay", "racket_edge"]  # catalogue order
+
+
+# ------------------------------------------------------------------------ neutrality
+def test_neutral_values_reproduce_the_plain_model_exactly():
+    neutral = PLAIN.replace(effects=tuple(fx.effect_class(n).neutral() for n in SIM))
+    got, base = probe(neutral), base_probe()
+    for k in base:
+        np.testing.assert_array_equal(got[k], base[k], err_msg=k)
+    # through the whole rally kernel: see test_rally_kernel_neutral_and_gradients
+    for name in REC:
+        e = fx.effect_class(name).neutral()
+        rng = np.random.default_rng(0)
+        pos = rng.normal(size=(5, 3))
+        if name == "position_noise":
+            np.testing.assert_array_equal(e.observe_positions(pos, rng), pos)
+        elif name == "spin_noise":
+            spin, conf = e.measure_spin(pos * 100, np.full(5, 0.1), rng)
+            np.testing.assert_array_equal(spin, pos * 100)
+            np.testing.assert_array_equal(conf, np.ones(5))
+        elif name == "missing_frames":
+            assert e.drop_frames(np.arange(100) * 0.005, rng).all()
+        else:
+            rot = np.broadcast_to(np.eye(3), (5, 3, 3))
+            out = e.record_racket(pos, rot, pos * 3, pos * 2, rng)
+            for a, b in zip(out, (pos, rot, pos * 3, pos * 2)):
+                np.testing.assert_allclose(a, b, atol=1e-15)
+
+
+# ------------------------------------------------------------------------ one test per effect
+def test_spin_decay_changes_only_flight():
+    e = fx.make("spin_decay")
+    assert changed_keys(e) == {"flight"}
+    w = jnp.array([0.0, 500.0, 0.0])
+    assert float(e.spin_derivative(jnp.zeros(3), vel=None, spin=w, t=0.0)[1]) < 0  # slows the spin down
+
+
+def test_air_flow_changes_only_flight_and_varies_in_time():
+    e = fx.make("air_flow")
+    assert changed_keys(e) == {"flight"}
+    a1 = e.air_velocity(jnp.zeros(3), pos=jnp.zeros(3), t=0.3)
+    a2 = e.air_velocity(jnp.zeros(3), pos=jnp.zeros(3), t=1.7)
+    assert not np.allclose(a1, a2)
+    # the clock origin shifts the gusts: air at t with origin T equals air at t + T with origin 0
+    shifted = e.replace(time_origin=jnp.asarray(1.4))
+    np.testing.assert_allclose(shifted.air_velocity(jnp.zeros(3), pos=jnp.zeros(3), t=0.3), a2, rtol=1e-12)
+
+
+def test_table_tilt_changes_bounces_not_flight():
+    e = fx.make("table_tilt", slope=[0.008, -0.004], offset=0.001)
+    assert changed_keys(e) == TABLE | {"surface"}
+    h, n = table_stage.surface((e,), jnp.array([1.0, 0.5, 0.0]))
+    np.testing.assert_allclose(float(h), 0.001 + 0.008 - 0.002, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(n), np.array([-0.008, 0.004, 1.0]) / np.sqrt(1 + 0.008**2 + 0.004**2))
+
+
+def test_table_unevenness_changes_bounces_not_flight():
+    e = fx.make("table_unevenness")
+    assert changed_keys(e) == TABLE | {"surface"}
+    # a bump: the surface rises at its centre by its amplitude
+    bump = fx.make("table_unevenness", amplitude=[0.002, 0, 0, 0, 0, 0])
+    h, n = table_stage.surface((bump,), jnp.array([0.9, 0.3, 0.0]))
+    np.testing.assert_allclose(float(h), 0.002, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(n), [0.0, 0.0, 1.0], atol=1e-12)
+
+
+def test_ball_variation_changes_the_ball_everywhere_but_the_table_surface():
+    e = fx.make("ball_variation", d_radius=2e-4, d_mass=-3e-5)
+    assert changed_keys(e) == {"ball", "flight"} | TABLE | RACKET_ALL
+    radius, mass = ball_properties(PLAIN.replace(effects=(e,)))
+    np.testing.assert_allclose([float(radius), float(mass)], [0.0202, 2.721e-3 - 3e-5], rtol=1e-12)
+
+
+def test_worn_ball_changes_contacts_not_flight():
+    e = fx.make("worn_ball", loss=0.05)
+    assert changed_keys(e) == TABLE | RACKET_ALL
+    base = base_probe()["table_slow"]
+    worn = probe(PLAIN.replace(effects=(e,)))["table_slow"]
+    assert worn[5] < base[5]  # lower rebound
+
+
+def test_buckling_changes_only_fast_impacts():
+    e = fx.make("buckling")  # onsets 5 m/s (table) and 15 m/s (racket)
+    assert changed_keys(e) == {"table_fast", "racket_centre_fast"}
+    assert probe(PLAIN.replace(effects=(e,)))["table_fast"][5] < base_probe()["table_fast"][5]
+
+
+def test_racket_logo_changes_only_contacts_on_the_logo():
+    e = fx.make("racket_logo")
+    assert changed_keys(e) == {"racket_logo_slow"}
+    assert float(e.weight(jnp.array([0.0, -0.065]))) == 1.0
+    assert float(e.weight(jnp.array([0.0, 0.065]))) == 0.0  # towards the tip: no logo
+
+
+def test_racket_edge_changes_only_contacts_beyond_8cm():
+    e = fx.make("racket_edge")
+    assert changed_keys(e) == {"racket_edge_slow"}
+    assert float(e.weight(jnp.array([0.0, 0.079]))) == 0.0 and float(e.weight(jnp.array([0.0, 0.0815]))) == 1.0
+
+
+def test_rubber_anisotropy_changes_racket_contacts_only():
+    e = fx.make("rubber_anisotropy", anisotropy=0.1)
+    assert changed_keys(e) == RACKET_ALL
+    coef = racket_stage.ContactCoefficients(e_n=jnp.asarray(0.8), alpha=jnp.array([0.5, 0.5]), e_s=jnp.asarray(1.0))
+    out = e.racket_coefficients(coef, d=jnp.zeros(2), vn=5.0, ut=jnp.zeros(2))
+    np.testing.assert_allclose(np.asarray(out.alpha), [0.55, 0.45])
+
+
+# ------------------------------------------------------------------------ gradients
+def _grad_of_stages(effect):
+    """Gradient of a scalar made of every stage's output w.r.t. the effect's parameters."""
+
+    def loss(eff):
+        out = probe_jax(PLAIN.replace(effects=(eff,)))
+        return sum(jnp.sum(v**2) for v in out)
+
+    return jax.grad(loss)(effect)
+
+
+def probe_jax(model):
+    radius, mass = ball_properties(model)
+    f = aero_stage.derivative(model.aero, radius, mass, model.effects)
+    y = (jnp.array([-0.5, 0.2, 0.3]), jnp.array([9.0, -1.0, 2.0]), jnp.array([-50.0, 400.0, 80.0]))
+    outs = [jnp.concatenate(f(y, jnp.asarray(0.7))[1:])]
+    outs += list(table_stage.table_contact(model.table, radius, jnp.array([0.9, 0.3, 0.02]), jnp.array([5.0, 0.5, -9.0]),
+                                           jnp.array([20.0, -150.0, 30.0]), model.effects))
+    for d in ((0.0, -0.0795), (0.0, 0.0805), (0.03, 0.02)):  # on the logo's and the rim's band edges
+        outs.append(_racket_probe(model, jnp.asarray(d), 30.0))
+    return outs
+
+
+@pytest.mark.parametrize("name", SIM)
+def test_gradients_through_each_effect_are_finite(name):
+    cls = fx.effect_class(name)
+    for inst in (cls.default(), cls.neutral()):
+        g = _grad_of_stages(inst)
+        leaves = jax.tree.leaves(g)
+        assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves), name
+    assert any(np.any(np.asarray(x) != 0) for x in jax.tree.leaves(_grad_of_stages(cls.default()))), name
+
+
+def test_rally_kernel_neutral_and_gradients():
+    """Through simulate() with every in-simulator effect: at neutral values exactly the plain
+    model's rally (contacts included); and one jax.grad, finite everywhere and nonzero for every
+    effect (the balls hit the racket's centre, logo and rim fast, and bounce on the table)."""
+    n = 300
+    d = np.array([[0.02, 0.01], [0.0, -0.0795], [0.0, 0.0805]])
+    hit = (np.asarray(R_POS) + d[:, :1] * np.asarray(R_ROT[:, 1]) + d[:, 1:] * np.asarray(R_ROT[:, 2])
+           + 0.03 * np.asarray(R_ROT[:, 0]))
+    # 0.3 m at 20 m/s: the ball drops 1.3 mm under gravity on the way, so start that much higher
+    start = np.concatenate([hit + np.array([-0.3, 0.0, 0.0013]), [[-1.2, 0.1, 0.3]]])
+    vel = np.concatenate([np.tile([20.0, 0.0, 0.0], (3, 1)), [[6.0, 0.2, -1.0]]])
+    balls = Ball.create(start, vel, np.tile([0.0, 0.0, 30.0], (4, 1)))
+    racket = Racket.create(R_POS, rot=R_ROT, face=(0.09, 0.09))
+    sched = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), racket)
+
+    def run(model):
+        # Euler keeps the compiled gradient small (the hooks are the same with any integrator)
+        r = simulate(model, balls, n, racket=sched, integrator="euler")
+        out = jnp.concatenate([r.final.as_array().ravel(), r.events.post.vel.ravel(), r.events.time.ravel()])
+        return jnp.sum(r.final.vel**2) + jnp.sum(r.final.spin**2) * 1e-4, (out, r.events.kind)
+
+    plain, (plain_out, kinds) = run(PLAIN)
+    kinds = np.asarray(kinds)
+    assert (kinds[:3, 0] == 2).all() and kinds[3, 0] == 1  # racket contacts, a bounce
+    contact = np.asarray(simulate(PLAIN, balls, n, racket=sched, integrator="euler").events.contact[:3, 0])
+    np.testing.assert_allclose(contact, d, atol=5e-4)  # on the logo's and the rim's band edges
+
+    grad = jax.value_and_grad(lambda e: run(PLAIN.replace(effects=e)), has_aux=True)
+    (value, (out, _)), _ = grad(tuple(fx.effect_class(n).neutral() for n in SIM))
+    # exact up to the rounding of a differently fused (autodiff) program; the stage-level test above
+    # is bit for bit
+    np.testing.assert_allclose(np.asarray(out), np.asarray(plain_out), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(float(value), float(plain), rtol=1e-13)
+
+    (_, _), g = grad(tuple(fx.effect_class(n).default() for n in SIM))
+    for name, ge in zip(SIM, g):
+        leaves = [np.asarray(x) for x in jax.tree.leaves(ge)]
+        assert all(np.all(np.isfinite(x)) for x in leaves), name
+        assert any(np.any(x != 0) for x in leaves), name
