@@ -13,6 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from ttsim_jax.physics import aero as aero_stage
+from ttsim_jax.physics import table as table_stage
+from ttsim_jax.physics.numerics import safe_divide, safe_norm
 from ttsim_jax.state import Ball
 
 G = 9.81
@@ -31,6 +39,7 @@ class ShotType:
             backspin.
         sidespin: spin about z [rad/s].
         bounce: which bounce the target is for (the serve aims its second bounce, on the far half).
+        first_x: for serves, where the first bounce lands (on the server's half) [m].
         max_up: largest initial upward speed [m/s]: keeps the aim on the low arc of the two that
             reach a target (a push is never a lob).
     """
@@ -45,12 +54,13 @@ class ShotType:
     sidespin: tuple
     bounce: int = 0
     max_up: float = 3.0
+    first_x: tuple = (0.0, 0.0)
 
 
 SHOT_TYPES: dict[str, ShotType] = {
     # the serve bounces on the server's own half first
     "serve": ShotType((-1.6, -1.4), (-0.6, 0.6), (0.2, 0.35), (2.5, 5.0), (0.3, 1.1), (-0.6, 0.6),
-                      (-500.0, 400.0), (-400.0, 400.0), bounce=1, max_up=2.0),
+                      (-500.0, 400.0), (-400.0, 400.0), bounce=1, max_up=2.0, first_x=(-1.15, -0.7)),
     "topspin_drive": ShotType((-2.4, -1.5), (-0.7, 0.7), (0.15, 0.5), (10.0, 22.0), (0.5, 1.3), (-0.65, 0.65),
                               (200.0, 1000.0), (-200.0, 200.0)),
     "backspin_drive": ShotType((-2.8, -1.8), (-0.7, 0.7), (0.2, 0.6), (5.0, 9.0), (0.5, 1.3), (-0.65, 0.65),
@@ -86,73 +96,136 @@ def aim(start, target, speed, topspin=0.0):
     return np.stack([speed * d[:, 0] / dist, speed * d[:, 1] / dist, vz], axis=-1)
 
 
-def _heading_velocity(speed, u):
-    import jax.numpy as jnp
+def landing_points(model, pos, vel, spin, h, n_steps):
+    """Where the ball comes down to the table plane the first and second time, for aiming.
 
-    return jnp.stack([speed * jnp.cos(u[:, 0]), speed * jnp.sin(u[:, 0]), u[:, 1]], -1)
-
-
-def _newton_step(model, pos, spin, speed, bounce, max_up, u, target, dt, n_steps):
-    """One damped Newton step on (heading, v_z) of every ball towards its target bounce."""
-    import jax
-    import jax.numpy as jnp
-
-    from ttsim_jax.rally import simulate
-
-    def landing(u):
-        r = simulate(model, Ball(pos, _heading_velocity(speed, u), spin), n_steps, dt)
-        return jnp.take_along_axis(r.events.pre.pos[:, :, :2], bounce[:, None, None], axis=1)[:, 0]
-
-    f0, j0 = jax.jvp(landing, (u,), (jnp.zeros_like(u).at[:, 0].set(1.0),))
-    _, j1 = jax.jvp(landing, (u,), (jnp.zeros_like(u).at[:, 1].set(1.0),))
-    jac = jnp.stack([j0, j1], -1)  # (N, 2, 2)
-    ok = jnp.abs(jnp.linalg.det(jac)) > 1e-9
-    step = jnp.linalg.solve(jnp.where(ok[:, None, None], jac, jnp.eye(2)), (f0 - target)[..., None])[..., 0]
-    step = jnp.clip(step, jnp.array([-0.3, -3.0]), jnp.array([0.3, 3.0]))  # damp wild steps
-    u = u - jnp.where(ok[:, None], step, 0.0)
-    return u.at[:, 1].set(jnp.minimum(u[:, 1], max_up))
-
-
-_newton_jit = None
-
-
-def refine_aim(model, ball: Ball, target_xy, bounce=None, max_up=None, iters: int = 3, dt: float = 4e-3,
-               t_max: float = 1.6):
-    """Newton iterations through the simulator so each shot's target bounce lands on its target.
-
-    The unknowns are each ball's heading and vertical speed (its horizontal speed and spin are
-    kept). The landing point is where the ball comes down to the table plane (a table widened to
-    be unmissable; the net is not modelled), and its Jacobian comes from two forward-mode passes
-    through the batched simulation.
-
-    Arguments:
-        model: the model to aim with. ball: (N, 3) initial states. target_xy: (N, 2) targets.
-        bounce: (N,) which bounce each target is for (default: the first).
-        max_up: (N,) largest initial upward speed [m/s] (default: unbounded).
-        iters: Newton iterations. dt, t_max: step and horizon of the aiming simulations.
+    A light flight (RK4 of step ``h``, no events but the table plane, taken as unbounded),
+    differentiable in the initial velocity.
 
     Returns:
-        The ball with adjusted velocities (numpy fields).
+        (first (2,), second (2,), twice: whether it came down twice, net (2,): the ball's height
+        where it crosses the net plane x = 0 before the first and before the second landing, +inf
+        if it does not).
     """
-    global _newton_jit
-    import jax
+    radius, mass = model.ball.radius, model.ball.mass
+
+    def body(c, _):
+        p, v, w, n, first, second, net = c
+        p1, v1, w1 = aero_stage.flight_step(model.aero, radius, mass, p, v, w, 0.0, h)
+        crosses_net = (p[0] * p1[0] <= 0.0) & (p[0] != p1[0])
+        z_net = p[2] + safe_divide(-p[0], p1[0] - p[0], 0.0) * (p1[2] - p[2])
+        net = jnp.where(crosses_net & (jnp.arange(2) == n), jnp.minimum(net, z_net), net)
+        cross = (n < 2) & (p1[2] < radius) & (v1[2] < 0.0)
+        frac = jnp.clip(safe_divide(p[2] - radius, p[2] - p1[2], 0.0), 0.0, 1.0)
+        pc, vc, wc = p + frac * (p1 - p), v + frac * (v1 - v), w + frac * (w1 - w)
+        bp, bv, bw = table_stage.table_contact(model.table, radius, pc, vc, wc)
+        # the rest of the step after the bounce: a second-order Taylor step (as the rally kernel)
+        rest = (1.0 - frac) * h
+        acc = aero_stage.acceleration(model.aero, radius, mass, bp, bv, bw, 0.0)
+        bp, bv = bp + rest * bv + 0.5 * rest * rest * acc, bv + rest * acc
+        p1 = jnp.where(cross, bp, p1)
+        v1 = jnp.where(cross, bv, v1)
+        w1 = jnp.where(cross, bw, w1)
+        first = jnp.where(cross & (n == 0), pc[:2], first)
+        second = jnp.where(cross & (n == 1), pc[:2], second)
+        return (p1, v1, w1, n + cross.astype(n.dtype), first, second, net), None
+
+    init = (pos, vel, spin, jnp.zeros((), jnp.int32), pos[:2], pos[:2], jnp.full(2, jnp.inf, pos.dtype))
+    (_, _, _, n, first, second, net), _ = jax.lax.scan(body, init, None, length=n_steps)
+    return first, second, n >= 2, net
+
+
+def aim_one(model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters):
+    """Newton iterations on (heading, horizontal speed, v_z) of one shot.
+
+    A regular shot keeps its horizontal speed and lands its first bounce on ``target``; a serve
+    (``serve`` True) lands its first bounce at x = ``first_x`` (its own half) and its second on
+    ``target``: three conditions, three unknowns.
+
+    Returns:
+        (velocity (3,), distance [m] of the aimed bounce from its target (inf if it never lands),
+        height [m] of the ball where it crosses the net before the aimed bounce).
+    """
+
+    def vel(u):
+        return jnp.stack([u[1] * jnp.cos(u[0]), u[1] * jnp.sin(u[0]), u[2]])
+
+    def f(u):
+        first, second, _, _ = landing_points(model, pos, vel(u), spin, h, n_steps)
+        reg = jnp.concatenate([first - target, (u[1] - speed)[None]])
+        srv = jnp.concatenate([second - target, (first[0] - first_x)[None]])
+        return jnp.where(serve, srv, reg)
+
+    d = target - pos[:2]
+    u = jnp.stack([jnp.arctan2(d[1], d[0]), speed, vz])
+    lim = jnp.array([0.3, 2.0, 3.0], pos.dtype)
+    eye = jnp.eye(3, dtype=pos.dtype)
+
+    def step(u, val, jac):
+        ok = jnp.abs(jnp.linalg.det(jac)) > 1e-12
+        du = jnp.clip(jnp.linalg.solve(jnp.where(ok, jac, eye), val), -lim, lim)
+        u_new = u - jnp.where(ok, du, 0.0)
+        return u_new.at[1].set(jnp.clip(u_new[1], 1.0, 40.0))
+
+    # one Newton step with the exact Jacobian (forward mode), then Broyden updates of it: each
+    # further iteration costs one flight instead of four
+    val, lin = jax.linearize(f, u)
+    jac = jax.vmap(lin, out_axes=1)(eye)
+
+    def broyden(_, c):
+        u, val, jac = c
+        u_new = step(u, val, jac)
+        val_new = f(u_new)
+        du, df = u_new - u, val_new - val
+        jac = jac + jnp.outer(df - jac @ du, du) / jnp.maximum(jnp.dot(du, du), 1e-12)
+        return u_new, val_new, jac
+
+    u, val, jac = jax.lax.fori_loop(0, iters, broyden, (u, val, jac))
+    first, second, twice, net = landing_points(model, pos, vel(u), spin, h, n_steps)
+    miss = jnp.where(serve, safe_norm(second - target) + jnp.abs(first[0] - first_x), safe_norm(first - target))
+    return vel(u), jnp.where(twice | ~serve, miss, jnp.inf), jnp.where(serve, net[1], net[0])
+
+
+@partial(jax.jit, static_argnames=("n_steps",))
+def aim_batch(model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters):
+    return jax.vmap(aim_one, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, None, None, None))(
+        model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters)
+
+
+def refine_aim(model, ball: Ball, target_xy, bounce=None, first_x=None, max_up=None, iters: int = 4,
+               dt: float = 0.02, t_max: float = 1.8):
+    """Aims each shot through the flight model (:func:`aim_batch`) so its bounce lands on target.
+
+    Arguments:
+        model: the model to aim with. ball: (N, 3) initial states (velocity: the first guess; its
+            horizontal speed is kept for regular shots). target_xy: (N, 2) targets.
+        bounce: (N,) 1 for serves (first bounce at x = ``first_x``, second on the target), 0 for
+            the others (first bounce on the target); default all 0.
+        first_x: (N,) where serves bounce first [m].
+        max_up: (N,) largest initial upward speed [m/s]: a shot whose aim would need more keeps
+            its first guess (a push is never turned into a lob).
+        iters, dt, t_max: Broyden iterations, step and horizon of the aiming flights.
+
+    Returns:
+        The ball with aimed velocities (numpy fields).
+    """
     import jax.numpy as jnp
 
-    if _newton_jit is None:
-        _newton_jit = jax.jit(_newton_step, static_argnames=("n_steps",))
-    big = model.table.length * 0 + 1e3
-    wide = model.replace(table=model.table.replace(length=big, width=big), effects=())
-    pos, spin, vel = jnp.asarray(ball.pos), jnp.asarray(ball.spin), jnp.asarray(ball.vel)
-    speed = jnp.linalg.norm(vel[:, :2], axis=-1)
-    bounce = jnp.zeros(pos.shape[0], jnp.int32) if bounce is None else jnp.asarray(bounce, jnp.int32)
-    u = jnp.stack([jnp.arctan2(vel[:, 1], vel[:, 0]), vel[:, 2]], -1)
-    target = jnp.asarray(target_xy, u.dtype)
-    max_up = jnp.full(pos.shape[0], jnp.inf, u.dtype) if max_up is None else jnp.asarray(max_up, u.dtype)
-    for _ in range(iters):
-        u = _newton_jit(wide, pos, spin, speed, bounce, max_up, u, target, jnp.asarray(dt, u.dtype),
-                        n_steps=int(round(t_max / dt)))
-    return Ball(pos=np.asarray(ball.pos), vel=np.asarray(_heading_velocity(speed, u), dtype=np.asarray(ball.vel).dtype),
-                spin=np.asarray(ball.spin))
+    n = len(ball.pos)
+    vel0 = np.asarray(ball.vel)
+    dtype = np.asarray(ball.pos).dtype
+    serve = np.zeros(n, bool) if bounce is None else np.asarray(bounce) == 1
+    first_x = np.zeros(n) if first_x is None else np.asarray(first_x)
+    j = lambda a: jnp.asarray(np.asarray(a, dtype))  # noqa: E731
+    vel, _, _ = aim_batch(model, j(ball.pos), j(ball.spin), j(np.linalg.norm(vel0[:, :2], axis=-1)), j(vel0[:, 2]),
+                          j(target_xy), j(first_x), jnp.asarray(serve), jnp.asarray(dt, dtype),
+                          int(round(t_max / dt)), jnp.asarray(iters))
+    vel = np.asarray(vel)
+    keep = ~np.isfinite(vel).all(-1)
+    if max_up is not None:
+        keep |= vel[:, 2] > np.asarray(max_up)
+    vel = np.where(keep[:, None], vel0, vel).astype(vel0.dtype)
+    return Ball(pos=np.asarray(ball.pos), vel=vel, spin=np.asarray(ball.spin))
 
 
 def sample_shots(n: int, seed: int = 0, types=None, mirror: float = 0.0, radius: float = 0.02, model=None):
@@ -178,7 +251,7 @@ def sample_shots(n: int, seed: int = 0, types=None, mirror: float = 0.0, radius:
         raise ValueError(f"unknown shot types {sorted(unknown)}; known: {list(SHOT_TYPES)}")
     labels = np.asarray(names)[rng.integers(0, len(names), n)]
     start, target, speed, top, side = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n))
-    bounce, max_up = np.zeros(n, np.int32), np.zeros(n)
+    bounce, max_up, first_x = np.zeros(n, np.int32), np.zeros(n), np.zeros(n)
     for name in names:
         k = labels == name
         m = int(k.sum())
@@ -187,14 +260,14 @@ def sample_shots(n: int, seed: int = 0, types=None, mirror: float = 0.0, radius:
         start[k] = np.stack([u(s.start_x), u(s.start_y), u(s.start_z)], -1)
         target[k] = np.stack([u(s.target_x), u(s.target_y), np.full(m, radius)], -1)
         speed[k], top[k], side[k] = u(s.speed), u(s.topspin), u(s.sidespin)
-        bounce[k], max_up[k] = s.bounce, s.max_up
+        bounce[k], max_up[k], first_x[k] = s.bounce, s.max_up, u(s.first_x)
     vel = aim(start, target, speed, top)
     heading = vel[:, :2] / np.linalg.norm(vel[:, :2], axis=-1, keepdims=True)
     across = np.stack([-heading[:, 1], heading[:, 0], np.zeros(n)], -1)  # z x heading: topspin axis
     spin = top[:, None] * across + side[:, None] * np.array([0.0, 0.0, 1.0])
     ball = Ball(pos=start, vel=vel, spin=spin)
     if model is not None:
-        ball = refine_aim(model, ball, target[:, :2], bounce, max_up)
+        ball = refine_aim(model, ball, target[:, :2], bounce, first_x, max_up)
     start, vel = np.asarray(ball.pos), np.asarray(ball.vel)
     flip = rng.random(n) < mirror
     # turning the scene 180 degrees about z maps x, y -> -x, -y for positions, velocities and spins

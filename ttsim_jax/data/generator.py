@@ -72,7 +72,6 @@ import json
 import math
 import time
 import tomllib
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -82,13 +81,11 @@ import numpy as np
 
 from ttsim_jax import effects as fx
 from ttsim_jax.params import load_model, stack_models
-from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import racket as racket_stage
-from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import safe_divide, safe_norm, safe_unit
+from ttsim_jax.physics.numerics import safe_norm, safe_unit
 from ttsim_jax.rally import ball_properties, simulate
-from ttsim_jax.shots import DRAG_AIM, MAGNUS_AIM, SHOT_TYPES, aim
+from ttsim_jax.shots import DRAG_AIM, MAGNUS_AIM, SHOT_TYPES, aim, aim_batch
 from ttsim_jax.state import Ball, Racket
 
 from . import schema
@@ -323,102 +320,6 @@ def config_from_toml(path: str | Path, base: GeneratorConfig | None = None) -> G
 # ============================================================================ jax kernels
 def _dtype(cfg: GeneratorConfig):
     return jnp.float64 if cfg.dtype == "float64" else jnp.float32
-
-
-def _landing(model, pos, vel, spin, h, n_steps):
-    """Where the ball comes down to the table plane the first and second time, for aiming.
-
-    A light flight (RK4 of step ``h``, no events but the table plane, taken as unbounded),
-    differentiable in the initial velocity.
-
-    Returns:
-        (first (2,), second (2,), twice: whether it came down twice, net (2,): the ball's height
-        where it crosses the net plane x = 0 before the first and before the second landing, +inf
-        if it does not).
-    """
-    radius, mass = model.ball.radius, model.ball.mass
-
-    def body(c, _):
-        p, v, w, n, first, second, net = c
-        p1, v1, w1 = aero_stage.flight_step(model.aero, radius, mass, p, v, w, 0.0, h)
-        crosses_net = (p[0] * p1[0] <= 0.0) & (p[0] != p1[0])
-        z_net = p[2] + safe_divide(-p[0], p1[0] - p[0], 0.0) * (p1[2] - p[2])
-        net = jnp.where(crosses_net & (jnp.arange(2) == n), jnp.minimum(net, z_net), net)
-        cross = (n < 2) & (p1[2] < radius) & (v1[2] < 0.0)
-        frac = jnp.clip(safe_divide(p[2] - radius, p[2] - p1[2], 0.0), 0.0, 1.0)
-        pc, vc, wc = p + frac * (p1 - p), v + frac * (v1 - v), w + frac * (w1 - w)
-        bp, bv, bw = table_stage.table_contact(model.table, radius, pc, vc, wc)
-        # the rest of the step after the bounce: a second-order Taylor step (as the rally kernel)
-        rest = (1.0 - frac) * h
-        acc = aero_stage.acceleration(model.aero, radius, mass, bp, bv, bw, 0.0)
-        bp, bv = bp + rest * bv + 0.5 * rest * rest * acc, bv + rest * acc
-        p1 = jnp.where(cross, bp, p1)
-        v1 = jnp.where(cross, bv, v1)
-        w1 = jnp.where(cross, bw, w1)
-        first = jnp.where(cross & (n == 0), pc[:2], first)
-        second = jnp.where(cross & (n == 1), pc[:2], second)
-        return (p1, v1, w1, n + cross.astype(n.dtype), first, second, net), None
-
-    init = (pos, vel, spin, jnp.zeros((), jnp.int32), pos[:2], pos[:2], jnp.full(2, jnp.inf, pos.dtype))
-    (_, _, _, n, first, second, net), _ = jax.lax.scan(body, init, None, length=n_steps)
-    return first, second, n >= 2, net
-
-
-def _aim_one(model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters):
-    """Newton iterations on (heading, horizontal speed, v_z) of one shot.
-
-    A regular shot keeps its horizontal speed and lands its first bounce on ``target``; a serve
-    (``serve`` True) lands its first bounce at x = ``first_x`` (its own half) and its second on
-    ``target``: three conditions, three unknowns.
-
-    Returns:
-        (velocity (3,), distance [m] of the aimed bounce from its target (inf if it never lands),
-        height [m] of the ball where it crosses the net before the aimed bounce).
-    """
-
-    def vel(u):
-        return jnp.stack([u[1] * jnp.cos(u[0]), u[1] * jnp.sin(u[0]), u[2]])
-
-    def f(u):
-        first, second, _, _ = _landing(model, pos, vel(u), spin, h, n_steps)
-        reg = jnp.concatenate([first - target, (u[1] - speed)[None]])
-        srv = jnp.concatenate([second - target, (first[0] - first_x)[None]])
-        return jnp.where(serve, srv, reg)
-
-    d = target - pos[:2]
-    u = jnp.stack([jnp.arctan2(d[1], d[0]), speed, vz])
-    lim = jnp.array([0.3, 2.0, 3.0], pos.dtype)
-    eye = jnp.eye(3, dtype=pos.dtype)
-
-    def step(u, val, jac):
-        ok = jnp.abs(jnp.linalg.det(jac)) > 1e-12
-        du = jnp.clip(jnp.linalg.solve(jnp.where(ok, jac, eye), val), -lim, lim)
-        u_new = u - jnp.where(ok, du, 0.0)
-        return u_new.at[1].set(jnp.clip(u_new[1], 1.0, 40.0))
-
-    # one Newton step with the exact Jacobian (forward mode), then Broyden updates of it: each
-    # further iteration costs one flight instead of four
-    val, lin = jax.linearize(f, u)
-    jac = jax.vmap(lin, out_axes=1)(eye)
-
-    def broyden(_, c):
-        u, val, jac = c
-        u_new = step(u, val, jac)
-        val_new = f(u_new)
-        du, df = u_new - u, val_new - val
-        jac = jac + jnp.outer(df - jac @ du, du) / jnp.maximum(jnp.dot(du, du), 1e-12)
-        return u_new, val_new, jac
-
-    u, val, jac = jax.lax.fori_loop(0, iters, broyden, (u, val, jac))
-    first, second, twice, net = _landing(model, pos, vel(u), spin, h, n_steps)
-    miss = jnp.where(serve, safe_norm(second - target) + jnp.abs(first[0] - first_x), safe_norm(first - target))
-    return vel(u), jnp.where(twice | ~serve, miss, jnp.inf), jnp.where(serve, net[1], net[0])
-
-
-@partial(jax.jit, static_argnames=("n_steps",))
-def _aim_batch(model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters):
-    return jax.vmap(_aim_one, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, None, None, None))(
-        model, pos, spin, speed, vz, target, first_x, serve, h, n_steps, iters)
 
 
 def _normal_for(dv, dw, k):
@@ -998,7 +899,7 @@ class _Game:
             pad = _pad(dict(pos=start[todo], spin=spin_out[todo], speed=speed[todo], vz=vz0, target=target[todo, :2],
                             first_x=first_x[todo], serve=serve[todo]), _bucket(len(todo)))
             j = lambda a: jnp.asarray(np.asarray(a).astype(self.np_dtype))  # noqa: E731
-            v, _miss, net = _aim_batch(self.plain, j(pad["pos"]), j(pad["spin"]), j(pad["speed"]), j(pad["vz"]), j(pad["target"]),
+            v, _miss, net = aim_batch(self.plain, j(pad["pos"]), j(pad["spin"]), j(pad["speed"]), j(pad["vz"]), j(pad["target"]),
                                        j(pad["first_x"]), jnp.asarray(pad["serve"]), jnp.asarray(AIM_STEP, self.dtype),
                                        int(round(AIM_HORIZON / AIM_STEP)), jnp.asarray(self.cfg.aim_iters))
             v_out[todo] = np.asarray(v)[: len(todo)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ttsim_jax.physics.events import FLOOR, KIND_NAMES, NET, OUT, TABLE
+from ttsim_jax.physics.events import FLOOR, KIND_NAMES, NET, OUT, REST, TABLE
 
 
 def shot_outcomes(kinds, pre_pos, labels, direction=None):
@@ -29,12 +29,12 @@ def shot_outcomes(kinds, pre_pos, labels, direction=None):
 
 
 def summary_table(kinds, pre_pos, post_vel, labels, status) -> str:
-    """A plain-text table per shot type: count, landed, net, bounces, landing spread, ends."""
+    """A plain-text table per shot type: count, landed, net, bounces, landing spread, how they ended."""
     out = shot_outcomes(kinds, pre_pos, labels)
     labels, status, kinds = np.asarray(labels), np.asarray(status), np.asarray(kinds)
     post_speed = np.linalg.norm(np.asarray(post_vel), axis=-1)
     rows = ["shot type        n   landed  net   bounces  landing x mean±sd [m]   landing y sd [m]  "
-            "speed after 1st bounce [m/s]  ended: floor / out / alive"]
+            "speed after 1st bounce [m/s]  ended: floor / out / rest / in flight"]
     for name in list(dict.fromkeys(sorted(labels.tolist()))) + ["all"]:
         k = np.ones(len(labels), bool) if name == "all" else labels == name
         land = out["landing"][k & out["landed"]]
@@ -45,7 +45,8 @@ def summary_table(kinds, pre_pos, post_vel, labels, status) -> str:
         spd = f"{np.median(sp):5.2f}" if len(sp) else "  -  "
         rows.append(f"{name:15s} {k.sum():5d}  {out['landed'][k].mean():5.2f}  {out['net'][k].mean():4.2f}  "
                     f"{out['n_bounces'][k].mean():6.2f}   {lx:>22s}   {ly:>14s}   {spd:>26s}   "
-                    f"{(status[k] == FLOOR).mean():5.2f} / {(status[k] == OUT).mean():4.2f} / {(status[k] == 0).mean():4.2f}")
+                    f"{(status[k] == FLOOR).mean():5.2f} / {(status[k] == OUT).mean():4.2f} / {(status[k] == REST).mean():4.2f} / "
+                    f"{(status[k] == 0).mean():4.2f}")
     return "\n".join(rows)
 
 
