@@ -22,7 +22,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ttsim_jax import load_model, simulate
 from ttsim_jax.physics.residual import init_model, load_residual_config

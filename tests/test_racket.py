@@ -89,7 +89,6 @@ def moving_racket(x0, vx, n, dt=1e-3):
 def test_no_tunnelling_fast_ball_against_fast_racket(dt):
     # ball 35 m/s against a racket coming at 10 m/s: 45 mm relative per 1 ms step > ball diameter
     m = load_model("conti2026")
-    n = 60
     sweep = np.linspace(0.0, 1.0, 16)  # phases of the ball within a step
     b = Ball.create(np.stack([0.5 + 0.045 * sweep, np.zeros(16), 0.2 * np.ones(16)], -1),
                     np.tile([35.0, 0.0, 0.0], (16, 1)))
