@@ -246,7 +246,7 @@ def respond(model: Model, pre: Ball, kind, racket: Racket | None, tau, t, dt):
                                                      pre.spin, fx)
         is_r = kind == ev.RACKET
         post = Ball(jnp.where(is_r, pre.pos, tp), jnp.where(is_r, rv, tv), jnp.where(is_r, rw, tw))
-        x = jnp.where(is_r, jnp.concatenate([rstate["v"], rstate["w"], rstate["d"]]), x)
+        x = jnp.where(is_r, racket_stage.network_input(rstate), x)
         rot = jnp.where(is_r, rstate["rot"], rot)
     return post, x, rot
 

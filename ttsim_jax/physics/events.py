@@ -48,7 +48,6 @@ def hermite(p0, v0, p1, v1, dt, tau):
 def _root(g0, g1, gap_fn, p0, v0, p1, v1, dt):
     """tau in [0, 1] where the gap crosses zero: linear guess, one Newton step on the Hermite path."""
     tau = jnp.clip(safe_divide(g0, g0 - g1, 0.0), 0.0, 1.0)
-    pos, vel = hermite(p0, v0, p1, v1, dt, tau)
     g, dg = jax.jvp(lambda s: gap_fn(hermite(p0, v0, p1, v1, dt, s)[0], s), (tau,), (jnp.ones_like(tau),))
     tau_n = tau - safe_divide(g, dg, 0.0)
     return jnp.where((tau_n >= 0.0) & (tau_n <= 1.0), tau_n, tau)

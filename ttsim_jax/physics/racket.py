@@ -127,9 +127,12 @@ def base_response(params: RacketParams, v_tilde, w_tilde, d, radius, mass, effec
     return v_p[_FROM_CONTACT], w_p[_FROM_CONTACT]
 
 
-def network_input(params: RacketParams, state, n_inputs: int):
-    """The residual network's input x = (v~, w~, d)[:n_inputs] from :func:`racket_frame_state`."""
-    return jnp.concatenate([state["v"], state["w"], state["d"]])[:n_inputs]
+def network_input(state):
+    """The residual network's input x = (v~, w~, d) (8,) from :func:`racket_frame_state`.
+
+    A 6-input network (durr2026) takes the first six entries.
+    """
+    return jnp.concatenate([state["v"], state["w"], state["d"]])
 
 
 def racket_contact(params: RacketParams, racket, radius, mass, pos, vel, spin, effects=()):
