@@ -453,7 +453,8 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` (with a leading (B,) axis on every leaf if
             ``model_batched``, e.g. from ``stack_models``).
-        ball: :class:`Ball` with (B, 3) fields (or (3,) for a single ball; outputs keep B = 1).
+        ball: :class:`Ball` with (B, 3) fields (or (3,) for a single ball; outputs keep B = 1), cast
+            to the model's float dtype.
         n_steps: number of steps (static: a new value compiles anew).
         dt: step [s] (traced: changing it does not recompile).
         racket: None, a :class:`Racket` schedule ((T, [R,] ...) or (B, T, R, ...) fields, T >= n_steps;
@@ -473,6 +474,8 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
     Returns:
         A :class:`RallyResult`.
     """
+    # the simulation runs in the model's float dtype; balls given in another one are cast to it
+    ball = jax.tree.map(lambda a: jnp.asarray(a, model.ball.radius.dtype), ball)
     if ball.pos.ndim == 1:
         ball = jax.tree.map(lambda a: a[None], ball)
     if ball.pos.ndim != 2 or ball.pos.shape[-1] != 3:
