@@ -20,7 +20,7 @@ How a game is made:
   model). The racket face is placed at the ball with the contact point d sampled over the face
   (most hits near the centre, some in every band 0-5, 5-8 and beyond 8 cm). The *true* contact
   (truth model, with its effects) then decides what the ball really does.
-* Flights are simulated with :func:`ttsim_jax.rally.simulate` (dt = 1 ms, RK4), every game in its
+* Flights are simulated with :func:`ttsim_jax.kernel.simulate` (dt = 1 ms, RK4), every game in its
   own lane of one batch (each lane with its game's truth model: ``model_batched``), in chunks of
   ``chunk_steps`` steps recorded at every step (so that contacts can be placed on the 1 ms grid,
   between the 200 Hz frames); the host reads the event log and trajectory of each chunk, decides
@@ -84,7 +84,7 @@ from ttsim_jax.params import load_model, stack_models
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.numerics import safe_norm, safe_unit
-from ttsim_jax.rally import ball_properties, simulate
+from ttsim_jax.kernel import ball_properties, simulate
 from ttsim_jax.shots import DRAG_AIM, MAGNUS_AIM, SHOT_TYPES, aim, aim_batch
 from ttsim_jax.state import Ball, Racket
 

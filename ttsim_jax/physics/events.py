@@ -53,6 +53,11 @@ def _root(g0, g1, gap_fn, p0, v0, p1, v1, dt):
     return jnp.where((tau_n >= 0.0) & (tau_n <= 1.0), tau_n, tau)
 
 
+def _crossing(g0, g1, radius):
+    """A surface gap that closes within the step, from no deeper than the tolerance."""
+    return (g1 < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius)
+
+
 @struct.dataclass
 class Candidate:
     """One possible contact within a step: whether it happens, and when (fraction of the step)."""
@@ -66,8 +71,13 @@ def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
     g0, g1 = gap(p0, 0.0), gap(p1, 1.0)
     tau = _root(g0, g1, gap, p0, v0, p1, v1, dt)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
-    hit = (g1 < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius) & (vel[2] < 0.0) & table_stage.on_table(table, pos)
+    hit = _crossing(g0, g1, radius) & (vel[2] < 0.0) & table_stage.on_table(table, pos)
     return Candidate(hit=hit, tau=tau)
+
+
+def table_may_hit(effects, radius, p0, p1):
+    """Cheap superset of :func:`table_candidate`'s hits: the gap to the surface closes."""
+    return _crossing(table_stage.penetration(effects, radius, p0), table_stage.penetration(effects, radius, p1), radius)
 
 
 def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
@@ -83,8 +93,16 @@ def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
     local = racket.rot.T @ (pos - racket.pos - tau * dt * racket.vel)
     inside = jnp.sum((local[1:3] / racket.face) ** 2) <= 1.0
     approaching = side * jnp.dot(n, vel - racket.vel) < 0.0
-    hit = (g1 < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius) & approaching & inside
+    hit = _crossing(g0, g1, radius) & approaching & inside
     return Candidate(hit=hit, tau=tau)
+
+
+def racket_may_hit(racket, radius, p0, p1, dt):
+    """Cheap superset of :func:`racket_candidate`'s hits: the gap to the face's plane closes."""
+    n = racket.rot[:, 0]
+    h0, h1 = jnp.dot(n, p0 - racket.pos), jnp.dot(n, p1 - racket.pos - dt * racket.vel)
+    side = jnp.where(h0 >= 0.0, 1.0, -1.0)
+    return _crossing(side * h0 - radius, side * h1 - radius, radius)
 
 
 def net_candidate(table, radius, p0, v0, p1, v1, dt):
@@ -92,17 +110,27 @@ def net_candidate(table, radius, p0, v0, p1, v1, dt):
     gap = lambda p, s: p[0]  # noqa: E731
     tau = _root(p0[0], p1[0], gap, p0, v0, p1, v1, dt)
     pos, _ = hermite(p0, v0, p1, v1, dt, tau)
-    crosses = (p0[0] * p1[0] < 0.0) | ((p1[0] == 0.0) & (p0[0] != 0.0))
+    crosses = net_may_hit(p0, p1)
     touches = (pos[2] < table.net_height + radius) & (pos[2] > -radius) & (
         jnp.abs(pos[1]) < 0.5 * table.width + table.net_overhang + radius)
     return Candidate(hit=crosses & touches, tau=tau)
+
+
+def net_may_hit(p0, p1):
+    """The ball centre crosses the net plane x = 0 in the step (superset of :func:`net_candidate`)."""
+    return (p0[0] * p1[0] < 0.0) | ((p1[0] == 0.0) & (p0[0] != 0.0))
+
+
+def floor_may_hit(table, radius, p1):
+    """The ball ends the step below the floor (the same test as :func:`floor_candidate`)."""
+    return p1[2] - radius - table.floor_z < 0.0
 
 
 def floor_candidate(table, radius, p0, v0, p1, v1, dt):
     gap = lambda p, s: p[2] - radius - table.floor_z  # noqa: E731
     g0, g1 = gap(p0, 0.0), gap(p1, 1.0)
     tau = _root(g0, g1, gap, p0, v0, p1, v1, dt)
-    return Candidate(hit=(g1 < 0.0), tau=tau)
+    return Candidate(hit=floor_may_hit(table, radius, p1), tau=tau)
 
 
 def out_of_play(pos):

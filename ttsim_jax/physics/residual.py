@@ -469,7 +469,7 @@ def residual_outputs(model: ResidualModel, x, attenuate: bool = True) -> dict:
     return dict(dv=dv, dw=dw, sigma_v=sv, sigma_w=sw, beta=beta)
 
 
-def _sampled(model, x, eps):
+def sampled_residual(model, x, eps):
     """Attenuated outputs, with sigma * eps added to the raw residuals first when eps is given."""
     out = residual_outputs(model, x, attenuate=False)
     if eps is not None:
@@ -531,11 +531,11 @@ def gathered_residual(model: ResidualModel, x, mask, capacity: int, key=None, sa
         idx = jnp.nonzero(mask, size=capacity, fill_value=b)[0]
         rows = jnp.take(x, idx, axis=0, mode="clip")
         noise = None if eps is None else jnp.take(eps, idx, axis=0, mode="clip")
-        out = _sampled(model, rows, noise)
+        out = sampled_residual(model, rows, noise)
         return {k: zeros[k].at[idx].set(v.astype(x.dtype), mode="drop") for k, v in out.items()}
 
     def full(_):
-        out = _sampled(model, x, eps)
+        out = sampled_residual(model, x, eps)
         m = mask[:, None]
         return {k: jnp.where(m if v.ndim == 2 else mask, v.astype(x.dtype), 0.0) for k, v in out.items()}
 
