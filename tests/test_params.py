@@ -117,6 +117,7 @@ def expect_plain_error(data, *fragments):
     ("ball", "radius", {"value": False, "unit": "m"}, "got bool"),
     ("ball", "radius", {"value": 0.02, "unit": 20}, "unit must be a string"),
     ("ball", "radius", {"value": 0.02}, "exactly 'value' and 'unit'"),
+    ("aero", "drag", 0.55, "expected a table"),
 ])
 def test_booleans_strings_and_missing_units_are_refused(section, key, value, fragment):
     d = conti_dict()

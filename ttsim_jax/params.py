@@ -240,7 +240,9 @@ def _read_section(file, data: dict, section: str, schema_key: str | None = None,
 
 def _coefficient(file, data, section, families):
     table = data.get("aero", {}).get(section.split(".")[1], None)
-    if not isinstance(table, dict) or "kind" not in table:
+    if table is not None and not isinstance(table, dict):
+        _error(file, section, table, "expected a table with 'kind' and the coefficients")
+    if table is None or "kind" not in table:
         _error(file, f"{section}.kind", None, f"missing; one of {sorted(families)}")
     kind = table["kind"]
     if not isinstance(kind, str) or kind not in families:
