@@ -274,11 +274,7 @@ def _check_tables(file, kind, vals):
             _error(file, "aero.drag.cd", vals["cd"], f"shape {vals['cd'].shape[0]}x{vals['cd'].shape[1]} differs from "
                    f"sp's {vals['sp'].shape[0]}x{vals['sp'].shape[1]}: one C_D per breakpoint")
         for row, sp in enumerate(vals["sp"]):
-            bad = np.flatnonzero(np.diff(sp) <= 0)
-            if bad.size:
-                i = int(bad[0]) + 1
-                _error(file, "aero.drag.sp", sp, f"the spin-ratio breakpoints of row {row + 1} must increase: entry "
-                       f"{i + 1} ({sp[i].item()!r}) does not exceed entry {i} ({sp[i - 1].item()!r})")
+            _check_increasing(file, "aero.drag.sp", sp, f"spin-ratio breakpoints of row {row + 1}")
         if vals["re_cap"] < vals["re_ref"][-1]:
             _error(file, "aero.drag.re_cap", vals["re_cap"], f"must be at least the last re_ref ({vals['re_ref'][-1].item()!r})")
         if vals["cd_min"] > vals["cd"].min():
