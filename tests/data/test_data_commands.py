@@ -73,3 +73,21 @@ def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
 def test_import_bad_path_is_an_error(parser, tmp_path, capsys):
     assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 1
     assert "no such file" in capsys.readouterr().err
+
+
+def test_import_csv_in_millimetres_and_milliseconds(parser, rally, tmp_path, capsys):
+    t, pos, bt, _ = rally
+    lines = ["session_id,t,x,y,z"] + [f"0,{float(a) * 1e3!r},{float(p[0]) * 1e3!r},{float(p[1]) * 1e3!r},{float(p[2]) * 1e3!r}" for a, p in zip(t, pos)]
+    (tmp_path / "log.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "ds"
+    argv = ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]
+    assert run(parser, argv + ["--length-unit", "mm"]) == 1
+    assert "--time-unit ms" in capsys.readouterr().err
+    assert run(parser, argv + ["--length-unit", "mm", "--time-unit", "ms"]) == 0
+    ds = load(out)
+    np.testing.assert_allclose(ds.observations["t"], t, rtol=1e-12)
+    np.testing.assert_allclose(ds.positions, pos, rtol=1e-12, atol=1e-15)
+    assert len(ds.events["kind"]) == len(bt)
+    capsys.readouterr()
+    assert run(parser, ["data", "import", str(tmp_path), "--source", "tt3d", "--out", str(tmp_path / "o"), "--time-unit", "ms"]) == 1
+    assert "CSV logs only" in capsys.readouterr().err
