@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import re
 import secrets
 import shutil
 from pathlib import Path
@@ -27,15 +28,17 @@ def _temp_name(target: Path) -> Path:
     return target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
 
 
-def _writer_is_gone(name: str, prefix: str) -> bool:
-    """Whether the temporary ``name`` (``prefix<pid>.<random>.tmp``) belongs to a finished process."""
-    pid = name[len(prefix):].split(".", 1)[0]
-    if not pid.isdigit():
-        return True  # not written by this scheme (e.g. an older release): nobody owns it
-    if int(pid) == os.getpid():
+def _is_stale(name: str, target_name: str) -> bool:
+    """Whether ``name`` is a temporary of ``target_name`` whose writer no longer runs."""
+    m = re.fullmatch(rf"\.{re.escape(target_name)}\.(\d+)\.[0-9a-f]{{8}}\.tmp", name)
+    if m is None:
+        # the temporaries of earlier releases (tempfile.mkstemp) carry no pid: nobody owns them
+        return re.fullmatch(rf"\.{re.escape(target_name)}\.[a-z0-9_]{{8}}\.tmp", name) is not None
+    pid = int(m.group(1))
+    if pid == os.getpid():
         return False
     try:
-        os.kill(int(pid), 0)
+        os.kill(pid, 0)
     except ProcessLookupError:
         return True
     except OSError:  # exists but belongs to another user
@@ -54,14 +57,13 @@ def remove_leftovers(target) -> list[Path]:
         The removed paths.
     """
     target = Path(os.path.abspath(target))
-    prefix = f".{target.name}."
     removed = []
     try:
         names = os.listdir(target.parent)
     except FileNotFoundError:
         return removed
     for name in names:
-        if name.startswith(prefix) and name.endswith(".tmp") and _writer_is_gone(name, prefix):
+        if _is_stale(name, target.name):
             p = target.parent / name
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)

@@ -95,6 +95,9 @@ def read_parquet(file, dataset_id: str | None = None, table: str | None = None) 
     try:
         t = pq.read_table(file, page_checksum_verification=True)
     except (pa.ArrowInvalid, OSError) as e:
+        if "checksum" in str(e).lower():
+            raise DataError(f"corrupted: a page checksum does not match its data; restore the file from a copy "
+                            f"or write the dataset again ({e})", file=file, table=table) from None
         raise DataError(f"not a readable Parquet file; corrupted or truncated? ({e})", file=file, table=table) from None
     if dataset_id is not None:
         found = (t.schema.metadata or {}).get(_ID_KEY, b"").decode()
