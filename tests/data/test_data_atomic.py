@@ -143,6 +143,17 @@ def test_overwrite_refuses_a_directory_that_is_not_a_dataset(small_dataset, tmp_
     assert _same(load(empty), small_dataset)
 
 
+def test_overwrite_without_an_exchange_call_still_replaces_whole(small_dataset, tmp_path, monkeypatch):
+    import ttsim_jax.io_atomic as A
+
+    monkeypatch.setattr(A, "_exchange", lambda a, b: False)  # a system without renameat2
+    target = tmp_path / "ds"
+    save(small_dataset, target)
+    b = _variant(small_dataset, 0.5, "B")
+    save(b, target, overwrite=True)
+    assert _same(load(target), b) and _leftovers(target) == []
+
+
 def test_failed_write_leaves_the_old_dataset(small_dataset, tmp_path):
     target = tmp_path / "ds"
     save(small_dataset, target)
