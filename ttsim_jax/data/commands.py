@@ -35,7 +35,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     imp.add_argument("path", metavar="PATH", help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
     imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
     imp.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
-    imp.add_argument("--force", action="store_true", help="overwrite DIR if it exists")
+    imp.add_argument("--force", action="store_true", help="replace DIR if it holds a dataset (other files in it are kept)")
     imp.add_argument("--filter", action="store_true", help="also drop short, low-spin-confidence and badly fitting segments (prints a report)")
     imp.add_argument("--min-spin-conf", type=float, default=0.5, metavar="C", help="with --filter: least spin confidence, negative to keep all (default 0.5)")
     imp.add_argument("--max-rmse", type=float, default=0.02, metavar="M", help="with --filter: largest flight-fit RMSE in metres (default 0.02)")
@@ -67,7 +67,7 @@ def cmd_import(args) -> int:
             ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
             print(report)
         save(ds, args.out, overwrite=args.force)
-    except (DataError, FileExistsError) as e:
+    except (DataError, OSError) as e:  # OSError: DIR exists, is a file, or cannot be written
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"wrote {args.out}")
