@@ -43,7 +43,14 @@ def test_import_csv_then_info(parser, rally, tmp_path, capsys):
     ds = load(out)
     np.testing.assert_array_equal(ds.observations["t"], t)
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 1  # exists
+    (out / "notes.txt").write_text("keep me")
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out), "--force"]) == 0
+    assert (out / "notes.txt").read_text() == "keep me"
+    (tmp_path / "a_file").write_text("x")
     capsys.readouterr()
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(tmp_path / "a_file"),
+                        "--force"]) == 1
+    assert "a_file" in capsys.readouterr().err and (tmp_path / "a_file").read_text() == "x"
     assert run(parser, ["data", "info", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["sessions"] == 1 and d["events"]["table"] == len(bt) and d["segments"] == len(bt) + 1

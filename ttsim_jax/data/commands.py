@@ -36,7 +36,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     imp.add_argument("path", metavar="PATH", help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
     imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
     imp.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
-    imp.add_argument("--force", action="store_true", help="overwrite DIR if it exists")
+    imp.add_argument("--force", action="store_true", help="replace DIR if it holds a dataset (other files in it are kept)")
     imp.add_argument("--length-unit", choices=tuple(LENGTH_UNITS), default="m", help="with --source csv: unit of the positions (default m)")
     imp.add_argument("--time-unit", choices=tuple(TIME_UNITS), default="s", help="with --source csv: unit of the times (default s)")
     imp.add_argument("--filter", action="store_true", help="also drop short, low-spin-confidence and badly fitting segments (prints a report)")
@@ -69,7 +69,7 @@ def cmd_import(args) -> int:
             ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
             print(report)
         save(ds, args.out, overwrite=args.force)
-    except (ValueError, FileExistsError) as e:  # DataError is a ValueError
+    except (ValueError, OSError) as e:  # DataError is a ValueError; OSError: DIR exists, is a file, or cannot be written
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"wrote {args.out}")
