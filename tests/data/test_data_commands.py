@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from ttsim_jax.cli import main
 from ttsim_jax.data import commands, load
 
 
@@ -19,8 +20,8 @@ def parser():
 
 
 def run(parser, argv):
-    args = parser.parse_args(argv)
-    return args.func(args)
+    """Runs ``ttsim ARGV`` in-process (``parser`` checks that the commands register)."""
+    return main(argv)
 
 
 def test_every_option_has_help(parser):
@@ -42,7 +43,7 @@ def test_import_csv_then_info(parser, rally, tmp_path, capsys):
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 0
     ds = load(out)
     np.testing.assert_array_equal(ds.observations["t"], t)
-    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 1  # exists
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 2  # exists
     capsys.readouterr()
     assert run(parser, ["data", "info", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
@@ -71,5 +72,5 @@ def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
 
 
 def test_import_bad_path_is_an_error(parser, tmp_path, capsys):
-    assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 1
+    assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 2
     assert "no such file" in capsys.readouterr().err

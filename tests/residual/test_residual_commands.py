@@ -1,4 +1,4 @@
-"""`train residual` / `evaluate residual` through a small argparse harness (until cli.py wires them)."""
+"""`train residual` / `evaluate residual` through the ``ttsim`` command (in-process)."""
 
 import argparse
 import json
@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from ttsim_jax.cli import main
 from ttsim_jax.data import save
 from ttsim_jax.fit import commands
 from ttsim_jax.fit import contacts as C
@@ -43,8 +44,7 @@ def parser():
 
 
 def run(argv):
-    args = parser().parse_args(argv)
-    return args.func(args)
+    return main(argv)
 
 
 @pytest.fixture(scope="module")
@@ -67,14 +67,14 @@ def test_help_text_for_every_option():
         ap.parse_args(["train", "residual", "--data", "d"])  # --out is required
 
 
-def test_register_extends_an_existing_group():
+def test_register_extends_an_existing_group(tmp_path):
     ap = argparse.ArgumentParser(prog="ttsim")
     sub = ap.add_subparsers(dest="command", required=True)
     train = sub.add_parser("train").add_subparsers(dest="what", required=True)
     train.add_parser("aero")
     commands.register(sub)
     assert ap.parse_args(["train", "aero"]).what == "aero"
-    args = ap.parse_args(["train", "residual", "--data", "d", "--out", "o"])
+    args = ap.parse_args(["train", "residual", "--data", str(tmp_path), "--out", str(tmp_path / "o")])
     assert args.func is commands.cmd_train_residual and args.model == "conti2026"
 
 
@@ -94,7 +94,7 @@ def test_train_then_evaluate(workdir, capsys):
     assert np.all(np.asarray(model.sigma_scale) > 0)
 
     # a second run refuses to overwrite; --resume of the finished run returns the same model
-    assert run(argv) == 1
+    assert run(argv) == 2
     assert "--resume" in capsys.readouterr().err
     assert run(argv + ["--resume"]) == 0
     assert "all (n=10)" in capsys.readouterr().out
@@ -113,16 +113,16 @@ def test_train_then_evaluate(workdir, capsys):
     assert "all (n=100)" in capsys.readouterr().out
 
 
-def test_errors_exit_1_with_a_message(workdir, capsys):
+def test_errors_exit_2_with_a_message(workdir, capsys):
     bad = workdir / "bad.toml"
     bad.write_text(TINY_TOML.replace("n_clusters = 10", "n_clusters = 10\nbogus = 1"))
     argv = ["train", "residual", "--data", str(workdir / "data"), "--out", str(workdir / "x.ttres"), "--quiet"]
-    assert run(argv + ["--config", str(bad)]) == 1
+    assert run(argv + ["--config", str(bad)]) == 2
     assert "bogus" in capsys.readouterr().err
-    assert run(argv + ["--config", str(workdir / "tiny.toml"), "--resume"]) == 1
+    assert run(argv + ["--config", str(workdir / "tiny.toml"), "--resume"]) == 2
     assert "no training state" in capsys.readouterr().err
     assert run(["train", "residual", "--data", str(workdir / "missing"), "--out", str(workdir / "y.ttres"),
-                "--config", str(workdir / "tiny.toml"), "--quiet"]) == 1
+                "--config", str(workdir / "tiny.toml"), "--quiet"]) == 2
     assert "error:" in capsys.readouterr().err
-    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 1
-    assert "no such checkpoint" in capsys.readouterr().err
+    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 2
+    assert "none: no such file" in capsys.readouterr().err
