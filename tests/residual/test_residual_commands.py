@@ -2,6 +2,7 @@
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -126,3 +127,27 @@ def test_errors_exit_2_with_a_message(workdir, capsys):
     assert "error:" in capsys.readouterr().err
     assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 2
     assert "none: no such file" in capsys.readouterr().err
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games"
+
+
+def test_default_config_trains_on_the_bundled_sample(tmp_path, capsys):
+    """The bundled config asks for 1000 k-means centres; the sample has a few dozen contacts."""
+    out = tmp_path / "sample.ttres"
+    assert main(["train", "residual", "--data", str(SAMPLE), "--out", str(out), "--epochs", "2", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    n_train = R.checkpoint_metadata(out)["n_train"]
+    assert f"lowered from 1000 to {n_train}" in text
+    assert R.load_residual(out).config.n_clusters == n_train < 1000
+
+
+def test_help_states_the_defaults_of_clusters_epochs_and_seed(capsys):
+    assert main(["train", "residual", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    for model in commands.MODELS:
+        config, tcfg = F.load_train_config(commands.bundled_config(model))
+        for value in (config.n_clusters, tcfg.max_epochs, tcfg.seed):
+            assert f"{value} for {model}" in text
+    for option, key in (("--clusters", "n_clusters"), ("--epochs", "max_epochs"), ("--seed", "seed")):
+        assert f"{option} " in text and f"(default: the config's {key}," in text
