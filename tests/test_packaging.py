@@ -82,3 +82,11 @@ def test_source_checkout_reads_the_top_level_configs():
 
     assert config_dir() == REPO / "configs"
     assert available_models() == sorted(p.stem for p in (REPO / "configs" / "models").glob("*.toml"))
+
+
+def test_ci_smoke_tests_the_installed_wheel_outside_the_checkout():
+    ci = (REPO / ".ci" / "run").read_text()
+    wheel_at = ci.index("pip wheel")
+    for command in ('cd "$smoke"', "ttsim --version", "ttsim simulate --model conti2026 --shots 100",
+                    "load_model('conti2026')"):
+        assert ci.find(command, wheel_at) > wheel_at, command
