@@ -72,6 +72,7 @@ def paths(tmp_path_factory):
 # (argv with {P} for the fixture's folder, fragments the message must hold: the option or file, the value)
 BAD = {
     "simulate-unknown-model": (["simulate", "--model", "conti2099"], ["--model", "conti2099"]),
+    "simulate-model-missing-file": (["simulate", "--model", "{P}/mine.toml"], ["--model", "{P}/mine.toml"]),
     "simulate-model-dir": (["simulate", "--model", "{P}/dir"], ["--model", "{P}/dir", "directory"]),
     "simulate-model-binary": (["simulate", "--model", "{P}/bin"], ["--model", "{P}/bin", "not a text file"]),
     "simulate-model-not-toml": (["simulate", "--model", "{P}/text.txt"], ["{P}/text.txt", "not valid TOML"]),
