@@ -159,3 +159,15 @@ def test_version_and_help(capsys):
     out = capsys.readouterr().out
     for command in ("simulate", "data", "generate", "train", "evaluate"):
         assert command in out
+
+
+def test_a_closed_output_pipe_ends_quietly():
+    """``ttsim data info DIR | head``: the reader closes the pipe before ttsim writes."""
+    import subprocess
+    import sys
+
+    code = f"import sys; from ttsim_jax.cli import main; sys.exit(main(['data', 'info', {SAMPLE!r}]))"
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait() == 1 and "Traceback" not in err and "BrokenPipeError" not in err, err
