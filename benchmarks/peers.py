@@ -227,8 +227,13 @@ def agreement(peers: Peers, n_balls: int, n_steps: int, seed: int = 12345) -> di
             continue
         if name == "mujoco":
             _, first = peers.mujoco_peer.rollout(shots, n_steps, track_bounce=True)
-        elif name == "mjx":
-            continue  # final state only; MuJoCo itself is compared
+        elif name == "mjx":  # final state only: compared with MuJoCo on a few shots (it is slow)
+            m_balls, m_shots = _shots(64, seed)
+            mj_final, _ = peers.mujoco_peer.rollout(m_shots, 300)
+            d = np.linalg.norm(np.asarray(run(m_balls, 300))[:, :3] - mj_final, axis=-1)
+            out[name] = dict(against="mujoco", what="final position after 300 steps, 64 shots",
+                             median_m=float(np.median(d)), max_m=float(np.max(d)), compared=64)
+            continue
         else:
             _, first = run(balls if name == "plain_scan" else shots, n_steps)
         first = np.asarray(first, np.float64)
@@ -291,6 +296,7 @@ def plot(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     configs = list(report["configs"])
+    colours = {n: f"C{i}" for i, n in enumerate(("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx"))}
     fig, axes = plt.subplots(1, len(configs), figsize=(6 * len(configs), 4.5), squeeze=False)
     for ax, cfg in zip(axes[0], configs):
         rows = report["configs"][cfg]["results"]
@@ -298,9 +304,11 @@ def plot(report: dict, path: Path) -> None:
         for n in names:
             pts = [(row["batch"], row["peers"][n]["ball_steps_per_s"]) for row in rows
                    if "ball_steps_per_s" in row["peers"].get(n, {})]
-            ax.plot(*zip(*pts), marker="o", label=n + (" (similar physics)" if n in ("mujoco", "mjx") else ""))
+            ax.plot(*zip(*pts), marker="o", color=colours.get(n), label=n + (" (similar physics)" if n in ("mujoco", "mjx") else ""))
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.set_xticks([row["batch"] for row in rows], [f"{row['batch']:,}" for row in rows])
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         ax.set_xlabel("batch (balls)")
         ax.set_ylabel("ball-steps / s")
         ax.set_title(f"{cfg}: {'flight + table' if cfg == 'table' else 'flight + table + 2 rackets'}")
@@ -333,7 +341,7 @@ def main(argv=None) -> int:
     p.add_argument("--budget", type=float, default=4e6,
                    help="ball-steps per timed run, sets the steps per batch within [100, 1000] (default: %(default)g)")
     p.add_argument("--max-batch-mujoco", type=int, default=4096,
-                   help="largest batch MuJoCo runs (it is ~100x slower) (default: %(default)s)")
+                   help="largest batch MuJoCo runs (it is far slower) (default: %(default)s)")
     p.add_argument("--max-batch-plain", type=int, default=1 << 30,
                    help="largest batch the plain scan runs (default: no limit)")
     p.add_argument("--mujoco-chunk", type=int, default=64, help="balls per MuJoCo model (default: %(default)s)")
@@ -344,7 +352,7 @@ def main(argv=None) -> int:
                    help="shots in the agreement check of first bounces (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="a short run: batches 256,1024,4096, budget 1e6, MuJoCo up to 1024 balls, 256 agreement shots")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default: benchmarks/results/peers_cpu.json)")
     p.add_argument("--plot", type=Path, default=None,
                    help="PNG of throughput against batch (default: the --out path with .png)")
     args = p.parse_args(argv)
@@ -380,7 +388,7 @@ def main(argv=None) -> int:
         for n, a in agree.items():
             if a["median_m"] is not None:
                 print(f"    {n:11s} median {a['median_m'] * 1e3:9.4f} mm  max {a['max_m'] * 1e3:9.4f} mm "
-                      f"({a['compared']} bounces)", flush=True)
+                      f"({a['compared']} compared{', against ' + a['against'] if 'against' in a else ''})", flush=True)
         max_batch = {"mujoco": args.max_batch_mujoco, "plain_scan": args.max_batch_plain, "mjx": args.max_batch_mjx}
         rows = []
         for batch in batches:
