@@ -4,6 +4,11 @@ The benchmark runs in float32 with JAX's default (32-bit) types, so these tests 
 suite's float64 mode while they run.
 """
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -15,7 +20,8 @@ from ttsim_jax import load_model
 from ttsim_jax.policies import tracking_rackets
 from ttsim_jax.state import Ball
 
-N_BALLS, N_STEPS = 8, 100
+N_STEPS = 100
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
@@ -92,3 +98,27 @@ def test_numba_stays_float32():
     for sig in disp.signatures:
         typemap = disp.overloads[sig].type_annotation.typemap
         assert not [name for name, t in typemap.items() if t == numba.float64]
+
+
+def test_cuda_loop_matches_cpu_loop_in_the_simulator(setup, tmp_path):
+    """The CUDA kernel, run by numba's CUDA simulator (no GPU needed), equals the CPU loop."""
+    pn = pytest.importorskip("benchmarks.peers_numba", reason="numba not installed (pip install -e .[bench])")
+    model, _, shots, _ = setup
+    params = pn.pack_params(model, tracking_rackets().params)
+    np.savez(tmp_path / "in.npz", pos=shots.pos, vel=shots.vel, spin=shots.spin, **params)
+    script = f"""
+import numpy as np
+from benchmarks import peers_numba as pn
+from ttsim_jax.state import Ball
+d = np.load({str(tmp_path / "in.npz")!r})
+params = {{k: d[k] for k in ("scalars", "re_ref", "sp", "cd", "v_ref", "mag", "residual", "rot")}}
+assert pn.cuda_available()
+state, status, first = pn.rollout_cuda(params, Ball(d["pos"], d["vel"], d["spin"]), {N_STEPS}, {peers.DT}, True)
+np.savez({str(tmp_path / "out.npz")!r}, state=state, status=status, first=first)
+"""
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(REPO))
+    subprocess.run([sys.executable, "-c", script], env=env, check=True, timeout=300)
+    out = np.load(tmp_path / "out.npz")
+    state, status, first = pn.rollout_cpu(params, shots, N_STEPS, peers.DT, True)
+    np.testing.assert_allclose(out["state"], state, rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(out["status"], status)
