@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 import numba
-from numba import njit, prange
+from numba import cuda, njit, prange
 
 F = np.float32
 ZERO, ONE, TWO, HALF, THREE, SIX = F(0.0), F(1.0), F(2.0), F(0.5), F(3.0), F(6.0)
@@ -389,7 +389,6 @@ def rollout_cpu(params: dict, balls, n_steps: int, dt: float, rackets: bool):
 
 def cuda_available() -> bool:
     try:
-        from numba import cuda
         return bool(cuda.is_available())
     except Exception:  # numba without its CUDA part, or a broken driver: no CUDA peer
         return False
@@ -400,8 +399,7 @@ _cuda_cache: dict = {}
 
 def _cuda_kernel():
     if "kernel" not in _cuda_cache:
-        from numba import cuda
-
+        # ``cuda`` must stay a module global inside the kernel: numba's CUDA simulator swaps it there
         run_ball = make_physics(cuda.jit(device=True))
 
         @cuda.jit
@@ -417,8 +415,6 @@ def _cuda_kernel():
 
 def rollout_cuda(params: dict, balls, n_steps: int, dt: float, rackets: bool, threads: int = 128):
     """The same rollout as :func:`rollout_cpu`, one CUDA thread per ball (needs a GPU)."""
-    from numba import cuda
-
     state, status, first = _outputs(balls)
     d = {k: cuda.to_device(v) for k, v in params.items()}
     d_state, d_status, d_first = cuda.to_device(state), cuda.to_device(status), cuda.to_device(first)
