@@ -2,7 +2,7 @@
 
 Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1 ms in float32:
 
-- ``kernel``: the rally kernel (``ttsim_jax.simulate``; called only in :func:`kernel_rollout`).
+- ``kernel``: the rally kernel (``ttsim_jax.rollout``; called only in :func:`kernel_rollout`).
 - ``plain_scan``: a straightforward ``lax.scan`` over steps of ``jax.vmap`` of a single-ball step
   calling the project's stages (``aero.flight_step``, ``table.table_contact``,
   ``racket.racket_contact``) with an end-of-step penetration check: no event log, no gathering,
@@ -45,7 +45,7 @@ REPO = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make ``benchmarks`` importable
     sys.path.insert(0, str(REPO))
 
-from ttsim_jax import load_model, simulate  # noqa: E402
+from ttsim_jax import init_state, load_model, rollout  # noqa: E402
 from ttsim_jax.physics import aero as aero_stage  # noqa: E402
 from ttsim_jax.physics import events as ev  # noqa: E402
 from ttsim_jax.physics import racket as racket_stage  # noqa: E402
@@ -62,17 +62,17 @@ DEFAULT_OUT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 
 # --------------------------------------------------------------------------- the kernel
 def kernel_rollout(model, balls: Ball, n_steps: int, dt: float, policy):
-    """The rally kernel on a batch; the only place it is called (switch here to ``kernel.rollout``).
+    """The rally kernel on a batch (``init_state`` then ``rollout``); the only place it is called.
 
     Returns:
         (final positions (B, 3), first table bounce (B, 3), NaN where none) as JAX arrays.
     """
-    res = simulate(model, balls, n_steps, dt, racket=policy, max_events=8)
-    ev_log = res.events
+    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8)
+    ev_log = out.events
     is_table = ev_log.kind == ev.TABLE
     first = jnp.argmax(is_table, axis=1)
     pos = jnp.take_along_axis(ev_log.pre.pos, first[:, None, None], axis=1)[:, 0]
-    return res.final.pos, jnp.where(jnp.any(is_table, axis=1)[:, None], pos, jnp.nan)
+    return state.ball.pos, jnp.where(jnp.any(is_table, axis=1)[:, None], pos, jnp.nan)
 
 
 # --------------------------------------------------------------------------- the plain scan

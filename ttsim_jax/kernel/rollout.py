@@ -183,6 +183,7 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_ste
             rackets, batched = xs, rackets_batched
             if policy is not None:
                 rackets = jax.vmap(policy.fn, in_axes=(None, 0, None))(policy.params, ball, t)
+                rackets = jax.tree.map(lambda a: a.astype(dtype), rackets)  # python-float params may be wider
                 batched = True
             sub = jax.random.fold_in(key, k) if sample else None
             ball, alive, status, log = stepper(model, axes, ball, alive, status, ball_id, log, rackets, t, dt,
@@ -322,6 +323,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         policy = racket
     elif racket is not None:
         schedule, batched = normalise_schedule(racket, n_steps, batch)
+        schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
     block = default_block(batch) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     key = jax.random.PRNGKey(0) if key is None else key

@@ -18,7 +18,8 @@ import functools
 import jax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from ttsim_jax.kernel import rollout as rollout_module
+from ttsim_jax.kernel.rollout import (RolloutOutput, _check_per_ball, _resolve_axes, _Static, default_capacity,
+                                      rollout)
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState
 
@@ -44,7 +45,7 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
     axes_tree = axes.tree()
 
     def local_rollout(model, state, plan, dt, key):
-        return rollout_module.rollout(model, state, n_steps, dt, plan, model_axes=axes_tree, key=key, **kw)
+        return rollout(model, state, n_steps, dt, plan, model_axes=axes_tree, key=key, **kw)
 
     def specs(model, state, plan):
         model_specs = jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: P() if ax is None else P(AXIS), sub),
@@ -54,7 +55,7 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
 
     def run(model, state, plan, dt, key):
         model_specs, state_specs, plan_specs = specs(model, state, plan)
-        out_specs = (state_specs, rollout_module.RolloutOutput(
+        out_specs = (state_specs, RolloutOutput(
             events=None if not kw["max_events"] else P(AXIS), trajectory=None if not kw["record_every"] else P(AXIS),
             times=None if not kw["record_every"] else P()))
         fn = jax.shard_map(local_rollout, mesh=mesh, in_specs=(model_specs, state_specs, plan_specs, P(), P()),
@@ -85,15 +86,15 @@ def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, ra
     batch = state.batch
     if batch % n_dev:
         raise ValueError(f"the batch of {batch} balls does not divide over {n_dev} devices")
-    axes = rollout_module._resolve_axes(model, model_axes)
-    rollout_module._check_per_ball(model, axes, batch)
+    axes = _resolve_axes(model, model_axes)
+    _check_per_ball(model, axes, batch)
     per_ball_plan = False
     if racket is not None and not isinstance(racket, RacketPolicy):
         per_ball_plan = normalise_schedule(racket, n_steps, batch)[1]
-    static_kw = (("contact_capacity", contact_capacity or rollout_module.default_capacity(batch // n_dev)),
+    static_kw = (("contact_capacity", contact_capacity or default_capacity(batch // n_dev)),
                  ("integrator", integrator), ("max_events", max_events), ("record_every", record_every),
                  ("remat", remat), ("reference", reference), ("sample_residual", sample_residual))
-    fn, specs = _compiled(mesh, rollout_module._Static(axes), n_steps, racket is not None, per_ball_plan, static_kw)
+    fn, specs = _compiled(mesh, _Static(axes), n_steps, racket is not None, per_ball_plan, static_kw)
     model_specs, state_specs, plan_specs = specs(model, state, racket)
     place = lambda tree, sp: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, sp)  # noqa: E731
     key = jax.random.PRNGKey(0) if key is None else key
