@@ -184,6 +184,26 @@ def init_state(ball: Ball, max_events: int = 8, t0=0.0) -> RallyState:
                       time=jnp.asarray(t0, ball.pos.dtype))
 
 
+def refuse_overlaps(model: Model, state: RallyState, rackets: Racket | None, *, model_batched: bool = False,
+                    rackets_batched: bool = False) -> RallyState:
+    """Flags the balls that start inside the table, the net or a racket as INVALID (stopped).
+
+    Arguments:
+        model: model parameters (leading (B,) axis if ``model_batched``); state: a fresh state;
+        rackets: the rackets at the start, (R, ...) fields ((B, R, ...) if ``rackets_batched``) or
+        None.
+
+    Returns:
+        The state with those balls stopped, status ``INVALID``.
+    """
+    def inside(m, ball, r):
+        return ev.inside_obstacle(m.table, m.effects, ball_properties(m)[0], ball.pos, r)
+
+    bad = jax.vmap(inside, in_axes=(0 if model_batched else None, 0, 0 if rackets_batched else None))(
+        model.replace(residual=None), state.ball, rackets)
+    return state.replace(alive=state.alive & ~bad, status=jnp.where(bad, ev.INVALID, state.status))
+
+
 # --------------------------------------------------------------------------- one ball
 def ball_properties(model: Model):
     """(radius, mass) of the ball after effects (hook ``ball_properties``)."""
@@ -208,7 +228,15 @@ def detect(model: Model, ball: Ball, rackets: Racket | None, t, dt, integrator: 
     p0, v0, w0 = ball.pos, ball.vel, ball.spin
     p1, v1, w1 = aero_stage.flight_step(model.aero, radius, mass, p0, v0, w0, t, dt, fx, integrator)
 
-    cands = [(ev.TABLE, ev.table_candidate(model.table, fx, radius, p0, v0, p1, v1, dt)),
+    # a ball in sustained contact with the table slides or rolls on it (physics.table.slide)
+    # instead of bouncing every step, and rests once slow
+    touch = table_stage.touching(model.table, fx, radius, p0, v0)
+    p1, v1, w1 = jax.tree.map(lambda a, b: jnp.where(touch, a, b),
+                              table_stage.slide(model.table, radius, p1, v1, w1, fx), (p1, v1, w1))
+    table = ev.table_candidate(model.table, fx, radius, p0, v0, p1, v1, dt)
+    rest = touch & table_stage.at_rest(model.table, fx, radius, p1, v1, w1)
+    cands = [(ev.TABLE, table.replace(hit=table.hit & ~touch)),
+             (ev.REST, ev.Candidate(hit=rest, tau=jnp.ones_like(table.tau))),
              (ev.FLOOR, ev.floor_candidate(model.table, radius, p0, v0, p1, v1, dt)),
              (ev.NET, ev.net_candidate(model.table, radius, p0, v0, p1, v1, dt))]
     n_fixed = len(cands)
@@ -276,10 +304,8 @@ def resolve(ball: Ball, alive, status, log: EventLog, prop: Proposal, resp: Resp
     """
     kind = prop.kind
     bounced = (kind == ev.TABLE) | (kind == ev.RACKET)
-    rest = (kind == ev.TABLE) & (jnp.abs(resp.post.vel[2]) < ev.REST_SPEED)
-    kind = jnp.where(rest, ev.REST, kind)
-    nxt = jax.tree.map(lambda a, b, c, d: jnp.where(rest, d, jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c))),
-                       resp.after, prop.pre, prop.free, resp.post)
+    nxt = jax.tree.map(lambda a, b, c: jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c)),
+                       resp.after, prop.pre, prop.free)
     out = (kind == ev.NONE) & ev.out_of_play(nxt.pos)
     kind = jnp.where(out, ev.OUT, kind)
     finite = jnp.all(jnp.isfinite(nxt.as_array()))
@@ -411,6 +437,12 @@ def _normalise_schedule(racket: Racket, n_steps: int, batch: int):
 def _simulate(model, ball, schedule, policy, dt, t0, key, *, n_steps, integrator, record_every, max_events,
               capacity, sample, model_batched, rackets_batched):
     state = init_state(ball, max_events, t0)
+    if policy is not None:
+        start = jax.vmap(policy.fn, in_axes=(None, 0, None))(policy.params, state.ball, state.time)
+    else:
+        start = None if schedule is None else jax.tree.map(lambda a: a[0], schedule)
+    state = refuse_overlaps(model, state, start, model_batched=model_batched,
+                            rackets_batched=rackets_batched or policy is not None)
     stepper = partial(step, integrator=integrator, model_batched=model_batched, capacity=capacity, sample=sample)
 
     def body(carry, xs):
