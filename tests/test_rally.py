@@ -5,7 +5,7 @@ import pytest
 
 from ttsim_jax import Ball, Racket, RacketPolicy, load_model, simulate, stack_models
 from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
-from ttsim_jax.rally import _simulate
+from ttsim_jax.kernel.rollout import _rollout
 
 
 def serve_batch(n=6, seed=0):
@@ -41,10 +41,10 @@ def test_no_retrace_when_parameters_or_dt_change():
     balls = serve_batch(4)
     a = load_model("conti2026")
     simulate(a, balls, 100, 1e-3)
-    size = _simulate._cache_size()
+    size = _rollout._cache_size()
     b = a.replace(table=a.table.replace(e0=a.table.e0 * 0.9), aero=a.aero.replace(rho_air=a.aero.rho_air * 1.1))
     simulate(b, serve_batch(4, seed=1), 100, 2e-3)
-    assert _simulate._cache_size() == size
+    assert _rollout._cache_size() == size
 
 
 def test_batched_parameters_domain_randomisation():

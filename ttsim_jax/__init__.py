@@ -5,10 +5,12 @@ length, y across it, z up; SI units.
 """
 
 from ttsim_jax.params import ConfigError, Model, load_model, stack_models
-from ttsim_jax.rally import EventLog, RacketPolicy, RallyResult, simulate
+from ttsim_jax.kernel import (EventLog, RacketPolicy, RallyResult, RallyState, RolloutOutput, init_state, per_ball_axes,
+                              rollout, simulate)
 from ttsim_jax.state import Ball, Racket
 
 __version__ = "0.1.0"
 
-__all__ = ["Ball", "Racket", "Model", "ConfigError", "load_model", "stack_models", "simulate",
-           "RacketPolicy", "RallyResult", "EventLog", "__version__"]
+__all__ = ["Ball", "Racket", "Model", "ConfigError", "load_model", "stack_models", "init_state", "rollout",
+           "simulate", "per_ball_axes", "RallyState", "RolloutOutput", "RacketPolicy", "RallyResult", "EventLog",
+           "__version__"]

@@ -7,10 +7,12 @@ can be batched along a leading axis (domain randomisation, see :func:`stack_mode
 kind, network architecture, which effects) are part of the pytree structure: changing them
 recompiles, changing values does not.
 
-TOML layout (see ``configs/models/*.toml``): every number is either a bare value in the SI unit of
-:data:`SCHEMA` or an inline table ``{ value = ..., unit = "..." }``; a few alternative units are
-converted (mm, cm, g). Loading validates names, shapes, units and physical ranges and raises
-:class:`ConfigError` naming the file, the key and the value.
+TOML layout (see ``configs/models/*.toml``): every dimensional number is an inline table
+``{ value = ..., unit = "..." }`` (a bare number would leave its unit to guesswork); dimensionless
+ones (unit ``"1"``) may also be bare numbers. A few alternative units are converted (mm, cm, g).
+Loading validates names, types, shapes, units, physical ranges and the consistency of related keys
+(e_min <= e_max, increasing breakpoints, ...) and raises :class:`ConfigError` naming the file, the
+key and the value.
 """
 
 from __future__ import annotations
@@ -130,7 +132,51 @@ _SECTIONS = {"ball", "aero", "table", "racket", "schema", "name", "description",
 
 
 def _error(file, key, value, why):
+    # numpy values would print as np.float64(...); users want the numbers as written in the file.
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.tolist()
     raise ConfigError(f"{file}: key '{key}' = {value!r}: {why}")
+
+
+def _position(index: tuple) -> str:
+    """1-based position in a nested TOML array, as a user counts: 'entry 3', 'row 2, entry 5'."""
+    if len(index) == 1:
+        return f"entry {index[0] + 1}"
+    if len(index) == 2:
+        return f"row {index[0] + 1}, entry {index[1] + 1}"
+    return "element " + "".join(f"[{i + 1}]" for i in index)
+
+
+def _size(shape: tuple) -> str:
+    if not shape:
+        return "a single number"
+    return f"{shape[0]} entries" if len(shape) == 1 else "shape " + "x".join(map(str, shape))
+
+
+def _to_array(file, key, raw, unit):
+    """A number or rectangular nested list of numbers -> float64 array.
+
+    Booleans and strings are refused (numpy would turn true into 1.0 and "2" into 2.0), and a
+    ragged nested list names its first row whose length differs.
+    """
+
+    def shape(x, index):
+        if isinstance(x, list):
+            shapes = [shape(item, index + (i,)) for i, item in enumerate(x)]
+            for i, sh in enumerate(shapes[1:], start=1):
+                if sh != shapes[0]:
+                    what = "row" if not index else f"{_position(index)}: row"
+                    _error(file, key, x[i], f"ragged: {what} {i + 1} has {_size(sh)} but {what} 1 has "
+                           f"{_size(shapes[0])}; every row needs the same length")
+            return (len(x),) + (shapes[0] if shapes else ())
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            where = f" ({_position(index)})" if index else ""
+            in_unit = "(dimensionless)" if unit == "1" else f"in {unit}"
+            _error(file, key, x, f"expected a number{where} {in_unit}, got {type(x).__name__}")
+        return ()
+
+    shape(raw, ())
+    return np.asarray(raw, dtype=np.float64)
 
 
 def _read_entry(file, key, raw, entry: Entry):
@@ -143,16 +189,17 @@ def _read_entry(file, key, raw, entry: Entry):
             _error(file, key, raw, "expected true or false")
         return raw
     unit = entry.unit
-    if isinstance(raw, dict):
-        extra = set(raw) - {"value", "unit"}
-        if extra or "value" not in raw:
+    inline = isinstance(raw, dict)
+    if inline:
+        if set(raw) != {"value", "unit"}:
             _error(file, key, raw, "an inline table needs exactly 'value' and 'unit'")
-        unit = raw.get("unit", entry.unit)
+        unit = raw["unit"]
+        if not isinstance(unit, str):
+            _error(file, key, unit, f"the unit must be a string such as \"{entry.unit}\"")
         raw = raw["value"]
-    try:
-        arr = np.asarray(raw, dtype=np.float64)
-    except (TypeError, ValueError):
-        _error(file, key, raw, f"expected a number or nested list of numbers in {entry.unit}")
+    arr = _to_array(file, key, raw, entry.unit)
+    if not inline and entry.unit != "1":
+        _error(file, key, raw, f"a dimensional value needs its unit: write {{ value = ..., unit = \"{entry.unit}\" }}")
     if unit != entry.unit:
         target, factor = _CONVERT.get(unit, (None, None))
         if target != entry.unit:
@@ -193,31 +240,66 @@ def _read_section(file, data: dict, section: str, schema_key: str | None = None,
 
 def _coefficient(file, data, section, families):
     table = data.get("aero", {}).get(section.split(".")[1], None)
-    if not isinstance(table, dict) or "kind" not in table:
+    if table is not None and not isinstance(table, dict):
+        _error(file, section, table, "expected a table with 'kind' and the coefficients")
+    if table is None or "kind" not in table:
         _error(file, f"{section}.kind", None, f"missing; one of {sorted(families)}")
     kind = table["kind"]
-    if kind not in families:
+    if not isinstance(kind, str) or kind not in families:
         _error(file, f"{section}.kind", kind, f"unknown coefficient model; one of {sorted(families)}")
     vals = _read_section(file, data, section, f"{section}:{kind}", skip=("kind",))
     return families[kind], kind, vals
 
 
+def _check_increasing(file, key, values, what):
+    """Refuses fewer than two values or values that do not strictly increase, naming the first."""
+    if values.shape[0] < 2:
+        _error(file, key, values, f"needs at least 2 {what}")
+    bad = np.flatnonzero(np.diff(values) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        _error(file, key, values, f"{what} must increase: entry {i + 1} ({values[i].item()!r}) does not exceed "
+               f"entry {i} ({values[i - 1].item()!r})")
+
+
 def _check_tables(file, kind, vals):
+    """Consistency of the tabulated coefficient models (shapes agree, breakpoints increase)."""
     if kind == "table" and "sp" in vals:
+        _check_increasing(file, "aero.drag.re_ref", vals["re_ref"], "reference Reynolds numbers")
         k = vals["re_ref"].shape[0]
-        if vals["sp"].shape != vals["cd"].shape or vals["sp"].shape[0] != k or k < 2:
-            _error(file, "aero.drag.sp", vals["sp"].tolist(), f"sp and cd must both be ({k}, P) for {k} >= 2 re_ref rows")
-        if np.any(np.diff(vals["sp"], axis=1) <= 0) or np.any(np.diff(vals["re_ref"]) <= 0):
-            _error(file, "aero.drag.sp", vals["sp"].tolist(), "breakpoints and re_ref must increase")
+        if vals["sp"].shape[0] != k:
+            _error(file, "aero.drag.sp", vals["sp"], f"has {vals['sp'].shape[0]} rows but re_ref has {k} entries: "
+                   "one row of breakpoints per reference Reynolds number")
+        if vals["cd"].shape != vals["sp"].shape:
+            _error(file, "aero.drag.cd", vals["cd"], f"shape {vals['cd'].shape[0]}x{vals['cd'].shape[1]} differs from "
+                   f"sp's {vals['sp'].shape[0]}x{vals['sp'].shape[1]}: one C_D per breakpoint")
+        for row, sp in enumerate(vals["sp"]):
+            _check_increasing(file, "aero.drag.sp", sp, f"spin-ratio breakpoints of row {row + 1}")
         if vals["re_cap"] < vals["re_ref"][-1]:
-            _error(file, "aero.drag.re_cap", float(vals["re_cap"]), "must be at least the last re_ref")
+            _error(file, "aero.drag.re_cap", vals["re_cap"], f"must be at least the last re_ref ({vals['re_ref'][-1].item()!r})")
+        if vals["cd_min"] > vals["cd"].min():
+            _error(file, "aero.drag.cd_min", vals["cd_min"], f"the lower clamp exceeds the smallest tabulated C_D "
+                   f"({vals['cd'].min().item()!r}) and would override the table")
     if kind == "table" and "v_ref" in vals:
+        _check_increasing(file, "aero.magnus.v_ref", vals["v_ref"], "reference speeds")
         k = vals["v_ref"].shape[0]
         for key in ("m1", "s", "w_b", "a", "b", "c"):
             if vals[key].shape != (k,):
-                _error(file, f"aero.magnus.{key}", vals[key].tolist(), f"must have {k} entries like v_ref")
-        if k < 2 or np.any(np.diff(vals["v_ref"]) <= 0):
-            _error(file, "aero.magnus.v_ref", vals["v_ref"].tolist(), "needs >= 2 increasing speeds")
+                _error(file, f"aero.magnus.{key}", vals[key], f"must have {k} entries like v_ref")
+        bad = np.flatnonzero(vals["w_b"] <= 0)
+        if bad.size:
+            _error(file, "aero.magnus.w_b", vals["w_b"], f"entry {int(bad[0]) + 1}: the spin rate where the linear "
+                   "piece of C_M hands over to the quadratic one must be positive")
+
+
+def _check_pairs(file, table, geometry):
+    """Keys whose values must agree with each other."""
+    if table["e_min"] > table["e_max"]:
+        _error(file, "table.e_min", table["e_min"], f"exceeds table.e_max = {table['e_max'].item()!r}: "
+               "the restitution clip range [e_min, e_max] is empty")
+    if geometry["width"] > geometry["length"]:
+        _error(file, "table.geometry.width", geometry["width"], f"exceeds table.geometry.length = "
+               f"{geometry['length'].item()!r}: x runs along the table's length, the longer side")
 
 
 def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
@@ -226,7 +308,11 @@ def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
     if unknown:
         k = sorted(unknown)[0]
         _error(file, k, data[k], f"unknown top-level key; known: {sorted(_SECTIONS)}")
-    if data.get("schema", SCHEMA_VERSION) != SCHEMA_VERSION:
+    for key in ("name", "description", "source"):
+        if key in data and not isinstance(data[key], str):
+            _error(file, key, data[key], "expected a string")
+    version = data.get("schema", SCHEMA_VERSION)
+    if isinstance(version, bool) or version != SCHEMA_VERSION:
         _error(file, "schema", data.get("schema"), f"this version of ttsim-jax reads schema {SCHEMA_VERSION}")
     dtype = dtype or jnp.zeros(()).dtype
     arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
@@ -241,6 +327,7 @@ def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
     table = _read_section(file, data, "table", skip=("residual", "geometry"))
     residual = _read_section(file, data, "table.residual")
     geometry = _read_section(file, data, "table.geometry")
+    _check_pairs(file, table, geometry)
     racket = _read_section(file, data, "racket")
     if racket["kind"] not in RACKET_KINDS:
         _error(file, "racket.kind", racket["kind"], f"one of {RACKET_KINDS}")
@@ -301,8 +388,15 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
         A validated :class:`Model`.
     """
     path = resolve_model_path(name_or_path)
+    raw = path.read_bytes()
     try:
-        data = tomllib.loads(path.read_text())
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: line {line}: byte {raw[exc.start:exc.start + 1]!r} at offset {exc.start} is not "
+                          "UTF-8 text; a model file is a UTF-8 TOML text file") from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     model = model_from_dict(data, str(path), dtype)

@@ -1,6 +1,6 @@
 """Simple racket policies for rallies without a learned agent (benchmarks, tests, baselines).
 
-A policy is a :class:`~ttsim_jax.rally.RacketPolicy`: a pure function of (params, ball, t)
+A policy is a :class:`~ttsim_jax.kernel.plans.RacketPolicy`: a pure function of (params, ball, t)
 evaluated inside the rally scan, returning the rackets' states.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ttsim_jax.rally import RacketPolicy
+from ttsim_jax.kernel.plans import RacketPolicy
 from ttsim_jax.state import Racket
 
 

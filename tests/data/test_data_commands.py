@@ -43,7 +43,14 @@ def test_import_csv_then_info(parser, rally, tmp_path, capsys):
     ds = load(out)
     np.testing.assert_array_equal(ds.observations["t"], t)
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 1  # exists
+    (out / "notes.txt").write_text("keep me")
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out), "--force"]) == 0
+    assert (out / "notes.txt").read_text() == "keep me"
+    (tmp_path / "a_file").write_text("x")
     capsys.readouterr()
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(tmp_path / "a_file"),
+                        "--force"]) == 1
+    assert "a_file" in capsys.readouterr().err and (tmp_path / "a_file").read_text() == "x"
     assert run(parser, ["data", "info", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["sessions"] == 1 and d["events"]["table"] == len(bt) and d["segments"] == len(bt) + 1
@@ -73,3 +80,21 @@ def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
 def test_import_bad_path_is_an_error(parser, tmp_path, capsys):
     assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 1
     assert "no such file" in capsys.readouterr().err
+
+
+def test_import_csv_in_millimetres_and_milliseconds(parser, rally, tmp_path, capsys):
+    t, pos, bt, _ = rally
+    lines = ["session_id,t,x,y,z"] + [f"0,{float(a) * 1e3!r},{float(p[0]) * 1e3!r},{float(p[1]) * 1e3!r},{float(p[2]) * 1e3!r}" for a, p in zip(t, pos)]
+    (tmp_path / "log.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "ds"
+    argv = ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]
+    assert run(parser, argv + ["--length-unit", "mm"]) == 1
+    assert "--time-unit ms" in capsys.readouterr().err
+    assert run(parser, argv + ["--length-unit", "mm", "--time-unit", "ms"]) == 0
+    ds = load(out)
+    np.testing.assert_allclose(ds.observations["t"], t, rtol=1e-12)
+    np.testing.assert_allclose(ds.positions, pos, rtol=1e-12, atol=1e-15)
+    assert len(ds.events["kind"]) == len(bt)
+    capsys.readouterr()
+    assert run(parser, ["data", "import", str(tmp_path), "--source", "tt3d", "--out", str(tmp_path / "o"), "--time-unit", "ms"]) == 1
+    assert "CSV logs only" in capsys.readouterr().err

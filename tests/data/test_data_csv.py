@@ -85,3 +85,82 @@ def test_csv_with_spin_events_and_rackets(rally, tmp_path):
     with pytest.raises(DataError) as e:
         read_csv(tmp_path)
     assert "events.csv" in str(e.value) and f"line {len(bt) + 2}" in str(e.value)
+
+
+def _error_of(path, **kw) -> DataError:
+    with pytest.raises(DataError) as e:
+        read_csv(path, **kw)
+    assert "np." not in str(e.value), str(e.value)  # plain values, as in the file
+    return e.value
+
+
+def test_csv_header_only_observations(tmp_path):
+    (tmp_path / "observations.csv").write_text("session_id,t,x,y,z\n")
+    e = _error_of(tmp_path)
+    assert "observations.csv" in str(e) and "line 1" in str(e) and "only its header" in str(e)
+
+
+def test_csv_events_of_unknown_session(rally, tmp_path):
+    t, pos, bt, bp = rally
+    write_obs(tmp_path / "observations.csv", t, pos)
+    rows = ["session_id,t,kind,x,y,z"] + [f"{sid},{float(b)!r},table,{float(p[0])!r},{float(p[1])!r},{float(p[2])!r}" for sid, b, p in zip((0, 5), bt, bp)]
+    (tmp_path / "events.csv").write_text("\n".join(rows) + "\n")
+    e = _error_of(tmp_path)
+    assert "events.csv" in str(e) and e.row == 3 and e.column == "session_id" and e.value == 5
+
+
+def test_csv_time_in_milliseconds(rally, tmp_path):
+    t, pos, _, _ = rally
+    write_obs(tmp_path / "observations.csv", t * 1000.0, pos)
+    e = _error_of(tmp_path)
+    assert "--time-unit ms" in str(e) and "observations.csv" in str(e) and e.row == 3 and e.column == "t"
+    assert e.value == pytest.approx(t[1] * 1000.0)
+    ds = read_csv(tmp_path, time_unit="ms")
+    np.testing.assert_allclose(ds.observations["t"], t, rtol=1e-12)
+
+
+def test_csv_long_axis_along_y_is_refused(simulate_flight, tmp_path):
+    # A serve bouncing at x = -0.98, 0.30 and 1.12: two of three bounces lie beyond the table's
+    # half-width, so with x and y swapped they land beside the table.
+    t, pos, bt, bp = simulate_flight([-1.6, 0.05, 0.3], [4.0, 0.0, -1.0], duration=1.0)
+    assert sum(abs(b[0]) > 0.8 for b in bp) == 2
+    write_obs(tmp_path / "observations.csv", t, pos)
+    assert list(read_csv(tmp_path).events["kind"]) == ["table"] * 3
+    write_obs(tmp_path / "observations.csv", t, pos[:, [1, 0, 2]])
+    e = _error_of(tmp_path)
+    assert "long axis must be x" in str(e) and e.column == "y" and "observations.csv" in str(e)
+    k = int(np.argmin(np.abs(t - bt[0])))
+    assert abs(e.row - (k + 2)) <= 1  # the sample at the first bounce beside the table
+
+
+def test_csv_with_byte_order_mark_is_read(rally, tmp_path):
+    t, pos, bt, _ = rally
+    write_obs(tmp_path / "observations.csv", t, pos)
+    text = (tmp_path / "observations.csv").read_text()
+    (tmp_path / "observations.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    ds = read_csv(tmp_path)
+    np.testing.assert_array_equal(ds.positions, pos)
+    assert len(ds.events["kind"]) == len(bt)
+
+
+@pytest.mark.parametrize("content,line,fragment", [
+    (bytes(range(256)), 1, "binary content"),
+    (b"session_id,t,x,y,z\n0,0.0,0.1,0.2,\xe9\n", 2, "not UTF-8"),
+])
+def test_csv_binary_or_non_utf8_names_file_and_line(tmp_path, content, line, fragment):
+    (tmp_path / "observations.csv").write_bytes(content)
+    e = _error_of(tmp_path)
+    assert "observations.csv" in str(e) and e.row == line and e.row_label == "line" and fragment in str(e)
+
+
+def test_csv_errors_count_blank_lines_and_print_plain_values(rally, tmp_path):
+    t, pos, _, _ = rally
+    t = t.copy()
+    t[30] = t[28]
+    write_obs(tmp_path / "log.csv", t, pos)
+    lines = (tmp_path / "log.csv").read_text().splitlines()
+    lines[5:5] = ["", " , , , , "]  # two blank lines before the bad row
+    (tmp_path / "log.csv").write_text("\n".join(lines) + "\n")
+    e = _error_of(tmp_path / "log.csv")
+    assert e.row == 34 and lines[33].startswith("0,") and float(lines[33].split(",")[1]) == e.value
+    assert f"t = {float(t[29])!r}" in str(e)

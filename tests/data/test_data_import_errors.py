@@ -70,3 +70,18 @@ def test_mpi_missing_dataset(tmp_path):
 def test_unknown_source(tmp_path):
     with pytest.raises(ValueError, match="unknown source"):
         import_source(tmp_path, "wimbledon")
+
+
+def test_spindoe_file_with_byte_order_mark_is_read(tmp_path, rally):
+    folder = _spindoe_folder(tmp_path, rally)
+    f = folder / "007.csv"
+    f.write_bytes(b"\xef\xbb\xbf" + f.read_bytes())
+    ds = import_source(folder, "spindoe")
+    assert len(ds.observations["t"]) == len(rally[0])
+
+
+def test_tt3d_binary_file_names_file_and_line(tmp_path):
+    (tmp_path / "001.csv").write_bytes(b"Timestamp,X,Y,Z\n0.0,0\x00\x01,0,0.3\n")
+    with pytest.raises(DataError) as e:
+        import_source(tmp_path, "tt3d")
+    assert "001.csv" in str(e.value) and "line 2" in str(e.value) and "binary content" in str(e.value)

@@ -2,6 +2,7 @@
 
 import json
 import os
+import subprocess
 
 import jax
 import jax.numpy as jnp
@@ -125,10 +126,16 @@ def test_training_resume_matches_uninterrupted(tmp_path):
         F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, progress=False, callback=stop_at_2)
     with pytest.raises(FileExistsError, match="resume=True"):
         F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, progress=False)
+    # a run killed while writing its state leaves a temporary beside it; resuming removes it
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    leftover = tmp_path / f".b.state.{dead.pid}.1234abcd.tmp"
+    leftover.write_bytes(ck.read_bytes()[:100])
     model, rep = F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, resume=True,
                                   progress=False)
     assert rep["history"] == ref["history"] and rep["epochs"] == 5
     assert _leaves_equal(model, ref_model)
+    assert not leftover.exists()
     # a finished run resumes to its result without training
     again, rep2 = F.train_residual(d["x"], d["y_base"], d["y_obs"], CFG, tc, checkpoint=ck, resume=True,
                                    progress=False)
@@ -181,3 +188,25 @@ def test_sigma_scale_round_trips_and_scales_sigmas(tmp_path):
     np.testing.assert_allclose(np.asarray(a["sigma_v"]), np.asarray(b["sigma_v"]) * [1.0, 2.0, 3.0], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(a["sigma_w"]), np.asarray(b["sigma_w"]) * [0.5, 1.0, 4.0], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(a["dv"]), np.asarray(b["dv"]))
+
+
+def test_non_finite_arrays_are_refused_at_save_and_at_load(tmp_path, monkeypatch):
+    m = _model()
+    path = tmp_path / "net.ttres"
+    R.save_residual(path, m)
+    good = path.read_bytes()
+    (where, _), *_ = jax.tree_util.tree_flatten_with_path(m.variables)[0]
+    bad = m.replace(variables=jax.tree_util.tree_map_with_path(
+        lambda p, a: a.at[(0,) * a.ndim].set(jnp.nan) if p == where else a, m.variables))
+    key = "/".join(["variables"] + [str(k.key) for k in where])
+    with pytest.raises(R.CheckpointError) as e:
+        R.save_residual(path, bad)
+    assert str(path) in str(e.value) and repr(key) in str(e.value) and "non-finite" in str(e.value)
+    assert path.read_bytes() == good and sorted(os.listdir(tmp_path)) == ["net.ttres"]  # the old file stays
+    # a file holding NaNs (written by other means) is refused at load, naming the key
+    monkeypatch.setattr(R, "_check_finite", lambda *a: None)
+    R.save_residual(tmp_path / "nan.ttres", bad)
+    monkeypatch.undo()
+    with pytest.raises(R.CheckpointError) as e:
+        R.load_residual(tmp_path / "nan.ttres")
+    assert str(tmp_path / "nan.ttres") in str(e.value) and repr(key) in str(e.value)

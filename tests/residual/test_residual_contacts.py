@@ -9,7 +9,7 @@ from ttsim_jax.data import Dataset
 from ttsim_jax.fit import contacts as C
 from ttsim_jax.fit import residual as F
 from ttsim_jax.physics import racket as racket_stage
-from ttsim_jax.rally import ball_properties
+from ttsim_jax.kernel.step import ball_properties
 
 
 @pytest.fixture(scope="module")

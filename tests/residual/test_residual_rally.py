@@ -11,7 +11,8 @@ from ttsim_jax.fit import residual as F
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import residual as R
 from ttsim_jax.physics.events import RACKET, TABLE
-from ttsim_jax.rally import _simulate, ball_properties
+from ttsim_jax.kernel.rollout import _rollout
+from ttsim_jax.kernel.step import ball_properties
 
 TINY = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
 N_STEPS = 600
@@ -98,13 +99,13 @@ def test_sigma_logged_for_racket_contacts_only(setup):
 
 def test_swapping_residual_parameters_does_not_recompile(setup):
     _, net, model, result = setup
-    size = _simulate._cache_size()
+    size = _rollout._cache_size()
     keys = iter(jax.random.split(jax.random.key(3), 64))
     other = net.replace(variables=jax.tree_util.tree_map(
         lambda a: a * (1.0 + 0.1 * jax.random.normal(next(keys), a.shape, a.dtype)), net.variables),
         sigma_scale=net.sigma_scale * 2.0)
     again = simulate(model.replace(residual=other), balls(), N_STEPS, racket=schedule())
-    assert _simulate._cache_size() == size
+    assert _rollout._cache_size() == size
     (b, k), *_ = racket_events(result)
     assert not np.allclose(np.asarray(again.events.post.vel[b, k]), np.asarray(result.events.post.vel[b, k]))
 

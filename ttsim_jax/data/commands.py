@@ -20,6 +20,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     Returns:
         The ``data`` parser.
     """
+    from .csvlog import LENGTH_UNITS, TIME_UNITS
     from .importers import SOURCES
 
     data = subparsers.add_parser("data", help="measured data: import public datasets, inspect datasets", description="Measured-data commands.")
@@ -35,7 +36,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     imp.add_argument("path", metavar="PATH", help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
     imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
     imp.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
-    imp.add_argument("--force", action="store_true", help="overwrite DIR if it exists")
+    imp.add_argument("--force", action="store_true", help="replace DIR if it holds a dataset (other files in it are kept)")
+    imp.add_argument("--length-unit", choices=tuple(LENGTH_UNITS), default="m", help="with --source csv: unit of the positions (default m)")
+    imp.add_argument("--time-unit", choices=tuple(TIME_UNITS), default="s", help="with --source csv: unit of the times (default s)")
     imp.add_argument("--filter", action="store_true", help="also drop short, low-spin-confidence and badly fitting segments (prints a report)")
     imp.add_argument("--min-spin-conf", type=float, default=0.5, metavar="C", help="with --filter: least spin confidence, negative to keep all (default 0.5)")
     imp.add_argument("--max-rmse", type=float, default=0.02, metavar="M", help="with --filter: largest flight-fit RMSE in metres (default 0.02)")
@@ -54,20 +57,19 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def cmd_import(args) -> int:
     """``data import``: import, optionally filter, save, and print a summary."""
-    from .errors import DataError
     from .importers import import_source
     from .io import save
     from .segment import filter_segments
     from .summary import format_info, info
 
     try:
-        ds = import_source(args.path, args.source)
+        ds = import_source(args.path, args.source, length_unit=args.length_unit, time_unit=args.time_unit)
         if args.filter:
             conf = None if args.min_spin_conf < 0 else args.min_spin_conf
             ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
             print(report)
         save(ds, args.out, overwrite=args.force)
-    except (DataError, FileExistsError) as e:
+    except (ValueError, OSError) as e:  # DataError is a ValueError; OSError: DIR exists, is a file, or cannot be written
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"wrote {args.out}")

@@ -9,13 +9,18 @@
 ``rackets.csv`` (optional, one line per racket event)::
 ``event_id,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,d_y,d_z``
 
-Positions in the canonical frame, in metres (or millimetres with ``length_unit="mm"``). Errors
-name the file, line (1-based, the header is line 1), column and text of the bad cell.
+Positions in the canonical frame, in metres (or millimetres with ``length_unit="mm"``), times in
+seconds (or milliseconds with ``time_unit="ms"``). Files are UTF-8 text (a byte-order mark is
+skipped). Errors name the file, line (1-based, the header is line 1, blank lines counted), column and
+value of the bad cell; a log whose ball hardly moves (times in milliseconds read as seconds) or
+bounces at table height beside the table (x and y swapped) is refused before contacts are detected.
 """
 
 from __future__ import annotations
 
 import csv
+import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +39,42 @@ _REQUIRED = {
 }
 _INTS = {"session_id", "event_id"}
 _STRINGS = {"kind"}
+LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
+TIME_UNITS = {"s": 1.0, "ms": 1e-3}
+#: Below this 90th percentile of sample-to-sample speeds [m/s] the log shows no ball in play (a ball
+#: in flight moves at metres per second); typically the times are milliseconds read as seconds.
+MIN_PLAY_SPEED = 0.25
 
 
-def _read(file: Path, table: str, allowed: tuple[str, ...]) -> dict[str, np.ndarray]:
-    with open(file, newline="") as f:
+def read_text(file: Path) -> str:
+    """The text of a UTF-8 file (a leading byte-order mark dropped); binary content is an error.
+
+    Arguments:
+        file: path of the file.
+
+    Returns:
+        The decoded text. Raises :class:`DataError` naming the file, the line and the offending
+        byte for a NUL byte (binary content) or bytes that are not UTF-8.
+    """
+    data = Path(file).read_bytes()
+    nul = data.find(b"\x00")
+    if nul >= 0:
+        line = data[:nul].count(b"\n") + 1
+        raise DataError("binary content (a NUL byte), not comma-separated text", file=file, row=line, row_label="line", value=data[nul : nul + 1])
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[: e.start].count(b"\n") + 1
+        raise DataError(
+            "not UTF-8 text (a binary file, or text in another encoding: save it as UTF-8)",
+            file=file, row=line, row_label="line", value=data[e.start : e.start + 1],
+        ) from None
+
+
+def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Columns of one CSV file and the file line of each data row."""
+    lines = []
+    with io.StringIO(read_text(file), newline="") as f:
         reader = csv.reader(f)
         try:
             header = [h.strip() for h in next(reader)]
@@ -52,7 +89,8 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> dict[str, np.ndar
         if len(set(header)) != len(header):
             raise DataError("duplicate column names in the header", file=file, row=1, row_label="line", value=",".join(header))
         cols: dict[str, list] = {h: [] for h in header}
-        for line_no, row in enumerate(reader, start=2):
+        for row in reader:
+            line_no = reader.line_num
             if not row or all(not c.strip() for c in row):
                 continue
             if len(row) != len(header):
@@ -67,10 +105,74 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> dict[str, np.ndar
                 except ValueError:
                     raise DataError("not a number" if h not in _INTS else "not an integer", file=file, row=line_no, row_label="line", column=h, value=cell) from None
                 cols[h].append(v)
-    return {h: np.asarray(v, object if h in _STRINGS else (np.int64 if h in _INTS else np.float64)) for h, v in cols.items()}
+            lines.append(line_no)
+    if table == "observations" and not lines:
+        raise DataError("no data rows: the file holds only its header", file=file, row=1, row_label="line", value=",".join(header))
+    arrays = {h: np.asarray(v, object if h in _STRINGS else (np.int64 if h in _INTS else np.float64)) for h, v in cols.items()}
+    return arrays, np.asarray(lines, np.int64)
 
 
-def read_csv(path, *, events=None, rackets=None, length_unit: str = "m", metadata: Metadata | None = None, detect: bool = True) -> Dataset:
+def _check_sessions(ev_sid, obs_sid, ev_file, ev_lines, obs_file) -> None:
+    """Every event must belong to a session that has observations."""
+    bad = np.flatnonzero(~np.isin(ev_sid, obs_sid))
+    if bad.size:
+        raise DataError(
+            f"event of a session that has no observations in {Path(obs_file).name}",
+            file=ev_file, row=ev_lines[bad[0]], row_label="line", column="session_id", value=int(ev_sid[bad[0]]),
+        )
+
+
+def _check_speeds(sid, t, pos, raw_t, file, lines, time_unit) -> None:
+    """Refuses a log whose ball hardly moves: most likely its times are not in ``time_unit``."""
+    same = np.flatnonzero(sid[1:] == sid[:-1])
+    if same.size < 5:
+        return
+    speed = np.linalg.norm(pos[same + 1] - pos[same], axis=-1) / (t[same + 1] - t[same])
+    fast = float(np.percentile(speed, 90))
+    if fast >= MIN_PLAY_SPEED:
+        return
+    hint = "is t in milliseconds? Import with --time-unit ms (time_unit='ms')" if time_unit == "s" else "check the time and length units"
+    row = same[0] + 1
+    raise DataError(
+        f"the ball hardly moves: 90 % of the sample-to-sample speeds are below {fast:.3g} m/s (median sample interval "
+        f"{float(np.median(t[same + 1] - t[same])):.3g} s), but a ball in play moves at metres per second; {hint}",
+        file=file, row=lines[row], row_label="line", column="t", value=float(raw_t[row]),
+    )
+
+
+def _check_long_axis(sid, t, pos, raw_y, file, lines) -> None:
+    """Refuses a log whose bounces at table height lie beside the table but would be on it with x
+    and y swapped: the table's long axis must be x.
+
+    Nothing beside the table is at its height, so such bounces are rare in canonical data (a low
+    racket lift at most); a quarter of all table-height bounces is taken as proof.
+    """
+    from .segment import _session_slices, find_bounces
+
+    half_l = schema.TABLE_LENGTH / 2 + schema.BALL_RADIUS
+    half_w = schema.TABLE_WIDTH / 2 + schema.BALL_RADIUS
+    on, swapped = 0, []
+    for _, a, b in _session_slices(sid):
+        for c in find_bounces(t[a:b], pos[a:b], on_table=False):
+            x, y = abs(c.pos[0]), abs(c.pos[1])
+            if x <= half_l and y <= half_w:
+                on += 1
+            elif y <= half_l and x <= half_w:
+                swapped.append((a + c.index, float(c.pos[1])))
+    if swapped and len(swapped) >= 0.25 * (len(swapped) + on):
+        row, y = swapped[0]
+        raise DataError(
+            f"the ball bounces at table height at y = {y:.3f} m, beyond the table's half-width ({schema.TABLE_WIDTH / 2} m) "
+            f"but within its half-length ({schema.TABLE_LENGTH / 2} m), and {len(swapped)} of {len(swapped) + on} table-height "
+            "bounces do so: the table's long axis must be x and y must run across it (turn the axes by 90 deg about z: "
+            "new x = old y, new y = -old x)",
+            file=file, row=lines[row], row_label="line", column="y", value=float(raw_y[row]),
+        )
+
+
+def read_csv(
+    path, *, events=None, rackets=None, length_unit: str = "m", time_unit: str = "s", metadata: Metadata | None = None, detect: bool = True
+) -> Dataset:
     """Reads a CSV log into a validated, segmented :class:`Dataset`.
 
     Arguments:
@@ -79,6 +181,7 @@ def read_csv(path, *, events=None, rackets=None, length_unit: str = "m", metadat
         events: optional events CSV (default: ``events.csv`` beside the observations, if present).
         rackets: optional rackets CSV (default: ``rackets.csv`` beside them, if present).
         length_unit: ``"m"`` or ``"mm"`` for the positions in the files.
+        time_unit: ``"s"`` or ``"ms"`` for the times in the files.
         metadata: dataset metadata (default: source = the file name).
         detect: detect contacts in sessions that have no labelled events.
 
@@ -93,23 +196,28 @@ def read_csv(path, *, events=None, rackets=None, length_unit: str = "m", metadat
     folder = obs_file.parent
     ev_file = Path(events) if events is not None else (folder / "events.csv" if (folder / "events.csv").exists() else None)
     rk_file = Path(rackets) if rackets is not None else (folder / "rackets.csv" if (folder / "rackets.csv").exists() else None)
-    if length_unit not in ("m", "mm"):
-        raise ValueError(f"length_unit must be 'm' or 'mm', got {length_unit!r}")
-    scale = 1e-3 if length_unit == "mm" else 1.0
-    if not obs_file.exists():
-        raise DataError("no such file", file=obs_file)
+    if length_unit not in LENGTH_UNITS:
+        raise ValueError(f"length_unit must be one of {', '.join(LENGTH_UNITS)}, got {length_unit!r}")
+    if time_unit not in TIME_UNITS:
+        raise ValueError(f"time_unit must be one of {', '.join(TIME_UNITS)}, got {time_unit!r}")
+    scale, t_scale = LENGTH_UNITS[length_unit], TIME_UNITS[time_unit]
+    for f in (obs_file, ev_file, rk_file):
+        if f is not None and not f.is_file():
+            raise DataError("no such file", file=f)
 
-    o = _read(obs_file, "observations", OBSERVATION_COLUMNS)
+    o, o_lines = _read(obs_file, "observations", OBSERVATION_COLUMNS)
     pos = np.stack([o["x"], o["y"], o["z"]], axis=-1) * scale
     spin = np.stack([o[k] for k in ("spin_x", "spin_y", "spin_z")], axis=-1) if "spin_x" in o else None
     ev = rk = None
+    lines = {"observations": o_lines}
     if ev_file is not None:
-        e = _read(ev_file, "events", EVENT_COLUMNS)
-        ev = {"session_id": e["session_id"], "t": e["t"], "kind": e["kind"], "pos": np.stack([e["x"], e["y"], e["z"]], -1) * scale}
+        e, lines["events"] = _read(ev_file, "events", EVENT_COLUMNS)
+        _check_sessions(e["session_id"], o["session_id"], ev_file, lines["events"], obs_file)
+        ev = {"session_id": e["session_id"], "t": e["t"] * t_scale, "kind": e["kind"], "pos": np.stack([e["x"], e["y"], e["z"]], -1) * scale}
         if "event_id" in e:
             ev["event_id"] = e["event_id"]
     if rk_file is not None:
-        r = _read(rk_file, "rackets", RACKET_COLUMNS)
+        r, lines["rackets"] = _read(rk_file, "rackets", RACKET_COLUMNS)
         for k in ("x", "y", "z", "d_y", "d_z"):
             r[k] = r[k] * scale
         rk = {
@@ -120,9 +228,10 @@ def read_csv(path, *, events=None, rackets=None, length_unit: str = "m", metadat
             "ang_vel": np.stack([r["wx"], r["wy"], r["wz"]], -1),
             "contact": np.stack([r["d_y"], r["d_z"]], -1),
         }
+    t = o["t"] * t_scale
     ds = Dataset.from_arrays(
         o["session_id"],
-        o["t"],
+        t,
         pos,
         spin=spin,
         spin_conf=o.get("spin_conf"),
@@ -131,22 +240,26 @@ def read_csv(path, *, events=None, rackets=None, length_unit: str = "m", metadat
         segments=None,
         metadata=metadata if metadata is not None else Metadata(source=f"CSV log {obs_file.name}"),
     )
-    # Validate before any reordering, so rows map to lines: line = row + 2 (header is line 1).
+    # Validate before any reordering, so that rows map to the files' lines.
     files = {"observations": obs_file, "events": ev_file, "rackets": rk_file}
     try:
         validate(ds)
     except DataError as e:
         if e.table in files and files[e.table] is not None:
+            # Rows named inside the message (a duplicate's first row) are rows of the same table.
+            problem = re.sub(r"\brow (\d+)\b", lambda m: f"line {lines[e.table][int(m.group(1))]}", e.problem)
             raise DataError(
-                e.problem,
+                problem,
                 file=files[e.table],
                 table=e.table,
-                row=None if e.row is None else e.row + 2,
+                row=None if e.row is None else lines[e.table][e.row],
                 row_label="line",
                 column=e.column,
                 value=e.value,
             ) from None
         raise
+    _check_speeds(o["session_id"], t, pos, o["t"], obs_file, o_lines, time_unit)
+    _check_long_axis(o["session_id"], t, pos, o["y"], obs_file, o_lines)
     ds = detect_events(ds) if detect else segments_from_events(ds)
     validate(ds)
     return ds

@@ -20,7 +20,7 @@ How a game is made:
   model). The racket face is placed at the ball with the contact point d sampled over the face
   (most hits near the centre, some in every band 0-5, 5-8 and beyond 8 cm). The *true* contact
   (truth model, with its effects) then decides what the ball really does.
-* Flights are simulated with :func:`ttsim_jax.rally.simulate` (dt = 1 ms, RK4), every game in its
+* Flights are simulated with :func:`ttsim_jax.kernel.simulate` (dt = 1 ms, RK4), every game in its
   own lane of one batch (each lane with its game's truth model: ``model_batched``), in chunks of
   ``chunk_steps`` steps recorded at every step (so that contacts can be placed on the 1 ms grid,
   between the 200 Hz frames); the host reads the event log and trajectory of each chunk, decides
@@ -45,7 +45,9 @@ Files written by :func:`write` (``DIR`` is a normal dataset directory, see
 :func:`ttsim_jax.data.load`):
 
 ``truth.json``
-    generator version, seed, configuration, model, racket face, counts, and the true
+    ``dataset_id`` (that of ``metadata.json``; every truth Parquet file carries it too, and
+    :func:`load_truth` checks it), generator version, seed, configuration, model, racket face,
+    counts, and the true
     effect parameters: ``effects[name] = {"scope", "where", "units", "params"}`` for effects drawn
     once per dataset and ``sessions[i]["effects"][name]`` for those drawn per game (session).
 ``truth_events.parquet``
@@ -84,7 +86,7 @@ from ttsim_jax.params import load_model, stack_models
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.numerics import safe_norm, safe_unit
-from ttsim_jax.rally import ball_properties, simulate
+from ttsim_jax.kernel import ball_properties, simulate
 from ttsim_jax.shots import DRAG_AIM, MAGNUS_AIM, SHOT_TYPES, aim, aim_batch
 from ttsim_jax.state import Ball, Racket
 
@@ -1199,12 +1201,10 @@ def generate(config: GeneratorConfig | None = None, *, progress: bool = True, **
     return _assemble(game, time.perf_counter() - t0)
 
 
-TRUTH_FILES = ("truth.json", "truth_events.parquet", "truth_rackets.parquet", "truth_observations.parquet")
-
-
-def _write_parquet(table: dict, path: Path):
+def _truth_parquet(table: dict, path: Path, dataset_id: str):
     import pyarrow as pa
-    import pyarrow.parquet as pq
+
+    from .io import write_parquet
 
     arrays, fields = [], []
     for k, v in table.items():
@@ -1214,11 +1214,12 @@ def _write_parquet(table: dict, path: Path):
         else:
             arrays.append(pa.array(v))
         fields.append(k)
-    pq.write_table(pa.Table.from_arrays(arrays, names=fields), path)
+    write_parquet(pa.Table.from_arrays(arrays, names=fields), path, dataset_id)
 
 
 def write(gen: Generated, out: str | Path, *, overwrite: bool = False) -> Path:
-    """Writes the dataset directory ``out`` and the truth files beside its tables.
+    """Writes the dataset directory ``out`` and the truth files beside its tables, atomically
+    (all files appear together, carrying one dataset id; see :func:`ttsim_jax.data.io.save`).
 
     Arguments:
         gen: from :func:`generate`.
@@ -1228,19 +1229,17 @@ def write(gen: Generated, out: str | Path, *, overwrite: bool = False) -> Path:
     Returns:
         The directory.
     """
-    from .io import save
+    from .io import ID_KEY, save
 
-    out = Path(out)
-    save(gen.dataset, out, overwrite=overwrite)
-    (out / "truth.json").write_text(json.dumps(gen.truth, indent=1, sort_keys=False) + "\n")
-    _write_parquet(gen.truth_events, out / "truth_events.parquet")
-    _write_parquet(gen.truth_rackets, out / "truth_rackets.parquet")
-    path = out / "truth_observations.parquet"
-    if gen.truth_observations is not None:
-        _write_parquet(gen.truth_observations, path)
-    elif path.exists():
-        path.unlink()
-    return out
+    def truth_files(directory: Path, dataset_id: str):
+        info = dict(gen.truth, **{ID_KEY: dataset_id})
+        (directory / "truth.json").write_text(json.dumps(info, indent=1, sort_keys=False) + "\n")
+        _truth_parquet(gen.truth_events, directory / "truth_events.parquet", dataset_id)
+        _truth_parquet(gen.truth_rackets, directory / "truth_rackets.parquet", dataset_id)
+        if gen.truth_observations is not None:
+            _truth_parquet(gen.truth_observations, directory / "truth_observations.parquet", dataset_id)
+
+    return save(gen.dataset, out, overwrite=overwrite, extra=truth_files)
 
 
 @dataclasses.dataclass
@@ -1266,21 +1265,29 @@ class Truth:
 
 
 def load_truth(path: str | Path) -> Truth:
-    """Reads the truth files of a generated dataset directory."""
-    import pyarrow.parquet as pq
+    """Reads the truth files of a generated dataset directory, checking that they carry the id of
+    the dataset's ``metadata.json`` (a :class:`~ttsim_jax.data.DataError` names a file that does
+    not, or a corrupted one)."""
+    from .errors import DataError
+    from .io import ID_KEY, dataset_id, read_parquet
 
     path = Path(path)
     file = path / "truth.json"
     if not file.is_file():
         raise FileNotFoundError(f"{file}: missing; is {path} a generated dataset?")
+    ident = dataset_id(path)
+    info = json.loads(file.read_text())
+    if info.pop(ID_KEY, "") != ident:
+        raise DataError("truth file belongs to another dataset than metadata.json; write the dataset again",
+                        file=file, column=ID_KEY)
 
     def table(name):
         p = path / name
         if not p.is_file():
             return None
-        t = pq.read_table(p)
+        t = read_parquet(p, ident, name.removesuffix(".parquet"))
         return {c: (np.array(t.column(c).to_pylist(), object) if str(t.column(c).type) == "string" else t.column(c).to_numpy())
                 for c in t.column_names}
 
-    return Truth(info=json.loads(file.read_text()), events=table("truth_events.parquet"),
+    return Truth(info=info, events=table("truth_events.parquet"),
                  rackets=table("truth_rackets.parquet"), observations=table("truth_observations.parquet"))

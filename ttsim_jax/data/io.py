@@ -4,34 +4,51 @@ Layout of a dataset directory (see ``docs/data_format.md``)::
 
     NAME/
       metadata.json          Metadata (source, equipment, frame, units, schema_version, notes)
+                             and dataset_id
       sessions.parquet       one file per table, columns and dtypes as in schema.py
       observations.parquet
       events.parquet
       rackets.parquet
       segments.parquet
 
-Every Parquet file also carries the schema version in its key-value metadata
-(``ttsim.schema_version``), so a lone file can be identified. Save then load is exact: float64,
+Every Parquet file also carries the schema version (``ttsim.schema_version``) and the dataset id
+(``ttsim.dataset_id``, a fresh uuid per write, also in ``metadata.json``) in its key-value
+metadata, so a lone file can be identified and files of two datasets are never mixed: load checks
+that every file carries the id of ``metadata.json``. Parquet pages carry CRC checksums, verified
+on reading, so a corrupted file is reported rather than loaded. Save then load is exact: float64,
 int64 and strings are stored as such.
+
+A directory is written in a temporary sibling and swapped in whole (:mod:`ttsim_jax.io_atomic`),
+so a crash leaves the old dataset or the new one, never a mix.
 """
 
 from __future__ import annotations
 
 import json
+import uuid
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from ttsim_jax.io_atomic import atomic_directory
 
 from . import schema
 from .dataset import Dataset, Metadata
 from .errors import DataError
 
 METADATA_FILE = "metadata.json"
+#: Ground-truth files a generated dataset holds beside its tables (see ``generator.write``).
+TRUTH_FILES = ("truth.json", "truth_events.parquet", "truth_rackets.parquet", "truth_observations.parquet")
+#: Key of the dataset id in metadata.json and truth.json.
+ID_KEY = "dataset_id"
 _VERSION_KEY = b"ttsim.schema_version"
-_TABLE_KEY = b"ttsim.table"
+_ID_KEY = b"ttsim.dataset_id"
 _ARROW = {"int64": pa.int64(), "float64": pa.float64(), "string": pa.string()}
+# The first version whose files carry a dataset id and page checksums.
+_ID_VERSION = (1, 1)
 
 
 def table_path(path, table: str) -> Path:
@@ -39,14 +56,74 @@ def table_path(path, table: str) -> Path:
     return Path(path) / f"{table}.parquet"
 
 
-def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True) -> Path:
-    """Writes ``ds`` as a dataset directory.
+def owned_files() -> tuple[str, ...]:
+    """Names of the entries of a dataset directory that a write replaces (all others are kept)."""
+    return (METADATA_FILE, *(f"{name}.parquet" for name in schema.TABLES), *TRUTH_FILES)
+
+
+def write_parquet(data: pa.Table, file, dataset_id: str, **meta: str) -> None:
+    """Writes one Parquet file with page checksums, tagged with the schema version and dataset id.
+
+    Arguments:
+        data: the Arrow table.
+        file: destination (inside a directory being written by :func:`save`).
+        dataset_id: the dataset's id (``ttsim.dataset_id``).
+        meta: further ``ttsim.<key>`` key-value metadata.
+    """
+    kv = dict(data.schema.metadata or {})
+    kv.update({_VERSION_KEY: schema.SCHEMA_VERSION.encode(), _ID_KEY: dataset_id.encode()})
+    kv.update({f"ttsim.{k}".encode(): v.encode() for k, v in meta.items()})
+    pq.write_table(data.replace_schema_metadata(kv), file, write_page_checksum=True)
+
+
+def read_parquet(file, dataset_id: str | None = None, table: str | None = None) -> pa.Table:
+    """Reads one Parquet file, verifying page checksums and (optionally) the dataset id.
+
+    Arguments:
+        file: the file.
+        dataset_id: the id the file must carry (``""``: it must carry none, as in datasets written
+            before ids existed); None skips the check.
+        table: table name for error messages.
+
+    Returns:
+        The Arrow table. Raises :class:`DataError` naming the file if it is missing, unreadable,
+        corrupted (checksum mismatch) or belongs to another dataset.
+    """
+    file = Path(file)
+    if not file.exists():
+        raise DataError(f"table file '{table or file.name}' is missing", file=file, table=table)
+    try:
+        t = pq.read_table(file, page_checksum_verification=True)
+    except (pa.ArrowInvalid, OSError) as e:
+        if "checksum" in str(e).lower():
+            raise DataError(f"corrupted: a page checksum does not match its data; restore the file from a copy "
+                            f"or write the dataset again ({e})", file=file, table=table) from None
+        raise DataError(f"not a readable Parquet file; corrupted or truncated? ({e})", file=file, table=table) from None
+    if dataset_id is not None:
+        found = (t.schema.metadata or {}).get(_ID_KEY, b"").decode()
+        if found != dataset_id:
+            where = f"dataset {found}" if found else "no dataset (it carries no id)"
+            expected = f"dataset {dataset_id}" if dataset_id else "a dataset written without ids"
+            raise DataError(f"file belongs to {where}, but {METADATA_FILE} is of {expected}: files of two datasets "
+                            "are mixed; write the dataset again", file=file, table=table, column=_ID_KEY.decode())
+    return t
+
+
+def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
+         extra: Callable[[Path, str], None] | None = None) -> Path:
+    """Writes ``ds`` as a dataset directory, atomically.
+
+    The directory is built beside ``path`` and swapped in whole, so a crash at any moment leaves
+    the old dataset or the new one. Entries of an overwritten directory that are not dataset files
+    (see :func:`owned_files`) are kept; old dataset files the new write does not produce are gone.
 
     Arguments:
         ds: the dataset.
         path: directory to create (or to overwrite with ``overwrite=True``).
-        overwrite: replace the dataset files of an existing directory.
+        overwrite: replace an existing dataset directory (or an empty directory).
         validate: check ``ds`` first, so that no invalid dataset is ever written.
+        extra: optional ``fn(directory, dataset_id)`` writing more files of the same dataset into
+            the directory before it is swapped in (the generator's truth files).
 
     Returns:
         The directory path.
@@ -56,26 +133,36 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True) -
         from .validate import validate as check
 
         check(ds)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True (or --force) to replace it")
-    if path.exists() and not path.is_dir():
-        raise NotADirectoryError(f"{path} exists and is not a directory")
-    path.mkdir(parents=True, exist_ok=True)
-    for name, cols in schema.TABLES.items():
-        table = ds.table(name)
-        arrays = []
-        for c in cols:
-            values = table[c.name]
-            if c.dtype == "string":
-                arrays.append(pa.array([str(v) for v in values], pa.string()))
-            else:
-                arrays.append(pa.array(np.asarray(values, c.numpy_dtype), _ARROW[c.dtype]))
-        fields = [pa.field(c.name, _ARROW[c.dtype], nullable=False) for c in cols]
-        meta = {_VERSION_KEY: schema.SCHEMA_VERSION.encode(), _TABLE_KEY: name.encode()}
-        pq.write_table(pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=meta)), table_path(path, name))
-    with open(path / METADATA_FILE, "w") as f:
-        json.dump(ds.metadata.to_dict(), f, indent=2, sort_keys=True)
-        f.write("\n")
+    keep = []
+    if path.exists():
+        if not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True (or --force) to replace it")
+        if not path.is_dir():
+            raise NotADirectoryError(f"{path} exists and is not a directory")
+        entries = sorted(p.name for p in path.iterdir())
+        if entries and METADATA_FILE not in entries:
+            raise FileExistsError(f"{path} is not empty and holds no {METADATA_FILE} (not a dataset directory, "
+                                  f"e.g. it holds {entries[0]!r}); refusing to replace it")
+        keep = [name for name in entries if name not in owned_files()]
+    dataset_id = str(uuid.uuid4())
+    with atomic_directory(path, keep=keep) as tmp:
+        for name, cols in schema.TABLES.items():
+            table = ds.table(name)
+            arrays = []
+            for c in cols:
+                values = table[c.name]
+                if c.dtype == "string":
+                    arrays.append(pa.array([str(v) for v in values], pa.string()))
+                else:
+                    arrays.append(pa.array(np.asarray(values, c.numpy_dtype), _ARROW[c.dtype]))
+            fields = [pa.field(c.name, _ARROW[c.dtype], nullable=False) for c in cols]
+            write_parquet(pa.Table.from_arrays(arrays, schema=pa.schema(fields)), table_path(tmp, name), dataset_id,
+                          table=name)
+        meta = dict(ds.metadata.to_dict(), schema_version=schema.SCHEMA_VERSION)
+        meta[ID_KEY] = dataset_id
+        (tmp / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        if extra is not None:
+            extra(tmp, dataset_id)
     return path
 
 
@@ -94,8 +181,7 @@ def _check_version(version, file, column="schema_version") -> None:
         )
 
 
-def read_metadata(path) -> Metadata:
-    """Reads and checks ``metadata.json`` of dataset directory ``path``."""
+def _metadata_dict(path) -> tuple[dict, Path]:
     file = Path(path) / METADATA_FILE
     if not file.exists():
         raise DataError(f"not a dataset directory: {METADATA_FILE} is missing", file=file)
@@ -108,26 +194,46 @@ def read_metadata(path) -> Metadata:
     if "schema_version" not in d:
         raise DataError("missing key", file=file, column="schema_version")
     _check_version(d["schema_version"], file)
-    return Metadata.from_dict(d, file=file)
+    if schema.parse_version(d["schema_version"]) >= _ID_VERSION and not isinstance(d.get(ID_KEY), str):
+        raise DataError(f"missing or invalid dataset id (required from schema version "
+                        f"{'.'.join(map(str, _ID_VERSION))} on)", file=file, column=ID_KEY, value=d.get(ID_KEY))
+    return d, file
 
 
-def read_table(file, name: str) -> dict[str, np.ndarray]:
-    """Reads one table's Parquet file, checking version, columns, types and nulls.
+def _metadata_and_id(path) -> tuple[Metadata, str]:
+    d, file = _metadata_dict(path)
+    d = dict(d)
+    ident = d.pop(ID_KEY, "")  # identifies the files on disk, not the data
+    return Metadata.from_dict(d, file=file), ident
+
+
+def read_metadata(path) -> Metadata:
+    """Reads and checks ``metadata.json`` of dataset directory ``path``."""
+    return _metadata_and_id(path)[0]
+
+
+def dataset_id(path) -> str:
+    """The id of the dataset directory ``path`` (``""`` for datasets written before ids existed).
+
+    Every file of the dataset carries it; :func:`load` refuses files whose id differs.
+    """
+    return _metadata_dict(path)[0].get(ID_KEY, "")
+
+
+def read_table(file, name: str, dataset_id: str | None = None) -> dict[str, np.ndarray]:
+    """Reads one table's Parquet file, checking checksums, dataset id, version, columns, types
+    and nulls.
 
     Arguments:
         file: Parquet file.
         name: table name in :data:`schema.TABLES`.
+        dataset_id: the id the file must carry (see :func:`read_parquet`); None skips the check.
 
     Returns:
         Column dict with the schema's numpy dtypes (unknown extra columns are dropped).
     """
     file = Path(file)
-    if not file.exists():
-        raise DataError(f"table file '{name}' is missing", file=file, table=name)
-    try:
-        t = pq.read_table(file)
-    except (pa.ArrowInvalid, OSError) as e:
-        raise DataError(f"not a readable Parquet file ({e})", file=file, table=name) from None
+    t = read_parquet(file, dataset_id, name)
     kv = t.schema.metadata or {}
     if _VERSION_KEY in kv:
         _check_version(kv[_VERSION_KEY].decode(), file, column=_VERSION_KEY.decode())
@@ -169,8 +275,9 @@ def load(path, *, validate: bool = True) -> Dataset:
     path = Path(path)
     if not path.is_dir():
         raise DataError("no such dataset directory", file=path)
-    meta = read_metadata(path)
-    tables = {name: read_table(table_path(path, name), name) for name in schema.TABLES}
+    # One read of metadata.json: a writer swapping the directory meanwhile makes the ids differ.
+    meta, ident = _metadata_and_id(path)
+    tables = {name: read_table(table_path(path, name), name, ident) for name in schema.TABLES}
     ds = Dataset(metadata=meta, **tables)
     if validate:
         from .validate import validate as check

@@ -20,8 +20,9 @@ import dataclasses
 import numpy as np
 
 #: Version of the on-disk layout, "MAJOR.MINOR". A reader accepts files with the same major version;
-#: a newer minor version may only add optional columns (which older readers ignore).
-SCHEMA_VERSION = "1.0"
+#: a newer minor version may only add optional columns (which older readers ignore) or metadata keys.
+#: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity").
+SCHEMA_VERSION = "1.1"
 
 #: Name written into every dataset's metadata; data in any other frame must be converted first.
 CANONICAL_FRAME = "ttsim-table-centre-v1"

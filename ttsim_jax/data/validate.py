@@ -202,7 +202,7 @@ def _check_time_order(obs, f) -> Iterator[DataError]:
     if bad.size:
         i = bad[0]
         yield DataError(
-            f"time does not increase within session {sid[i]} (previous row {i - 1} has t = {t[i - 1]!r})",
+            f"time does not increase within session {sid[i]} (the previous sample has t = {float(t[i - 1])!r})",
             file=f, table="observations", row=i, column="t", value=t[i],
         )
 

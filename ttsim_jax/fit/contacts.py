@@ -288,7 +288,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
         :class:`ContactArrays` (float32 ``x``, ``y_base``, ``y_obs``; float64 diagnostics).
     """
     from ttsim_jax.data.batch import racket_contact_batch
-    from ttsim_jax.rally import ball_properties
+    from ttsim_jax.kernel.step import ball_properties
 
     m, name = _racket_model(model)
     n_inputs = _default_inputs(m, name) if n_inputs is None else int(n_inputs)
@@ -471,7 +471,7 @@ def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual
         world-frame ``vel_in``, ``spin_in``, ``vel_out``, ``spin_out`` (n, 3).
     """
     from ttsim_jax.data import Dataset, Metadata
-    from ttsim_jax.rally import ball_properties
+    from ttsim_jax.kernel.step import ball_properties
 
     m, name = _racket_model(model)
     radius, mass = (float(v) for v in ball_properties(m))

@@ -42,6 +42,7 @@ import optax
 from flax import serialization
 from tqdm.auto import tqdm
 
+from ttsim_jax.io_atomic import remove_leftovers
 from ttsim_jax.physics import residual as R
 from ttsim_jax.physics.residual import CheckpointError, ConfigError, ResidualConfig, ResidualModel
 
@@ -523,7 +524,9 @@ def train_residual(x, y_base, y_obs, config: ResidualConfig, tcfg: TrainConfig =
         tcfg: training hyper-parameters.
         groups: optional (N,) contact ids for the split (default: one row per contact).
         checkpoint: optional path of the training-state file, written atomically every
-            ``tcfg.checkpoint_every`` epochs, on interruption and at the end.
+            ``tcfg.checkpoint_every`` epochs, on interruption and at the end; temporaries left
+            beside it by a killed run are removed. A state holding non-finite arrays is refused
+            (at save and at load).
         resume: continue from ``checkpoint`` (it must come from the same data and settings; a
             finished run returns its result at once). Without ``resume`` an existing checkpoint
             is never overwritten: an error asks for resume=True or another path.
@@ -558,6 +561,8 @@ def train_residual(x, y_base, y_obs, config: ResidualConfig, tcfg: TrainConfig =
     best_variables = variables
     meta = dict(epoch=0, best_epoch=0, best_val=math.inf, bad_epochs=0, finished=False, history=[])
 
+    if checkpoint is not None:
+        remove_leftovers(checkpoint)  # temporaries of a killed earlier run
     if checkpoint is not None and os.path.exists(checkpoint):
         if not resume:
             raise FileExistsError(f"{checkpoint}: a training checkpoint already exists; pass resume=True to "

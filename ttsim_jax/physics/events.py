@@ -40,6 +40,9 @@ PLAY_BOX = (8.0, 6.0, 8.0)
 # Newton steps for the table's time of impact (the first is as accurate as the other contacts'
 # on the playing surface; edges and corners need the others).
 TABLE_ITERATIONS = 4
+# Margin [m] of the swept box in :func:`table_may_hit`: the Hermite path bows off its chord by
+# under |a| dt^2 / 8 (0.1 mm at 200 m/s^2 and 2 ms) and a tilted surface rises 1 mm in 0.1 m.
+SWEEP_MARGIN = 2e-3
 
 
 def hermite(p0, v0, p1, v1, dt, tau):
@@ -75,6 +78,11 @@ def _root(g0, g1, gap_fn, p0, v0, p1, v1, dt):
     return jnp.where((tau_n >= 0.0) & (tau_n <= 1.0), tau_n, tau)
 
 
+def _crossing(g0, g1, radius):
+    """A surface gap that closes within the step, from no deeper than the tolerance."""
+    return (g1 < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius)
+
+
 @struct.dataclass
 class Candidate:
     """One possible contact within a step: whether it happens, and when (fraction of the step)."""
@@ -101,8 +109,28 @@ def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
     tau = _bracketed_newton(tau, start, start + half, gap, p0, v0, p1, v1, dt, TABLE_ITERATIONS)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
     _, normal = table_stage.box_distance(table, effects, pos)
-    hit = (jnp.minimum(gh, g1) < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius) & (jnp.dot(vel, normal) < 0.0)
+    hit = _crossing(g0, jnp.minimum(gh, g1), radius) & (jnp.dot(vel, normal) < 0.0)
     return Candidate(hit=hit, tau=tau)
+
+
+def table_may_hit(table, effects, radius, p0, p1):
+    """Cheap superset of :func:`table_candidate`'s hits: the box swept by the ball over the step
+    (the chord p0 -> p1, widened by a radius and ``SWEEP_MARGIN`` for the path's bow and a tilted
+    surface) meets the table, which the ball did not start deep in."""
+    h0, h1 = table_stage.surface(effects, p0)[0], table_stage.surface(effects, p1)[0]
+    reach = radius + SWEEP_MARGIN
+    lo, hi = jnp.minimum(p0, p1) - reach, jnp.maximum(p0, p1) + reach
+    box_hi = jnp.stack([0.5 * table.length, 0.5 * table.width, jnp.maximum(h0, h1)])
+    box_lo = jnp.stack([-0.5 * table.length, -0.5 * table.width, jnp.minimum(h0, h1) - table_stage.THICKNESS])
+    meets = jnp.all(lo <= box_hi) & jnp.all(hi >= box_lo)
+    return meets & (table_stage.gap(table, effects, radius, p0) >= -PENETRATION_TOLERANCE * radius)
+
+
+def rest_candidate(table, effects, radius, p0, v0, p1, v1, w1):
+    """A ball in sustained contact with the table at the start of the step that is at rest at its
+    end (``physics.table.at_rest``); at the end of the step (tau = 1)."""
+    hit = table_stage.touching(table, effects, radius, p0, v0) & table_stage.at_rest(table, effects, radius, p1, v1, w1)
+    return Candidate(hit=hit, tau=jnp.ones_like(p0[0]))
 
 
 def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
@@ -118,8 +146,16 @@ def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
     local = racket.rot.T @ (pos - racket.pos - tau * dt * racket.vel)
     inside = jnp.sum((local[1:3] / racket.face) ** 2) <= 1.0
     approaching = side * jnp.dot(n, vel - racket.vel) < 0.0
-    hit = (g1 < 0.0) & (g0 >= -PENETRATION_TOLERANCE * radius) & approaching & inside
+    hit = _crossing(g0, g1, radius) & approaching & inside
     return Candidate(hit=hit, tau=tau)
+
+
+def racket_may_hit(racket, radius, p0, p1, dt):
+    """Cheap superset of :func:`racket_candidate`'s hits: the gap to the face's plane closes."""
+    n = racket.rot[:, 0]
+    h0, h1 = jnp.dot(n, p0 - racket.pos), jnp.dot(n, p1 - racket.pos - dt * racket.vel)
+    side = jnp.where(h0 >= 0.0, 1.0, -1.0)
+    return _crossing(side * h0 - radius, side * h1 - radius, radius)
 
 
 def net_candidate(table, radius, p0, v0, p1, v1, dt):
@@ -127,17 +163,27 @@ def net_candidate(table, radius, p0, v0, p1, v1, dt):
     gap = lambda p, s: p[0]  # noqa: E731
     tau = _root(p0[0], p1[0], gap, p0, v0, p1, v1, dt)
     pos, _ = hermite(p0, v0, p1, v1, dt, tau)
-    crosses = (p0[0] * p1[0] < 0.0) | ((p1[0] == 0.0) & (p0[0] != 0.0))
+    crosses = net_may_hit(p0, p1)
     touches = (pos[2] < table.net_height + radius) & (pos[2] > -radius) & (
         jnp.abs(pos[1]) < 0.5 * table.width + table.net_overhang + radius)
     return Candidate(hit=crosses & touches, tau=tau)
+
+
+def net_may_hit(p0, p1):
+    """The ball centre crosses the net plane x = 0 in the step (superset of :func:`net_candidate`)."""
+    return (p0[0] * p1[0] < 0.0) | ((p1[0] == 0.0) & (p0[0] != 0.0))
+
+
+def floor_may_hit(table, radius, p1):
+    """The ball ends the step below the floor (the same test as :func:`floor_candidate`)."""
+    return p1[2] - radius - table.floor_z < 0.0
 
 
 def floor_candidate(table, radius, p0, v0, p1, v1, dt):
     gap = lambda p, s: p[2] - radius - table.floor_z  # noqa: E731
     g0, g1 = gap(p0, 0.0), gap(p1, 1.0)
     tau = _root(g0, g1, gap, p0, v0, p1, v1, dt)
-    return Candidate(hit=(g1 < 0.0), tau=tau)
+    return Candidate(hit=floor_may_hit(table, radius, p1), tau=tau)
 
 
 def out_of_play(pos):

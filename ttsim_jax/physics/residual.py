@@ -46,8 +46,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
-import tempfile
 import tomllib
 import warnings
 from functools import partial
@@ -58,6 +56,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization, struct
+
+from ttsim_jax.io_atomic import atomic_write
 
 # The paper's authors' attenuation coefficients (beta = 1 for dist <= 0.150, 0 for dist >= 0.383).
 PAPER_BETA = (7.282, 12.899, 0.052)
@@ -469,7 +469,7 @@ def residual_outputs(model: ResidualModel, x, attenuate: bool = True) -> dict:
     return dict(dv=dv, dw=dw, sigma_v=sv, sigma_w=sw, beta=beta)
 
 
-def _sampled(model, x, eps):
+def sampled_residual(model, x, eps):
     """Attenuated outputs, with sigma * eps added to the raw residuals first when eps is given."""
     out = residual_outputs(model, x, attenuate=False)
     if eps is not None:
@@ -531,11 +531,11 @@ def gathered_residual(model: ResidualModel, x, mask, capacity: int, key=None, sa
         idx = jnp.nonzero(mask, size=capacity, fill_value=b)[0]
         rows = jnp.take(x, idx, axis=0, mode="clip")
         noise = None if eps is None else jnp.take(eps, idx, axis=0, mode="clip")
-        out = _sampled(model, rows, noise)
+        out = sampled_residual(model, rows, noise)
         return {k: zeros[k].at[idx].set(v.astype(x.dtype), mode="drop") for k, v in out.items()}
 
     def full(_):
-        out = _sampled(model, x, eps)
+        out = sampled_residual(model, x, eps)
         m = mask[:, None]
         return {k: jnp.where(m if v.ndim == 2 else mask, v.astype(x.dtype), 0.0) for k, v in out.items()}
 
@@ -740,36 +740,14 @@ def _to_plain(tree):
     return np.asarray(tree)
 
 
-def atomic_write(path, data: bytes) -> None:
-    """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
-    then os.replace, so a crash leaves either the old file or the new one, never a partial one.
-
-    Arguments:
-        path: destination file.
-        data: the bytes.
-    """
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    try:  # make the rename itself durable; not possible on every platform
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+def _check_finite(path, flat: dict) -> None:
+    """Refuses non-finite floating arrays: a checkpoint holding NaN or inf weights is useless."""
+    for k, v in flat.items():
+        a = np.asarray(v)
+        if np.issubdtype(a.dtype, np.floating) and not np.isfinite(a).all():
+            first = np.unravel_index(int(np.flatnonzero(~np.isfinite(a))[0]), a.shape) if a.ndim else ()
+            raise CheckpointError(f"{path}: key {k!r} holds non-finite values (first {a[first]} at index "
+                                  f"{tuple(int(i) for i in first)})")
 
 
 def write_container(path, kind: str, header: dict, arrays: dict) -> None:
@@ -782,8 +760,9 @@ def write_container(path, kind: str, header: dict, arrays: dict) -> None:
         arrays: nested dict of arrays (the payload).
     """
     arrays = _to_plain(arrays)
-    payload = serialization.msgpack_serialize(arrays)
     flat = _flatten(arrays)
+    _check_finite(path, flat)  # before writing, so the previous file stays
+    payload = serialization.msgpack_serialize(arrays)
     head = dict(header, format_version=CHECKPOINT_VERSION, kind=kind, payload_bytes=len(payload),
                 payload_sha256=hashlib.sha256(payload).hexdigest(),
                 arrays={k: [list(v.shape), str(v.dtype)] for k, v in flat.items()})
@@ -849,6 +828,7 @@ def read_container(path, kind: str, versions=(CHECKPOINT_VERSION,)) -> tuple[dic
         if [list(np.shape(v)), str(np.asarray(v).dtype)] != listed[k]:
             raise CheckpointError(f"{path}: key {k!r} is {np.shape(v)} {np.asarray(v).dtype} in the payload, "
                                   f"the header says {listed[k]}")
+    _check_finite(path, flat)
     return header, arrays
 
 

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import io
 from pathlib import Path
 
 import numpy as np
 
+from ..csvlog import read_csv, read_text
 from ..dataset import Dataset, Metadata
 from ..errors import DataError
 from ..frames import FrameTransform, fit_bounce_plane
@@ -40,25 +42,27 @@ class RawSession:
     notes: str = ""
 
 
-def import_source(path, source: str) -> Dataset:
+def import_source(path, source: str, *, length_unit: str = "m", time_unit: str = "s") -> Dataset:
     """Reads a public dataset (or a CSV log) and returns it in the canonical frame and format.
 
     Arguments:
         path: the source's folder (e.g. ``.../real/spindoe``) or one of its files.
         source: ``spindoe``, ``tt3d``, ``mpi`` or ``csv`` (see :mod:`ttsim_jax.data.csvlog`).
+        length_unit, time_unit: units of a CSV log (``"m"``/``"mm"``, ``"s"``/``"ms"``); the
+            public sources have known units.
 
     Returns:
         Validated, segmented :class:`Dataset` (events detected from the observations).
     """
     if source not in SOURCES:
         raise ValueError(f"unknown source {source!r}; known: {', '.join(SOURCES)}")
+    if source != "csv" and (length_unit, time_unit) != ("m", "s"):
+        raise ValueError(f"length and time units apply to CSV logs only; the {source} importer knows its source's units")
     path = Path(path)
     if not path.exists():
         raise DataError("no such file or directory", file=path)
     if source == "csv":
-        from ..csvlog import read_csv
-
-        return read_csv(path)
+        return read_csv(path, length_unit=length_unit, time_unit=time_unit)
     module = importlib.import_module(f".{source}", __name__)
     return module.load(path)
 
@@ -180,7 +184,7 @@ def read_numeric_rows(path: Path, *, delimiter: str, n_cols: int, skip_header: b
         (rows, n_cols) float64 array.
     """
     rows = []
-    with open(path, newline="") as f:
+    with io.StringIO(read_text(path), newline="") as f:
         for line_no, line in enumerate(f, start=1):
             if skip_header and line_no == 1:
                 continue

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..dataset import Dataset, Metadata
+from ..csvlog import read_text
 from ..errors import DataError
 from ..frames import table_frame
 from . import RawSession, build_dataset, read_numeric_rows
@@ -33,8 +34,7 @@ def read_raw(path) -> list[RawSession]:
         raise DataError("no .csv files found", file=path)
     out = []
     for f in files:
-        with open(f) as fh:
-            header = fh.readline().strip()
+        header = read_text(f).partition("\n")[0].strip()
         if header.replace(" ", "") != "Timestamp,X,Y,Z":
             raise DataError("expected the header 'Timestamp,X,Y,Z'", file=f, row=1, row_label="line", value=header)
         a = read_numeric_rows(f, delimiter=",", n_cols=4, skip_header=True, names=("Timestamp", "X", "Y", "Z"))

@@ -1,0 +1,197 @@
+"""Crash-safe writing: every file and directory the package writes appears whole or not at all.
+
+A file is written to a temporary sibling, flushed to disk and renamed over the target
+(:func:`atomic_write`). A directory (a dataset) is built in a temporary sibling directory and then
+swapped with the target in one step (:func:`atomic_directory`), so a kill at any moment leaves
+either the old directory or the new one, never a mix.
+
+Temporary names carry the writer's process id (``.NAME.<pid>.<random>.tmp``); a leftover of a
+writer that no longer runs is removed the next time the same target is written
+(:func:`remove_leftovers`), while a live writer's temporary is left alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import re
+import secrets
+import shutil
+from pathlib import Path
+
+_RENAME_EXCHANGE = 2  # linux/fs.h
+_AT_FDCWD = -100
+
+
+def _temp_name(target: Path) -> Path:
+    return target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+
+
+def _is_stale(name: str, target_name: str) -> bool:
+    """Whether ``name`` is a temporary of ``target_name`` whose writer no longer runs."""
+    m = re.fullmatch(rf"\.{re.escape(target_name)}\.(\d+)\.[0-9a-f]{{8}}\.tmp", name)
+    if m is None:
+        # the temporaries of earlier releases (tempfile.mkstemp) carry no pid: nobody owns them
+        return re.fullmatch(rf"\.{re.escape(target_name)}\.[a-z0-9_]{{8}}\.tmp", name) is not None
+    pid = int(m.group(1))
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # exists but belongs to another user
+        return False
+    return False
+
+
+def remove_leftovers(target) -> list[Path]:
+    """Removes temporaries of ``target`` left by writers that were killed.
+
+    Arguments:
+        target: the file or directory whose temporaries (``.NAME.<pid>.<random>.tmp`` beside it)
+            are looked for.
+
+    Returns:
+        The removed paths.
+    """
+    target = Path(os.path.abspath(target))
+    removed = []
+    try:
+        names = os.listdir(target.parent)
+    except FileNotFoundError:
+        return removed
+    for name in names:
+        if _is_stale(name, target.name):
+            p = target.parent / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()
+            removed.append(p)
+    return removed
+
+
+def fsync_directory(directory) -> None:
+    """Makes renames inside ``directory`` durable (not possible on every platform)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        pass
+
+
+def atomic_write(path, data: bytes) -> None:
+    """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
+    then os.replace, so a crash leaves either the old file or the new one, never a partial one.
+
+    Arguments:
+        path: destination file.
+        data: the bytes.
+    """
+    path = Path(os.path.abspath(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(path)
+    tmp = _temp_name(path)
+    try:
+        with open(tmp, "xb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    fsync_directory(path.parent)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swaps two existing paths in one step (Linux renameat2); False where that is unsupported."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (22, 38, 95):  # EINVAL, ENOSYS, EOPNOTSUPP: this file system or kernel cannot
+        return False
+    raise OSError(err, os.strerror(err), str(a), None, str(b))
+
+
+def _sync_tree(root: Path) -> None:
+    for dirpath, _, files in os.walk(root):
+        for name in files:
+            fd = os.open(os.path.join(dirpath, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        fsync_directory(dirpath)
+
+
+@contextlib.contextmanager
+def atomic_directory(target, keep=()):
+    """Builds a directory in a temporary sibling and swaps it in for ``target`` on success.
+
+    Usage::
+
+        with atomic_directory(out) as tmp:
+            write files into tmp
+        # now out holds exactly what was written into tmp (plus the kept entries)
+
+    If the body raises, ``target`` is left untouched and the temporary is removed. A replaced
+    old directory is deleted after the swap. Where the system cannot swap two directories in one
+    step, the old one is first renamed aside, leaving a short window without ``target``.
+
+    Arguments:
+        target: the directory to create or replace (a symlink is followed: its target is replaced).
+        keep: names of entries of an existing ``target`` to carry over into the new directory
+            (hard-linked, or copied where links are impossible).
+
+    Yields:
+        The temporary directory (a :class:`~pathlib.Path`) to write into.
+    """
+    target = Path(os.path.realpath(target))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(target)
+    tmp = _temp_name(target)
+    tmp.mkdir()
+    try:
+        yield tmp
+        for name in keep:
+            src = target / name
+            if src.is_dir() and not src.is_symlink():
+                shutil.copytree(src, tmp / name, symlinks=True, copy_function=_link_or_copy)
+            elif src.exists() or src.is_symlink():
+                _link_or_copy(src, tmp / name)
+        _sync_tree(tmp)
+        if target.exists():
+            if not _exchange(tmp, target):
+                aside = _temp_name(target)
+                os.rename(target, aside)
+                os.rename(tmp, target)
+                tmp = aside
+        else:
+            os.rename(tmp, target)
+        fsync_directory(target.parent)
+    finally:
+        if tmp.exists():  # the failed new directory, or the replaced old one
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _link_or_copy(src, dst) -> None:
+    if os.path.islink(src):
+        os.symlink(os.readlink(src), dst)
+        return
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)

@@ -1,0 +1,15 @@
+"""The rally kernel: state, one step, the event log, racket plans and the resumable rollout.
+
+Modules, in the order the data flows: :mod:`.state` (``RallyState``, ``init_state``),
+:mod:`.plans` (racket schedules and policies), :mod:`.step` (one step for a batch),
+:mod:`.eventlog` (what happened), :mod:`.rollout` (``rollout``, ``simulate``).
+"""
+
+from ttsim_jax.kernel.eventlog import EventLog
+from ttsim_jax.kernel.plans import RacketPolicy
+from ttsim_jax.kernel.rollout import RallyResult, RolloutOutput, per_ball_axes, rollout, simulate
+from ttsim_jax.kernel.state import RallyState, init_state
+from ttsim_jax.kernel.step import ball_properties
+
+__all__ = ["EventLog", "RacketPolicy", "RallyResult", "RolloutOutput", "RallyState", "ball_properties",
+           "init_state", "per_ball_axes", "rollout", "simulate"]

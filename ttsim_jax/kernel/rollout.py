@@ -1,0 +1,302 @@
+"""``rollout``: a resumable, jittable run of the rally kernel; ``simulate``: a rally from start to end.
+
+A rollout advances a :class:`~ttsim_jax.kernel.state.RallyState` by ``n_steps`` and returns the new
+state and what happened (the event log and, if asked, a recording). Two rollouts of n steps give the
+same state as one of 2n steps, so an RL environment can step the rally 10 ms at a time.
+
+Reverse mode: the scan over steps is split into chunks, and both a step and a chunk are
+rematerialised (``jax.checkpoint``) on the way back, so a gradient through N steps stores the
+state about 2 sqrt(N) times instead of N times with every intermediate of every step.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ttsim_jax.kernel.eventlog import EventLog
+from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
+from ttsim_jax.kernel.state import RallyState, init_state
+from ttsim_jax.kernel.step import refused_starts, step
+from ttsim_jax.params import Model
+from ttsim_jax.physics import events as ev
+from ttsim_jax.state import Ball
+
+
+@struct.dataclass
+class RolloutOutput:
+    """What a rollout returns beside the state.
+
+    Attributes:
+        events: :class:`~ttsim_jax.kernel.eventlog.EventLog` of this rollout's events ((B, K) slots),
+            None when ``max_events`` is 0.
+        trajectory: :class:`~ttsim_jax.state.Ball` with (B, N, 3) fields, the state every
+            ``record_every`` steps (None when not recorded).
+        times: (N,) times of the recorded states (None when not recorded).
+    """
+
+    events: Any = None
+    trajectory: Any = None
+    times: Any = None
+
+
+@struct.dataclass
+class RallyResult:
+    """Output of :func:`simulate`.
+
+    Attributes:
+        final: :class:`Ball` (B, 3) at the end (or where the ball stopped).
+        alive, status: (B,) see :class:`~ttsim_jax.kernel.state.RallyState`.
+        events: :class:`EventLog` with (B, K) slots.
+        trajectory: :class:`Ball` with (B, N, 3) fields (None when not recorded).
+        times: (N,) times of the recorded states.
+        state: the final :class:`RallyState`, to resume with :func:`rollout`.
+    """
+
+    final: Ball
+    alive: jnp.ndarray
+    status: jnp.ndarray
+    events: EventLog
+    trajectory: Any = None
+    times: Any = None
+    state: Any = None
+
+
+def per_ball_axes(model: Model, *paths: str):
+    """The ``model_axes`` that give the leaves under ``paths`` a per-ball (B,) axis.
+
+    Arguments:
+        model: the model (only its structure is used).
+        *paths: dotted attribute paths, e.g. ``"table.e0"``, ``"aero.rho_air"``, ``"effects"``
+            (every effect parameter), ``"residual"`` (the whole network); none means every leaf
+            is shared.
+
+    Returns:
+        A pytree prefix of ``model`` with 0 under ``paths`` and None elsewhere, for
+        :func:`rollout`'s ``model_axes``.
+    """
+    axes = jax.tree.map(lambda _: None, model)
+    for path in paths:
+        names = path.split(".")
+
+        def setter(node, names):
+            if not names:
+                return 0
+            head, rest = names[0], names[1:]
+            if isinstance(node, tuple):
+                return tuple(setter(v, rest) if str(i) == head else v for i, v in enumerate(node))
+            if not hasattr(node, head):
+                raise ValueError(f"per_ball_axes: the model has no field {path!r}")
+            return node.replace(**{head: setter(getattr(node, head), rest)})
+
+        axes = setter(axes, names)
+    return axes
+
+
+def _resolve_axes(model: Model, model_axes):
+    if model_axes is None:
+        return jax.tree.map(lambda _: None, model)
+    if model_axes == 0 or model_axes is True:
+        return jax.tree.map(lambda _: 0, model)
+    return model_axes
+
+
+def _check_per_ball(model, axes, batch):
+    leaves = jax.tree_util.tree_flatten_with_path(model)[0]
+    flat_axes = jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: ax, sub), axes, model,
+                             is_leaf=lambda x: x is None)
+    for (path, leaf), ax in zip(leaves, jax.tree.leaves(flat_axes, is_leaf=lambda x: x is None)):
+        if ax == 0 and (jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != batch):
+            raise ValueError(f"model leaf {jax.tree_util.keystr(path)} is per ball but has shape "
+                             f"{jnp.shape(leaf)}; its leading axis must be the batch ({batch})")
+
+
+def chunk_length(n_steps: int) -> int:
+    """Steps per rematerialised chunk: about sqrt(n_steps), the memory-optimal split."""
+    return max(1, int(math.isqrt(n_steps)))
+
+
+class _Static:
+    """A pytree of per-ball axes (None / 0 leaves) as a hashable static argument of the jitted core."""
+
+    def __init__(self, tree):
+        leaves, self.treedef = jax.tree_util.tree_flatten(tree, is_leaf=lambda x: x is None)
+        self.leaves = tuple(leaves)
+
+    def __hash__(self):
+        return hash((self.treedef, self.leaves))
+
+    def __eq__(self, other):
+        return isinstance(other, _Static) and (self.treedef, self.leaves) == (other.treedef, other.leaves)
+
+    def tree(self):
+        return jax.tree_util.tree_unflatten(self.treedef, self.leaves)
+
+
+@partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
+                                   "sample", "rackets_batched", "remat"))
+def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
+             max_events, capacity, sample, rackets_batched, remat):
+    axes = axes.tree()
+    b = state.batch
+    dtype = state.ball.pos.dtype
+    dt = jnp.asarray(dt, dtype)
+    # a new dt starts counting steps afresh from the current time
+    same = (state.dt == dt) | (state.step == 0)
+    t0 = jnp.where(same, state.t0, state.time)
+    step0 = jnp.where(same, state.step, 0)
+    log = EventLog.empty(b, max_events, dtype) if max_events else None
+    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample)
+
+    def body(carry, xs):
+        ball, alive, status, log, k = carry
+        t = t0 + k.astype(dtype) * dt
+        rackets, batched = xs, rackets_batched
+        if policy is not None:
+            rackets = jax.vmap(policy.fn, in_axes=(None, 0, None))(policy.params, ball, t)
+            batched = True
+        sub = jax.random.fold_in(key, k) if sample else None
+        ball, alive, status, log = stepper(model, axes, ball, alive, status, state.ball_id, log, rackets, t, dt,
+                                           rackets_batched=batched, key=sub)
+        return (ball, alive, status, log, k + 1), None
+
+    if remat:
+        body = jax.checkpoint(body, prevent_cse=False)
+
+    def run(carry, xs, length):
+        return jax.lax.scan(body, carry, xs, length=length)[0]
+
+    every = record_every or chunk_length(n_steps)
+    n_chunks, tail = divmod(n_steps, every)
+
+    def chunk(carry, xs_chunk):
+        carry = run(carry, xs_chunk, every)
+        return carry, ((carry[0], t0 + carry[4].astype(dtype) * dt) if record_every else None)
+
+    if remat:
+        chunk = jax.checkpoint(chunk, prevent_cse=False)
+    split = lambda a, lo, n, shape: None if a is None else jax.tree.map(  # noqa: E731
+        lambda x: x[lo:lo + n].reshape(shape + x.shape[1:]), a)
+    alive, status = state.alive, state.status
+    # a rally that has not started yet (dt 0): refuse balls inside the table, the net or a racket
+    start = None if schedule is None else jax.tree.map(lambda a: a[0], schedule)
+    if policy is not None:
+        start = jax.vmap(policy.fn, in_axes=(None, 0, None))(policy.params, state.ball, t0)
+    bad = (state.dt == 0) & refused_starts(model, axes, state.ball, start, rackets_batched or policy is not None)
+    alive, status = alive & ~bad, jnp.where(bad, ev.INVALID, status)
+    carry = (state.ball, alive, status, log, step0)
+    carry, rec = jax.lax.scan(chunk, carry, split(schedule, 0, n_chunks * every, (n_chunks, every)), length=n_chunks)
+    if tail:
+        carry = run(carry, split(schedule, n_chunks * every, tail, (tail,)), tail)
+    ball, alive, status, log, k = carry
+    new_state = state.replace(ball=ball, alive=alive, status=status, step=k, t0=t0, dt=dt)
+    out = RolloutOutput(events=log)
+    if record_every:
+        out = out.replace(trajectory=jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), rec[0]), times=rec[1])
+    return new_state, out
+
+
+def recording_bytes(batch: int, n_steps: int, record_every: int, itemsize: int) -> int:
+    """Memory a trajectory recording needs: 9 numbers per ball per recorded step."""
+    return 0 if not record_every else batch * (n_steps // record_every) * 9 * itemsize
+
+
+def default_capacity(batch: int) -> int:
+    """Contact buffer rows: B/32, at least 8 (a ball has a contact every ~100-300 steps)."""
+    return min(batch, max(8, math.ceil(batch / 32)))
+
+
+def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *,
+            integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
+            contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
+            memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
+    """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
+
+    Arguments:
+        model: a :class:`~ttsim_jax.params.Model`.
+        state: a :class:`~ttsim_jax.kernel.state.RallyState` (from :func:`init_state` or a previous
+            rollout); cast to nothing: its ball dtype is the simulation's dtype.
+        n_steps: number of steps (static: a new value compiles anew).
+        dt: step [s] (traced: changing it does not recompile).
+        racket: None, a :class:`~ttsim_jax.state.Racket` schedule ((T, [R,] ...) or (B, T, R, ...)
+            fields, T >= n_steps; entry k is the racket at the rollout's k-th step), or a
+            :class:`~ttsim_jax.kernel.plans.RacketPolicy`.
+        integrator: ``"rk4"``, ``"rk2"`` or ``"euler"``.
+        model_axes: which model leaves carry a per-ball leading (B,) axis: None (all shared), 0 (all
+            per ball, e.g. ``stack_models``), or a pytree prefix of the model with 0 / None
+            (:func:`per_ball_axes`). Only the leaves a study varies need to be per ball.
+        max_events: slots of each ball's event log (0: no log).
+        record_every: record the ball every that many steps (0: no recording); must divide n_steps.
+        contact_capacity: balls per step handled in the gathered event buffer (default B/32, at
+            least 8); a step with more is still exact, at full-batch cost.
+        sample_residual: sample the residual network's correction from its predicted std; the draw
+            depends on ``key``, the step and the ball's id only.
+        key: PRNG key for sampling (default ``PRNGKey(0)``).
+        remat: rematerialise steps and chunks in reverse mode (saves memory; no cost forward).
+        memory_budget_bytes: a recording above this is refused before compiling.
+
+    Returns:
+        (state, :class:`RolloutOutput`).
+    """
+    ball = state.ball
+    if ball.pos.ndim != 2 or ball.pos.shape[-1] != 3:
+        raise ValueError(f"state.ball fields must be (B, 3); got pos {ball.pos.shape}")
+    batch = ball.pos.shape[0]
+    if not isinstance(n_steps, int) or n_steps <= 0:
+        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}")
+    if record_every and n_steps % record_every:
+        raise ValueError(f"record_every={record_every} must divide n_steps={n_steps}")
+    need = recording_bytes(batch, n_steps, record_every, ball.pos.dtype.itemsize)
+    if need > memory_budget_bytes:
+        raise ValueError(
+            f"recording {batch} balls every {record_every} steps for {n_steps} steps needs "
+            f"{need / 2**30:.2f} GiB, above the memory budget of {memory_budget_bytes / 2**30:.2f} GiB; "
+            "record less often (record_every), fewer balls, or raise memory_budget_bytes")
+    axes = _resolve_axes(model, model_axes)
+    _check_per_ball(model, axes, batch)
+    schedule, policy, batched = None, None, False
+    if isinstance(racket, RacketPolicy):
+        policy = racket
+    elif racket is not None:
+        schedule, batched = normalise_schedule(racket, n_steps, batch)
+    capacity = contact_capacity or default_capacity(batch)
+    key = jax.random.PRNGKey(0) if key is None else key
+    return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
+                    record_every=record_every, max_events=max_events, capacity=int(capacity),
+                    sample=sample_residual, rackets_batched=batched, remat=remat)
+
+
+def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
+             record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
+             sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
+             model_axes=None, memory_budget_bytes: int = 2 << 30) -> RallyResult:
+    """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
+    :func:`rollout`.
+
+    Arguments:
+        model: a :class:`~ttsim_jax.params.Model`.
+        ball: :class:`Ball` with (B, 3) fields (or (3,) for one ball; outputs keep B = 1), cast to
+            the model's float dtype.
+        n_steps, dt, racket, integrator, record_every, max_events, contact_capacity,
+        sample_residual, key, model_axes, memory_budget_bytes: as for :func:`rollout`.
+        t0: start time [s].
+        model_batched: shorthand for ``model_axes=0`` (every leaf per ball, e.g. ``stack_models``).
+
+    Returns:
+        A :class:`RallyResult` (its ``state`` resumes the rally).
+    """
+    ball = jax.tree.map(lambda a: jnp.asarray(a, model.ball.radius.dtype), ball)
+    if ball.pos.ndim == 1:
+        ball = jax.tree.map(lambda a: a[None], ball)
+    state = init_state(ball, t0)
+    state, out = rollout(model, state, n_steps, dt, racket, integrator=integrator,
+                         model_axes=0 if model_batched else model_axes, max_events=max_events,
+                         record_every=record_every, contact_capacity=contact_capacity,
+                         sample_residual=sample_residual, key=key, memory_budget_bytes=memory_budget_bytes)
+    return RallyResult(final=state.ball, alive=state.alive, status=state.status, events=out.events,
+                       trajectory=out.trajectory, times=out.times, state=state)
