@@ -9,6 +9,12 @@ point is fourth-order accurate in dt and the landing point converges as dt shrin
 detection of this kind cannot tunnel: a ball at 35 m/s against a racket at 10 m/s moves 4.5 cm
 relative to it in a 1 ms step, more than its diameter, and the sign change is still seen.
 
+The table is a box (``physics.table``): its gap is also sampled at mid-step, so that a ball that
+clips an edge or a corner within a step is caught, and its time of impact takes a few Newton steps
+kept inside the bracket of the sign change (the gap has a kink where the nearest point of the box
+moves from an edge onto a face). A ball in sustained contact with the table (rolling, sliding) has
+no table contacts; it ends as REST once slow (``rest_candidate``).
+
 Everything is branch-free (``jnp.where``) so that vmap runs one path for every ball; the earliest
 contact of the step wins (at most one per ball per step).
 """
@@ -24,11 +30,6 @@ from ttsim_jax.physics.numerics import safe_divide
 
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
-
-# A table contact that leaves the ball with less normal speed than this [m/s] (a bounce under
-# 0.5 mm) is inelastic: the ball stays in contact, rolling or sliding, and is REST (out of the
-# game) once its whole velocity is below it (``physics.table``, sustained contact).
-REST_SPEED = table_stage.REST_SPEED
 
 # A contact is accepted if the ball started the step no deeper than this (fraction of its radius)
 # into the surface: a ball resting on the table or just released by a contact is re-detected. A

@@ -98,11 +98,6 @@ def surface(effects, pos):
     return hooks.apply(effects, "table_surface", (jnp.zeros_like(pos[2]), _Z.astype(pos.dtype)), pos=pos)
 
 
-def on_table(table: TableParams, pos):
-    """Whether the point's (x, y) lies over the playing surface."""
-    return (jnp.abs(pos[0]) <= 0.5 * table.length) & (jnp.abs(pos[1]) <= 0.5 * table.width)
-
-
 def box_distance(table: TableParams, effects, pos):
     """Signed distance from a point to the table box and the outward unit normal there.
 
