@@ -235,7 +235,7 @@ def test_generate_command_writes_a_dataset_and_prints_the_truth(tmp_path, capsys
     assert "table contacts:" in text and "racket_logo (dataset): grip_loss=" in text and "air_flow (session)" in text
     validate(load(out))
     assert (out / "truth.json").is_file() and (out / "truth_rackets.parquet").is_file()
-    assert generate_main(["generate", "--out", str(out), "--games", "1", "--quiet"]) == 1  # exists: needs --force
+    assert generate_main(["generate", "--out", str(out), "--games", "1", "--quiet"]) == 2  # exists: needs --force
     assert generate_main(["generate", "--out", str(tmp_path / "x"), "--effects", "windy", "--quiet"]) == 2
     assert "unknown effect 'windy'" in capsys.readouterr().err
 

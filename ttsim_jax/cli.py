@@ -1,13 +1,170 @@
-"""The ``ttsim`` command: thin wrappers that parse options, call the library and print."""
+"""The ``ttsim`` command: thin wrappers that parse options, call the library and print.
+
+User errors never end in a traceback: option values are checked while parsing by the ``type=``
+validators below (argparse then names the option and the value and exits with status 2), and the
+library's user-error exceptions (bad config, dataset, checkpoint or path, :class:`UsageError`
+from a command) are turned into one ``error: ...`` line and status 2 by :func:`main`. Any other
+exception is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+
+class UsageError(Exception):
+    """A user error a command finds after parsing (refused overwrite, inconsistent options);
+    :func:`main` prints ``error: MESSAGE`` and returns 2."""
+
+
+def _user_errors() -> tuple:
+    """The exceptions that report a user's mistake (their messages name the file, key or value)."""
+    from ttsim_jax.data.errors import DataError
+    from ttsim_jax.data.generator import GeneratorError
+    from ttsim_jax.effects.base import EffectError
+    from ttsim_jax.params import ConfigError
+    from ttsim_jax.physics.residual import CheckpointError
+    from ttsim_jax.physics.residual import ConfigError as ResidualConfigError
+
+    return (UsageError, ConfigError, ResidualConfigError, CheckpointError, DataError, GeneratorError, EffectError,
+            FileExistsError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+
+
+# ---------------------------------------------------------------------------------------------
+# argparse ``type=`` validators: each returns the converted value or raises ArgumentTypeError,
+# which argparse reports as "argument OPTION: MESSAGE" (exit status 2).
+
+def _number(text: str, kind, what: str):
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (counts: shots, games, epochs, clusters)."""
+    value = _number(text, int, "a positive integer")
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def seed(text: str) -> int:
+    """A random seed: an integer in [0, 2**32)."""
+    value = _number(text, int, "an integer seed in [0, 2**32)")
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"expected an integer seed in [0, 2**32), got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A finite number (not nan or inf)."""
+    return _number(text, float, "a finite number")
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (durations, steps, tolerances)."""
+    value = _number(text, float, "a positive finite number")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
+def existing_file(text: str) -> Path:
+    """A file that exists (not a directory)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: is a directory, expected a file")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return path
+
+
+def text_file(text: str) -> Path:
+    """An existing UTF-8 text file (TOML configs and models): a binary file is refused here."""
+    path = existing_file(text)
+    try:
+        path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise argparse.ArgumentTypeError(f"{text}: not a text file (byte {e.start} is not UTF-8)") from None
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"{text}: cannot be read: {e.strerror}") from None
+    return path
+
+
+def existing_dir(text: str) -> Path:
+    """A directory that exists (datasets)."""
+    path = Path(text)
+    if path.is_file():
+        raise argparse.ArgumentTypeError(f"{text}: is a file, expected a directory")
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such directory")
+    return path
+
+
+def existing_path(text: str) -> Path:
+    """A file or directory that exists (an importer's input)."""
+    if not Path(text).exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file or directory")
+    return Path(text)
+
+
+def _check_creatable(path: Path, text: str) -> None:
+    """Refuses a path whose nearest existing ancestor is not a writable directory, so that an
+    output the command would only write at the end is checked before the work starts."""
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: cannot be created, {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{text}: cannot be created, {parent} is not writable")
+
+
+def writable_file(text: str) -> Path:
+    """An output file: not a directory, writable if it exists, else creatable (missing parent
+    directories are created when it is written)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: is a directory, expected a file name")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: is not writable")
+    _check_creatable(path, text)
+    return path
+
+
+def writable_dir(text: str) -> Path:
+    """An output directory: a writable directory if it exists, else creatable."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: exists and is not a directory")
+    if path.is_dir() and not os.access(path, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{text}: is not writable")
+    _check_creatable(path, text)
+    return path
+
+
+def model_name_or_file(text: str) -> str:
+    """A bundled model name or the path of a model TOML file."""
+    from ttsim_jax.params import ConfigError, resolve_model_path
+
+    try:
+        path = resolve_model_path(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if path == Path(text):  # a file given by path, not a bundled name
+        text_file(text)
+    return text
 
 
 def _simulate_command(sub):
@@ -16,24 +173,24 @@ def _simulate_command(sub):
         description="Samples realistic shots (serves, topspin and backspin drives, pushes, blocks, smashes, "
                     "lobs; up to 35 m/s and 1000 rad/s), aims each through the model, simulates them and "
                     "prints the landing spread, bounce statistics and throughput.")
-    p.add_argument("--model", default="conti2026",
+    p.add_argument("--model", default="conti2026", type=model_name_or_file,
                    help="bundled model name (conti2026, durr2026, nakashima2011) or path to a model .toml "
                         "(default: %(default)s)")
-    p.add_argument("--shots", type=int, default=1000, help="number of shots to simulate (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the shot sampler (default: %(default)s)")
+    p.add_argument("--shots", type=positive_int, default=1000, help="number of shots to simulate (default: %(default)s)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the shot sampler (default: %(default)s)")
     p.add_argument("--types", default="all",
                    help="comma-separated shot types to draw from, or 'all' (default: %(default)s); known: "
                         "serve, topspin_drive, backspin_drive, push, block, smash, lob")
-    p.add_argument("--duration", type=float, default=1.5, help="simulated time per shot [s] (default: %(default)s)")
-    p.add_argument("--dt", type=float, default=1e-3, help="integration step [s] (default: %(default)s)")
+    p.add_argument("--duration", type=positive_float, default=1.5, help="simulated time per shot [s] (default: %(default)s)")
+    p.add_argument("--dt", type=positive_float, default=1e-3, help="integration step [s] (default: %(default)s)")
     p.add_argument("--integrator", choices=["rk4", "rk2", "euler"], default="rk4",
                    help="flight integrator (default: %(default)s)")
     p.add_argument("--no-aim", action="store_true",
                    help="skip aiming each shot through the model (faster, more shots miss)")
-    p.add_argument("--chunk", type=int, default=16384, help="balls simulated per call (default: %(default)s)")
-    p.add_argument("--save", type=Path, default=None,
+    p.add_argument("--chunk", type=positive_int, default=16384, help="balls simulated per call (default: %(default)s)")
+    p.add_argument("--save", type=writable_file, default=None,
                    help="write the trajectories (every 5 ms) and event logs to this .npz file")
-    p.add_argument("--plot", type=Path, default=None, help="write a PNG of sample trajectories over the table")
+    p.add_argument("--plot", type=writable_file, default=None, help="write a PNG of sample trajectories over the table")
     p.set_defaults(func=cmd_simulate)
 
 
@@ -46,18 +203,17 @@ def cmd_simulate(args) -> int:
     from ttsim_jax.shots import SHOT_TYPES, sample_shots
     from ttsim_jax.state import Ball
 
-    if args.shots <= 0 or args.duration <= 0 or args.dt <= 0 or args.chunk <= 0:
-        print("error: --shots, --duration, --dt and --chunk must be positive", file=sys.stderr)
-        return 2
     types = None if args.types == "all" else [t.strip() for t in args.types.split(",")]
     if types and set(types) - set(SHOT_TYPES):
-        print(f"error: unknown shot types {sorted(set(types) - set(SHOT_TYPES))}; known: {list(SHOT_TYPES)}",
-              file=sys.stderr)
-        return 2
-    model = load_model(args.model)
+        raise UsageError(f"--types {args.types}: unknown shot types {sorted(set(types) - set(SHOT_TYPES))}; "
+                         f"known: {list(SHOT_TYPES)}")
     n_steps = int(round(args.duration / args.dt))
     every = max(1, int(round(5e-3 / args.dt)))
     n_steps -= n_steps % every
+    if n_steps < 1:
+        raise UsageError(f"--duration {args.duration:g} with --dt {args.dt:g}: less than one step "
+                         f"(at least {every * args.dt:g} s are needed)")
+    model = load_model(args.model)
 
     t0 = time.perf_counter()
     balls, labels = sample_shots(args.shots, seed=args.seed, types=types, model=None if args.no_aim else model)
@@ -106,14 +262,17 @@ def cmd_simulate(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ttsim_jax import __version__
     from ttsim_jax.data import commands as data_commands
     from ttsim_jax.data import generator_cli
     from ttsim_jax.fit import commands as fit_commands
 
     parser = argparse.ArgumentParser(
         prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import, "
-                                  "generate and inspect data, train and evaluate the racket residual network. World frame: origin at the centre of the table surface, x "
-                                  "along the table, z up; SI units.")
+                                  "generate and inspect data, train and evaluate the racket residual network. "
+                                  "World frame: origin at the centre of the table surface, x along the table, z "
+                                  "up; SI units.")
+    parser.add_argument("--version", action="version", version=f"ttsim-jax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _simulate_command(sub)
     data_commands.register(sub)
@@ -123,12 +282,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Runs ``ttsim ARGV``.
+
+    Arguments:
+        argv: the arguments after ``ttsim`` (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status: 0 done, 2 a user error (bad option, file or value; reported in one
+        ``error:`` line naming it), otherwise what the command returns.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help and --version (0), or argparse's usage error (2), already printed
+        return int(e.code or 0)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return int(args.func(args) or 0)
+    try:
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return status
+    except _user_errors() as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # the reader went away (``ttsim data info DIR | head``): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":

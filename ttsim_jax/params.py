@@ -351,20 +351,37 @@ def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
 
 
 def config_dir() -> Path:
-    """The folder holding ``models/*.toml`` (the checkout's ``configs/``)."""
-    here = Path(__file__).resolve().parents[1] / "configs"
-    if here.is_dir():
-        return here
-    return Path(str(resources.files("ttsim_jax"))) / "configs"
+    """The folder of the bundled configs (``models/*.toml``, ``residual/*.toml``).
+
+    Returns:
+        ``ttsim_jax/configs`` of an installed wheel (found with :mod:`importlib.resources`), else,
+        in a source checkout or an editable install, the checkout's top-level ``configs/``: the
+        wheel is built from that folder, so both hold the same files.
+    """
+    packaged = resources.files("ttsim_jax") / "configs"
+    if packaged.is_dir():
+        return Path(str(packaged))
+    return Path(__file__).resolve().parents[1] / "configs"
 
 
 def available_models() -> list[str]:
+    """Names of the bundled models (``configs/models/*.toml``)."""
     return sorted(p.stem for p in (config_dir() / "models").glob("*.toml"))
 
 
 def resolve_model_path(name_or_path: str | Path) -> Path:
+    """The model file for a bundled model name or a path to a ``.toml`` file.
+
+    Arguments:
+        name_or_path: ``"conti2026"`` etc., or a path.
+
+    Returns:
+        The path of an existing file; raises :class:`ConfigError` naming the name or path otherwise.
+    """
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
+        if path.is_dir():
+            raise ConfigError(f"{path}: is a directory, not a model .toml file")
         if not path.is_file():
             raise ConfigError(f"{path}: no such model file")
         return path

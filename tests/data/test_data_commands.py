@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from ttsim_jax.cli import main
 from ttsim_jax.data import commands, load
 
 
@@ -19,8 +20,8 @@ def parser():
 
 
 def run(parser, argv):
-    args = parser.parse_args(argv)
-    return args.func(args)
+    """Runs ``ttsim ARGV`` in-process (``parser`` checks that the commands register)."""
+    return main(argv)
 
 
 def test_every_option_has_help(parser):
@@ -42,14 +43,14 @@ def test_import_csv_then_info(parser, rally, tmp_path, capsys):
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 0
     ds = load(out)
     np.testing.assert_array_equal(ds.observations["t"], t)
-    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 1  # exists
+    assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]) == 2  # exists
     (out / "notes.txt").write_text("keep me")
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out), "--force"]) == 0
     assert (out / "notes.txt").read_text() == "keep me"
     (tmp_path / "a_file").write_text("x")
     capsys.readouterr()
     assert run(parser, ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(tmp_path / "a_file"),
-                        "--force"]) == 1
+                        "--force"]) == 2
     assert "a_file" in capsys.readouterr().err and (tmp_path / "a_file").read_text() == "x"
     assert run(parser, ["data", "info", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
@@ -78,7 +79,7 @@ def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
 
 
 def test_import_bad_path_is_an_error(parser, tmp_path, capsys):
-    assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 1
+    assert run(parser, ["data", "import", str(tmp_path / "nope"), "--source", "tt3d", "--out", str(tmp_path / "o")]) == 2
     assert "no such file" in capsys.readouterr().err
 
 
@@ -88,7 +89,7 @@ def test_import_csv_in_millimetres_and_milliseconds(parser, rally, tmp_path, cap
     (tmp_path / "log.csv").write_text("\n".join(lines) + "\n")
     out = tmp_path / "ds"
     argv = ["data", "import", str(tmp_path / "log.csv"), "--source", "csv", "--out", str(out)]
-    assert run(parser, argv + ["--length-unit", "mm"]) == 1
+    assert run(parser, argv + ["--length-unit", "mm"]) == 2
     assert "--time-unit ms" in capsys.readouterr().err
     assert run(parser, argv + ["--length-unit", "mm", "--time-unit", "ms"]) == 0
     ds = load(out)
@@ -96,5 +97,5 @@ def test_import_csv_in_millimetres_and_milliseconds(parser, rally, tmp_path, cap
     np.testing.assert_allclose(ds.positions, pos, rtol=1e-12, atol=1e-15)
     assert len(ds.events["kind"]) == len(bt)
     capsys.readouterr()
-    assert run(parser, ["data", "import", str(tmp_path), "--source", "tt3d", "--out", str(tmp_path / "o"), "--time-unit", "ms"]) == 1
+    assert run(parser, ["data", "import", str(tmp_path), "--source", "tt3d", "--out", str(tmp_path / "o"), "--time-unit", "ms"]) == 2
     assert "CSV logs only" in capsys.readouterr().err

@@ -1,11 +1,13 @@
-"""`train residual` / `evaluate residual` through a small argparse harness (until cli.py wires them)."""
+"""`train residual` / `evaluate residual` through the ``ttsim`` command (in-process)."""
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from ttsim_jax.cli import main
 from ttsim_jax.data import save
 from ttsim_jax.fit import commands
 from ttsim_jax.fit import contacts as C
@@ -43,8 +45,7 @@ def parser():
 
 
 def run(argv):
-    args = parser().parse_args(argv)
-    return args.func(args)
+    return main(argv)
 
 
 @pytest.fixture(scope="module")
@@ -67,14 +68,14 @@ def test_help_text_for_every_option():
         ap.parse_args(["train", "residual", "--data", "d"])  # --out is required
 
 
-def test_register_extends_an_existing_group():
+def test_register_extends_an_existing_group(tmp_path):
     ap = argparse.ArgumentParser(prog="ttsim")
     sub = ap.add_subparsers(dest="command", required=True)
     train = sub.add_parser("train").add_subparsers(dest="what", required=True)
     train.add_parser("aero")
     commands.register(sub)
     assert ap.parse_args(["train", "aero"]).what == "aero"
-    args = ap.parse_args(["train", "residual", "--data", "d", "--out", "o"])
+    args = ap.parse_args(["train", "residual", "--data", str(tmp_path), "--out", str(tmp_path / "o")])
     assert args.func is commands.cmd_train_residual and args.model == "conti2026"
 
 
@@ -94,7 +95,7 @@ def test_train_then_evaluate(workdir, capsys):
     assert np.all(np.asarray(model.sigma_scale) > 0)
 
     # a second run refuses to overwrite; --resume of the finished run returns the same model
-    assert run(argv) == 1
+    assert run(argv) == 2
     assert "--resume" in capsys.readouterr().err
     assert run(argv + ["--resume"]) == 0
     assert "all (n=10)" in capsys.readouterr().out
@@ -113,16 +114,40 @@ def test_train_then_evaluate(workdir, capsys):
     assert "all (n=100)" in capsys.readouterr().out
 
 
-def test_errors_exit_1_with_a_message(workdir, capsys):
+def test_errors_exit_2_with_a_message(workdir, capsys):
     bad = workdir / "bad.toml"
     bad.write_text(TINY_TOML.replace("n_clusters = 10", "n_clusters = 10\nbogus = 1"))
     argv = ["train", "residual", "--data", str(workdir / "data"), "--out", str(workdir / "x.ttres"), "--quiet"]
-    assert run(argv + ["--config", str(bad)]) == 1
+    assert run(argv + ["--config", str(bad)]) == 2
     assert "bogus" in capsys.readouterr().err
-    assert run(argv + ["--config", str(workdir / "tiny.toml"), "--resume"]) == 1
+    assert run(argv + ["--config", str(workdir / "tiny.toml"), "--resume"]) == 2
     assert "no training state" in capsys.readouterr().err
     assert run(["train", "residual", "--data", str(workdir / "missing"), "--out", str(workdir / "y.ttres"),
-                "--config", str(workdir / "tiny.toml"), "--quiet"]) == 1
+                "--config", str(workdir / "tiny.toml"), "--quiet"]) == 2
     assert "error:" in capsys.readouterr().err
-    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 1
-    assert "no such checkpoint" in capsys.readouterr().err
+    assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(workdir / "none")]) == 2
+    assert "none: no such file" in capsys.readouterr().err
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games"
+
+
+def test_default_config_trains_on_the_bundled_sample(tmp_path, capsys):
+    """The bundled config asks for 1000 k-means centres; the sample has a few dozen contacts."""
+    out = tmp_path / "sample.ttres"
+    assert main(["train", "residual", "--data", str(SAMPLE), "--out", str(out), "--epochs", "2", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    n_train = R.checkpoint_metadata(out)["n_train"]
+    assert f"lowered from 1000 to {n_train}" in text
+    assert R.load_residual(out).config.n_clusters == n_train < 1000
+
+
+def test_help_states_the_defaults_of_clusters_epochs_and_seed(capsys):
+    assert main(["train", "residual", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    for model in commands.MODELS:
+        config, tcfg = F.load_train_config(commands.bundled_config(model))
+        for value in (config.n_clusters, tcfg.max_epochs, tcfg.seed):
+            assert f"{value} for {model}" in text
+    for option, key in (("--clusters", "n_clusters"), ("--epochs", "max_epochs"), ("--seed", "seed")):
+        assert f"{option} " in text and f"(default: the config's {key}," in text

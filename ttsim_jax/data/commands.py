@@ -1,14 +1,16 @@
 """The ``ttsim data ...`` commands. Thin: parsing and printing only; the work is in the library.
 
 ``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
-``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status).
+``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user errors
+are raised and reported by :func:`ttsim_jax.cli.main` with status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
+
+from ttsim_jax.cli import UsageError, existing_dir, existing_path, finite_float, positive_float, writable_dir
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -33,15 +35,15 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Read PATH, convert it to the canonical table frame, detect contacts, segment, validate and "
         "write a dataset directory (Parquet tables + metadata.json).",
     )
-    imp.add_argument("path", metavar="PATH", help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
+    imp.add_argument("path", metavar="PATH", type=existing_path, help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
     imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
-    imp.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
+    imp.add_argument("--out", required=True, metavar="DIR", type=writable_dir, help="dataset directory to write")
     imp.add_argument("--force", action="store_true", help="replace DIR if it holds a dataset (other files in it are kept)")
     imp.add_argument("--length-unit", choices=tuple(LENGTH_UNITS), default="m", help="with --source csv: unit of the positions (default m)")
     imp.add_argument("--time-unit", choices=tuple(TIME_UNITS), default="s", help="with --source csv: unit of the times (default s)")
     imp.add_argument("--filter", action="store_true", help="also drop short, low-spin-confidence and badly fitting segments (prints a report)")
-    imp.add_argument("--min-spin-conf", type=float, default=0.5, metavar="C", help="with --filter: least spin confidence, negative to keep all (default 0.5)")
-    imp.add_argument("--max-rmse", type=float, default=0.02, metavar="M", help="with --filter: largest flight-fit RMSE in metres (default 0.02)")
+    imp.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C", help="with --filter: least spin confidence, negative to keep all (default 0.5)")
+    imp.add_argument("--max-rmse", type=positive_float, default=0.02, metavar="M", help="with --filter: largest flight-fit RMSE in metres (default 0.02)")
     imp.set_defaults(func=cmd_import)
 
     inf = sub.add_parser(
@@ -49,7 +51,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="counts, ranges and validation summary of a dataset",
         description="Print counts of sessions, segments and events by kind, speed and spin ranges, and the validation summary.",
     )
-    inf.add_argument("path", metavar="DIR", help="dataset directory")
+    inf.add_argument("path", metavar="DIR", type=existing_dir, help="dataset directory")
     inf.add_argument("--json", action="store_true", help="print the summary as JSON")
     inf.set_defaults(func=cmd_info)
     return data
@@ -64,14 +66,13 @@ def cmd_import(args) -> int:
 
     try:
         ds = import_source(args.path, args.source, length_unit=args.length_unit, time_unit=args.time_unit)
-        if args.filter:
-            conf = None if args.min_spin_conf < 0 else args.min_spin_conf
-            ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
-            print(report)
-        save(ds, args.out, overwrite=args.force)
-    except (ValueError, OSError) as e:  # DataError is a ValueError; OSError: DIR exists, is a file, or cannot be written
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{args.path}: not a {args.source} recording (a file is not UTF-8 text: {e})") from None
+    if args.filter:
+        conf = None if args.min_spin_conf < 0 else args.min_spin_conf
+        ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
+        print(report)
+    save(ds, args.out, overwrite=args.force)
     print(f"wrote {args.out}")
     print(format_info(info(ds)))
     return 0
@@ -79,17 +80,12 @@ def cmd_import(args) -> int:
 
 def cmd_info(args) -> int:
     """``data info``: load without stopping at problems, then summarise them."""
-    from .errors import DataError
     from .io import METADATA_FILE, load, table_path
     from .schema import TABLES
     from .summary import format_info, info
     from .validate import problems
 
-    try:
-        ds = load(args.path, validate=False)
-    except DataError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    ds = load(args.path, validate=False)
     files = {name: table_path(args.path, name) for name in TABLES}
     files["metadata"] = f"{args.path}/{METADATA_FILE}"
     found = problems(ds, files)

@@ -1,7 +1,8 @@
 """The ``ttsim generate`` command: synthetic measured data with a known truth.
 
 Thin: parses options, calls :mod:`ttsim_jax.data.generator`, prints a summary. ``ttsim_jax/cli.py``
-calls :func:`register` with its subparsers object; until then the command also runs as
+calls :func:`register` with its subparsers object; user errors are raised and reported by
+:func:`ttsim_jax.cli.main` with status 2. The command also runs as
 ``python -m ttsim_jax.data.generator_cli generate ...``.
 """
 
@@ -10,6 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
+from ttsim_jax.cli import UsageError, positive_int, seed, text_file, writable_dir
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -32,18 +35,18 @@ def register(subparsers) -> argparse.ArgumentParser:
                     "truth_observations.parquet). Deterministic for a seed and configuration. Effects: "
                     + ", ".join(names()) + " (python -m ttsim_jax.effects describes them).",
     )
-    p.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
+    p.add_argument("--out", required=True, metavar="DIR", type=writable_dir, help="dataset directory to write")
     p.add_argument("--preset", choices=["sample", "paper"], default=None,
                    help="starting configuration: 'sample' (3 games of 6 rallies, the bundled sample dataset) or 'paper' "
                         "(277 games, the scale of the paper's dataset); default: the generator's defaults (4 games)")
-    p.add_argument("--config", metavar="FILE", default=None,
+    p.add_argument("--config", metavar="FILE", default=None, type=text_file,
                    help="TOML file with [generator] settings and [effects] (enabled = [...], [effects.NAME] fixed "
                         "parameter values); applied after --preset, before the options below")
-    p.add_argument("--games", type=int, default=None, metavar="N", help="number of games (sessions) to generate")
-    p.add_argument("--seed", type=int, default=None, metavar="S", help="seed of every random stream (default 0)")
+    p.add_argument("--games", type=positive_int, default=None, metavar="N", help="number of games (sessions) to generate")
+    p.add_argument("--seed", type=seed, default=None, metavar="S", help="seed of every random stream (default 0)")
     p.add_argument("--effects", default=None, metavar="LIST",
                    help="effects that are on: comma-separated names, 'all' (default) or 'none'")
-    p.add_argument("--lanes", type=int, default=None, metavar="L", help="games simulated in parallel (default 256)")
+    p.add_argument("--lanes", type=positive_int, default=None, metavar="L", help="games simulated in parallel (default 256)")
     p.add_argument("--no-truth-observations", action="store_true",
                    help="do not write truth_observations.parquet (the noise-free state of every observation)")
     p.add_argument("--force", action="store_true", help="overwrite DIR if it holds a dataset")
@@ -55,27 +58,15 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def cmd_generate(args) -> int:
     """``generate``: build the configuration, generate, write, print a summary."""
-    from pathlib import Path
+    from .generator import generate, make_config, write
 
-    from .errors import DataError
-    from .generator import GeneratorError, generate, make_config, write
-
-    out = Path(args.out)
+    out = args.out
     if out.exists() and any(out.iterdir()) and not args.force:
-        print(f"error: {out} exists and is not empty; pass --force to overwrite it", file=sys.stderr)
-        return 1
-    try:
-        cfg = make_config(args.preset, args.config, games=args.games, seed=args.seed, effects=args.effects,
-                          lanes=args.lanes, truth_observations=False if args.no_truth_observations else None)
-    except GeneratorError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    try:
-        gen = generate(cfg, progress=not args.quiet)
-        write(gen, out, overwrite=True)
-    except (DataError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        raise UsageError(f"--out {out}: exists and is not empty; pass --force to overwrite it")
+    cfg = make_config(args.preset, args.config, games=args.games, seed=args.seed, effects=args.effects,
+                      lanes=args.lanes, truth_observations=False if args.no_truth_observations else None)
+    gen = generate(cfg, progress=not args.quiet)
+    write(gen, out, overwrite=True)
     summary = summarise(gen.truth, out, gen.wall_time_s)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     return 0
@@ -130,13 +121,11 @@ def format_summary(s: dict) -> str:
 
 
 def main(argv=None) -> int:
-    """Stand-alone entry point (``python -m ttsim_jax.data.generator_cli generate ...``)."""
-    parser = argparse.ArgumentParser(prog="ttsim", description="ttsim-jax reality generator")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
-    register(sub)
-    args = parser.parse_args(argv)
-    return args.func(args)
+    """Stand-alone entry point (``python -m ttsim_jax.data.generator_cli generate ...``): the same
+    as ``ttsim generate ...``."""
+    from ttsim_jax.cli import main as cli_main
+
+    return cli_main(argv)
 
 
 if __name__ == "__main__":

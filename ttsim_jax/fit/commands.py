@@ -2,12 +2,13 @@
 printing; the work is in :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
 
 ``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
-``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status: 0 done,
-1 bad input or refused, 2 usage error from argparse).
+``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user
+errors are raised (the library's errors, :class:`ttsim_jax.cli.UsageError`) and reported by
+:func:`ttsim_jax.cli.main` with status 2.
 
     ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
                          [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
-                         [--resume | --force]
+                         [--clusters K] [--resume | --force]
     ttsim evaluate residual --data DATA --checkpoint CHECKPOINT [--model NAME] [--split all|test]
                             [--json]
 """
@@ -20,10 +21,28 @@ import json
 import math
 import os
 import sys
+import tomllib
 from pathlib import Path
 
+from ttsim_jax.cli import UsageError, existing_dir, existing_file, positive_int, seed, text_file, writable_file
+
 MODELS = ("conti2026", "durr2026")
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "residual"
+
+
+def bundled_config(model: str) -> Path:
+    """The bundled residual config of a model family (``configs/residual/MODEL.toml``)."""
+    from ttsim_jax.params import config_dir
+
+    return config_dir() / "residual" / f"{model}.toml"
+
+
+def _bundled_values(table: str, key: str) -> str:
+    """'1000 for conti2026, 500 for durr2026': a setting of the bundled configs, for --help."""
+    values = []
+    for model in MODELS:
+        with open(bundled_config(model), "rb") as f:
+            values.append(f"{tomllib.load(f)[table][key]} for {model}")
+    return ", ".join(values)
 
 
 def _group(subparsers, name: str, help: str, description: str):
@@ -56,20 +75,27 @@ def register(subparsers) -> None:
         "validation split) and write CHECKPOINT. Ends with the test split's errors against the base model by "
         "contact-distance band.",
     )
-    p.add_argument("--data", required=True, metavar="DATA", help="dataset directory (see docs/data_format.md)")
-    p.add_argument("--out", required=True, metavar="CHECKPOINT",
+    p.add_argument("--data", required=True, metavar="DATA", type=existing_dir,
+                   help="dataset directory (see docs/data_format.md; the bundled sample is ttsim_jax/data/sample/games)")
+    p.add_argument("--out", required=True, metavar="CHECKPOINT", type=writable_file,
                    help="residual checkpoint to write (e.g. runs/net.ttres); the training state goes to "
                    "CHECKPOINT.state")
     p.add_argument("--model", choices=MODELS, default="conti2026",
                    help="simulator model whose racket base model the network corrects (default conti2026: 8 inputs; "
                    "durr2026: 6 inputs, racket spin ignored)")
-    p.add_argument("--config", metavar="TOML",
+    p.add_argument("--config", metavar="TOML", type=text_file,
                    help="residual config with [model], [attenuation], [training] "
-                   "(default configs/residual/MODEL.toml)")
-    p.add_argument("--epochs", type=int, metavar="N",
-                   help="maximum number of epochs (overrides the config's max_epochs)")
-    p.add_argument("--seed", type=int, metavar="S",
-                   help="seed of split, initialisation and shuffling (overrides the config's)")
+                   "(default: the bundled configs/residual/MODEL.toml)")
+    p.add_argument("--epochs", type=positive_int, metavar="N",
+                   help="maximum number of epochs (default: the config's max_epochs, "
+                   f"{_bundled_values('training', 'max_epochs')})")
+    p.add_argument("--seed", type=seed, metavar="S",
+                   help="seed of split, initialisation and shuffling (default: the config's seed, "
+                   f"{_bundled_values('training', 'seed')})")
+    p.add_argument("--clusters", type=positive_int, metavar="K",
+                   help="k-means centres of the attenuation (default: the config's n_clusters, "
+                   f"{_bundled_values('model', 'n_clusters')}); lowered, with a message, to the number of "
+                   "training contacts when there are fewer")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--resume", action="store_true",
                       help="continue an interrupted run from CHECKPOINT.state (same data and settings)")
@@ -86,11 +112,11 @@ def register(subparsers) -> None:
         description="Convert DATA's racket contacts like 'train residual' and print the errors of the base model "
         "and of base + residual, by contact-distance band, and the fraction inside one predicted sigma.",
     )
-    e.add_argument("--data", required=True, metavar="DATA", help="dataset directory")
-    e.add_argument("--checkpoint", required=True, metavar="CKPT",
+    e.add_argument("--data", required=True, metavar="DATA", type=existing_dir, help="dataset directory")
+    e.add_argument("--checkpoint", required=True, metavar="CKPT", type=existing_file,
                    help="residual checkpoint written by 'train residual'")
     e.add_argument("--model", choices=MODELS,
-                   help="base model (default: the one stored in the checkpoint, else by its number of inputs)")
+                   help="base model (default: the one the checkpoint was trained for; another is refused)")
     e.add_argument("--split", choices=("all", "test"), default="all",
                    help="evaluate all usable contacts (default) or only the test split of training "
                    "(same data, split and seed as stored in the checkpoint)")
@@ -99,20 +125,6 @@ def register(subparsers) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-
-
-def _err(msg: str) -> int:
-    print(f"error: {msg}", file=sys.stderr)
-    return 1
-
-
-def _expected_errors():
-    from ttsim_jax.data.errors import DataError
-    from ttsim_jax.params import ConfigError as ModelConfigError
-    from ttsim_jax.physics.residual import CheckpointError, ConfigError
-
-    return (DataError, CheckpointError, ConfigError, ModelConfigError, FileExistsError, FileNotFoundError,
-            ValueError)
 
 
 def _convert(ds, model_name: str, n_inputs: int, stream=None):
@@ -166,39 +178,44 @@ def cmd_train_residual(args) -> int:
     from ttsim_jax.fit import residual as F
     from ttsim_jax.physics.residual import save_residual
 
+    config_path = args.config or bundled_config(args.model)
+    config, tcfg = F.load_train_config(config_path)
+    if args.epochs is not None:
+        tcfg = dataclasses.replace(tcfg, max_epochs=args.epochs)
+    if args.seed is not None:
+        tcfg = dataclasses.replace(tcfg, seed=args.seed)
+    if args.clusters is not None:
+        config = dataclasses.replace(config, n_clusters=args.clusters)
+    out = Path(args.out)
+    state = Path(str(out) + ".state")
+    if not args.resume and not args.force and (out.exists() or state.exists()):
+        existing = " and ".join(str(p) for p in (out, state) if p.exists())
+        raise UsageError(f"--out {out}: {existing} already exists: pass --resume to continue the run, or --force "
+                         "to start over")
+    if args.resume and not state.exists():
+        raise UsageError(f"--resume: no training state {state} to continue")
+    ds = load(args.data)
+    arrays = _convert(ds, args.model, config.n_inputs)
+    if len(arrays) < 3:
+        raise UsageError(f"--data {args.data}: only {len(arrays)} usable racket contacts; at least 3 are needed "
+                         "(train / validation / test)")
+    n_train = len(F.split_by_contact(len(arrays), tcfg.split, tcfg.seed)[0])
+    if config.n_clusters > n_train:
+        print(f"{n_train} training contacts: the attenuation's k-means centres lowered from {config.n_clusters} "
+              f"to {n_train} (--clusters sets them)")
+        config = dataclasses.replace(config, n_clusters=n_train)
+    if args.force and state.exists():
+        state.unlink()
     try:
-        config_path = args.config or CONFIG_DIR / f"{args.model}.toml"
-        config, tcfg = F.load_train_config(config_path)
-        if args.epochs is not None:
-            if args.epochs < 1:
-                return _err(f"--epochs {args.epochs}: must be >= 1")
-            tcfg = dataclasses.replace(tcfg, max_epochs=args.epochs)
-        if args.seed is not None:
-            tcfg = dataclasses.replace(tcfg, seed=args.seed)
-        out = Path(args.out)
-        state = Path(str(out) + ".state")
-        if not args.resume and not args.force and (out.exists() or state.exists()):
-            existing = " and ".join(str(p) for p in (out, state) if p.exists())
-            return _err(f"{existing} already exists: pass --resume to continue the run, or --force to start over")
-        if args.force and state.exists():
-            state.unlink()
-        if args.resume and not state.exists():
-            return _err(f"--resume: no training state {state} to continue")
-        ds = load(args.data)
-        arrays = _convert(ds, args.model, config.n_inputs)
-        if len(arrays) < 3:
-            return _err(f"{args.data}: only {len(arrays)} usable racket contacts; at least 3 are needed "
-                        "(train / validation / test)")
         model, report = F.train_residual(arrays.x, arrays.y_base, arrays.y_obs, config, tcfg, checkpoint=state,
                                          resume=args.resume, progress=not args.quiet)
-        meta = {k: v for k, v in report.items() if k != "history"}
-        meta.update(model=args.model, data=str(args.data), config_file=str(config_path), train_config=tcfg.to_dict(),
-                    contacts=dict(used=len(arrays), total=arrays.n_contacts, skipped=arrays.counts()))
-        save_residual(out, model, metadata=meta)
     except KeyboardInterrupt:
-        return _err("interrupted; the last completed epoch is saved: rerun with --resume")
-    except _expected_errors() as exc:
-        return _err(str(exc))
+        print("error: interrupted; the last completed epoch is saved: rerun with --resume", file=sys.stderr)
+        return 1
+    meta = {k: v for k, v in report.items() if k != "history"}
+    meta.update(model=args.model, data=str(args.data), config_file=str(config_path), train_config=tcfg.to_dict(),
+                contacts=dict(used=len(arrays), total=arrays.n_contacts, skipped=arrays.counts()))
+    save_residual(out, model, metadata=meta)
 
     _, _, test = F.split_by_contact(len(arrays), tcfg.split, tcfg.seed)
     bands = _bands_with_total(model, arrays.x[test], arrays.y_base[test], arrays.y_obs[test], arrays.distance[test])
@@ -219,25 +236,25 @@ def cmd_evaluate_residual(args) -> int:
     from ttsim_jax.fit import residual as F
     from ttsim_jax.physics.residual import checkpoint_metadata, load_residual
 
-    try:
-        model = load_residual(args.checkpoint)
-        meta = checkpoint_metadata(args.checkpoint)
-        name = args.model or meta.get("model") or ("conti2026" if model.config.n_inputs == 8 else "durr2026")
-        ds = load(args.data)
-        arrays = _convert(ds, name, model.config.n_inputs, sys.stderr if args.json else None)
-        rows = slice(None)
-        if args.split == "test":
-            tc = meta.get("train_config")
-            if not tc:
-                return _err(f"{args.checkpoint}: no training configuration stored; use --split all")
-            _, _, rows = F.split_by_contact(len(arrays), tuple(tc["split"]), int(tc["seed"]))
-        if len(arrays.x[rows]) == 0:
-            return _err(f"{args.data}: no usable racket contacts")
-        x, yb, yo, dist = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows], arrays.distance[rows]
-        overall = F.evaluate_residual(model, x, yb, yo)
-        bands = _bands_with_total(model, x, yb, yo, dist)
-    except _expected_errors() as exc:
-        return _err(str(exc))
+    model = load_residual(args.checkpoint)
+    meta = checkpoint_metadata(args.checkpoint)
+    name = meta.get("model") or ("conti2026" if model.config.n_inputs == 8 else "durr2026")
+    if args.model and args.model != name:
+        raise UsageError(f"--checkpoint {args.checkpoint} was trained for the {name} base model "
+                         f"({model.config.n_inputs} inputs); it cannot correct --model {args.model}")
+    ds = load(args.data)
+    arrays = _convert(ds, name, model.config.n_inputs, sys.stderr if args.json else None)
+    rows = slice(None)
+    if args.split == "test":
+        tc = meta.get("train_config")
+        if not tc:
+            raise UsageError(f"--checkpoint {args.checkpoint}: no training configuration stored; use --split all")
+        _, _, rows = F.split_by_contact(len(arrays), tuple(tc["split"]), int(tc["seed"]))
+    if len(arrays.x[rows]) == 0:
+        raise UsageError(f"--data {args.data}: no usable racket contacts")
+    x, yb, yo, dist = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows], arrays.distance[rows]
+    overall = F.evaluate_residual(model, x, yb, yo)
+    bands = _bands_with_total(model, x, yb, yo, dist)
     if args.json:
         clean = lambda v: None if isinstance(v, float) and not math.isfinite(v) else v  # noqa: E731
         bands = [{k: ({q: clean(e) for q, e in v.items()} if isinstance(v, dict) else clean(v)) for k, v in b.items()}

@@ -139,9 +139,9 @@ class _Static:
 
 
 @partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
-                                   "sample", "rackets_batched", "remat"))
+                                   "sample", "rackets_batched", "remat", "reference"))
 def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
-             max_events, capacity, sample, rackets_batched, remat):
+             max_events, capacity, sample, rackets_batched, remat, reference):
     axes = axes.tree()
     b = state.batch
     dtype = state.ball.pos.dtype
@@ -151,7 +151,7 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_ste
     t0 = jnp.where(same, state.t0, state.time)
     step0 = jnp.where(same, state.step, 0)
     log = EventLog.empty(b, max_events, dtype) if max_events else None
-    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample)
+    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample, reference=reference)
 
     def body(carry, xs):
         ball, alive, status, log, k = carry
@@ -214,7 +214,7 @@ def default_capacity(batch: int) -> int:
 def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *,
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
             contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
-            memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
+            reference: bool = False, memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
     Arguments:
@@ -238,6 +238,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             depends on ``key``, the step and the ball's id only.
         key: PRNG key for sampling (default ``PRNGKey(0)``).
         remat: rematerialise steps and chunks in reverse mode (saves memory; no cost forward).
+        reference: run the exact event detection for every ball at every step instead of only for
+            the balls whose gaps change sign (same results, slower; for testing).
         memory_budget_bytes: a recording above this is refused before compiling.
 
     Returns:
@@ -248,7 +250,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         raise ValueError(f"state.ball fields must be (B, 3); got pos {ball.pos.shape}")
     batch = ball.pos.shape[0]
     if not isinstance(n_steps, int) or n_steps <= 0:
-        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}")
+        raise ValueError(f"n_steps must be positive (an int), got {n_steps!r}")
     if record_every and n_steps % record_every:
         raise ValueError(f"record_every={record_every} must divide n_steps={n_steps}")
     need = recording_bytes(batch, n_steps, record_every, ball.pos.dtype.itemsize)
@@ -268,7 +270,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     key = jax.random.PRNGKey(0) if key is None else key
     return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
-                    sample=sample_residual, rackets_batched=batched, remat=remat)
+                    sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference)
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",

@@ -293,7 +293,7 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
 
 def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog | None, rackets: Racket | None,
          t, dt, *, rackets_batched: bool = False, integrator: str = "rk4", capacity: int = 64, key=None,
-         sample: bool = False):
+         sample: bool = False, reference: bool = False):
     """Advances a batch of balls by one step.
 
     Arguments:
@@ -305,6 +305,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         t, dt: time at the start of the step and step length [s].
         integrator: flight integrator (static); capacity: contact buffer rows (static).
         key, sample: the step's PRNG key and whether to sample the residual from its predicted std.
+        reference: run the exact detection for every ball (static): the straightforward step the
+            lean one is tested against.
 
     Returns:
         (ball, alive, status, log) after the step.
@@ -328,6 +330,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
                                                      contact, sigma)
         return new_ball, new_alive, new_status, new_log
 
+    if reference:
+        return handle(jnp.arange(b))
     count = jnp.sum(flag)
     nothing = lambda: (base, alive, status, log)  # noqa: E731
     buffered = lambda: handle(jnp.nonzero(flag, size=capacity, fill_value=b)[0])  # noqa: E731

@@ -57,7 +57,8 @@ def import_source(path, source: str, *, length_unit: str = "m", time_unit: str =
     if source not in SOURCES:
         raise ValueError(f"unknown source {source!r}; known: {', '.join(SOURCES)}")
     if source != "csv" and (length_unit, time_unit) != ("m", "s"):
-        raise ValueError(f"length and time units apply to CSV logs only; the {source} importer knows its source's units")
+        raise DataError(f"length and time units apply to CSV logs only; the {source} importer knows its source's units",
+                        file=path)
     path = Path(path)
     if not path.exists():
         raise DataError("no such file or directory", file=path)

@@ -1,0 +1,154 @@
+"""The resumable rollout: halves equal the whole, per-ball parameters equal single balls, the lean
+step equals the reference step, time does not drift, new values never recompile."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import Ball, Racket, init_state, load_model, per_ball_axes, rollout, simulate
+from ttsim_jax.effects import make
+from ttsim_jax.kernel.rollout import _rollout
+from ttsim_jax.physics.events import NONE, RACKET, TABLE
+
+B = 64
+N = 400
+
+
+def shots(n=B, seed=0):
+    """Serves and drives from the near end, some with enough speed to reach the far racket."""
+    rng = np.random.default_rng(seed)
+    pos = np.stack([rng.uniform(-1.6, -1.2, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.05, 0.45, n)], -1)
+    vel = np.stack([rng.uniform(3, 14, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-3, 2.5, n)], -1)
+    spin = rng.uniform(-500, 500, (n, 3))
+    return Ball.create(pos, vel, spin)
+
+
+def two_rackets(n_steps, dt=1e-3):
+    """A racket at each end, moving at constant velocity, as a (T, 2, ...) schedule."""
+    rot_far = jnp.diag(jnp.array([-1.0, -1.0, 1.0]))
+    far = Racket.create(jnp.array([1.55, 0.0, 0.15]), rot=rot_far, vel=jnp.array([-1.0, 0.0, 0.5]),
+                        ang_vel=jnp.array([0.0, 8.0, 0.0]), face=(0.3, 0.3))
+    near = Racket.create(jnp.array([-1.6, 0.0, 0.2]), vel=jnp.array([1.0, 0.0, 0.3]), face=(0.3, 0.3))
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), far, near)
+    t = jnp.arange(n_steps)[:, None, None] * dt
+    sched = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_steps,) + a.shape), both)
+    return sched.replace(pos=both.pos[None] + t * both.vel[None])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("conti2026")
+
+
+@pytest.fixture(scope="module")
+def whole(model):
+    state = init_state(shots())
+    return rollout(model, state, N, 1e-3, two_rackets(N))
+
+
+def test_two_halves_equal_one_rollout(model, whole):
+    sched = two_rackets(N)
+    half = jax.tree.map(lambda a: a[N // 2:], sched)
+    s1, o1 = rollout(model, init_state(shots()), N // 2, 1e-3, sched)
+    s2, o2 = rollout(model, s1, N // 2, 1e-3, half)
+    s, o = whole
+    np.testing.assert_allclose(np.asarray(s2.ball.as_array()), np.asarray(s.ball.as_array()), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(s2.status), np.asarray(s.status))
+    assert int(s2.step) == N and float(s2.time) == pytest.approx(float(s.time), abs=1e-15)
+    # the two logs, concatenated per ball, are the one log
+    n_events = 0
+    for i in range(B):
+        k1, k2 = int(o1.events.count[i]), int(o2.events.count[i])
+        kinds = np.concatenate([np.asarray(o1.events.kind[i, :k1]), np.asarray(o2.events.kind[i, :k2])])
+        times = np.concatenate([np.asarray(o1.events.time[i, :k1]), np.asarray(o2.events.time[i, :k2])])
+        k = int(o.events.count[i])
+        assert k == k1 + k2
+        np.testing.assert_array_equal(kinds, np.asarray(o.events.kind[i, :k]))
+        np.testing.assert_allclose(times, np.asarray(o.events.time[i, :k]), atol=1e-12)
+        n_events += k
+    kinds = np.asarray(o.events.kind)
+    assert n_events > B and (kinds == RACKET).any() and (kinds == TABLE).any()
+
+
+def test_lean_step_equals_reference_step(model, whole):
+    state = init_state(shots())
+    ref_state, ref = rollout(model, state, N, 1e-3, two_rackets(N), reference=True)
+    s, o = whole
+    np.testing.assert_array_equal(np.asarray(o.events.kind), np.asarray(ref.events.kind))
+    np.testing.assert_array_equal(np.asarray(o.events.count), np.asarray(ref.events.count))
+    np.testing.assert_allclose(np.asarray(o.events.pre.pos), np.asarray(ref.events.pre.pos), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(s.ball.as_array()), np.asarray(ref_state.ball.as_array()), atol=1e-10)
+
+
+def test_lean_step_equals_reference_on_thousands_of_shots():
+    """Event sequences of 4,096 random shots with two rackets, float32: the lean step (exact
+    detection only where a gap changes sign, in a small buffer that overflows on busy steps) and the
+    reference step (exact detection for every ball) agree event for event."""
+    m = load_model("conti2026", dtype=jnp.float32)
+    balls = jax.tree.map(lambda a: a.astype(jnp.float32), shots(4096, seed=3))
+    sched = jax.tree.map(lambda a: a.astype(jnp.float32), two_rackets(600))
+    lean, lo = rollout(m, init_state(balls), 600, 1e-3, sched, contact_capacity=32)
+    ref, ro = rollout(m, init_state(balls), 600, 1e-3, sched, reference=True)
+    np.testing.assert_array_equal(np.asarray(lo.events.kind), np.asarray(ro.events.kind))
+    np.testing.assert_array_equal(np.asarray(lean.status), np.asarray(ref.status))
+    np.testing.assert_allclose(np.asarray(lean.ball.pos), np.asarray(ref.ball.pos), atol=1e-5)
+    assert int(np.sum(np.asarray(lo.events.kind) == RACKET)) > 500
+
+
+def test_per_ball_parameters_equal_single_balls():
+    base = load_model("conti2026").replace(effects=(make("air_flow"),))
+    axes = per_ball_axes(base, "table.e0", "aero.rho_air", "effects.0.wind")
+    n = 3
+    e0 = jnp.array([0.85, 0.93, 0.99])
+    rho = jnp.array([1.1, 1.2, 1.3])
+    wind = jnp.array([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [-0.5, 0.3, 0.0]])
+    batched = base.replace(table=base.table.replace(e0=e0), aero=base.aero.replace(rho_air=rho),
+                           effects=(base.effects[0].replace(wind=wind),))
+    balls = jax.tree.map(lambda a: jnp.repeat(a[:1], n, 0), shots(1, seed=5))
+    s, o = rollout(batched, init_state(balls), 500, model_axes=axes)
+    for i in range(n):
+        one = base.replace(table=base.table.replace(e0=e0[i]), aero=base.aero.replace(rho_air=rho[i]),
+                           effects=(base.effects[0].replace(wind=wind[i]),))
+        si, oi = rollout(one, init_state(jax.tree.map(lambda a: a[i:i + 1], balls)), 500)
+        np.testing.assert_allclose(np.asarray(si.ball.pos[0]), np.asarray(s.ball.pos[i]), atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(oi.events.kind[0]), np.asarray(o.events.kind[i]))
+    assert len({round(float(x), 6) for x in s.ball.pos[:, 0]}) == n
+    # new per-ball values do not recompile
+    size = _rollout._cache_size()
+    rollout(batched.replace(table=batched.table.replace(e0=e0 * 0.99)), init_state(balls), 500, model_axes=axes)
+    assert _rollout._cache_size() == size
+
+
+def test_per_ball_leaf_with_wrong_shape_is_refused():
+    m = load_model("conti2026")
+    with pytest.raises(ValueError, match=r"table.e0.*leading axis must be the batch \(4\)"):
+        rollout(m, init_state(shots(4)), 10, model_axes=per_ball_axes(m, "table.e0"))
+    with pytest.raises(ValueError, match="no field 'table.nope'"):
+        per_ball_axes(m, "table.nope")
+
+
+def test_time_is_a_step_count_and_does_not_drift():
+    m = load_model("conti2026", dtype=jnp.float32)
+    ball = Ball.create([[0.0, 0.0, 3.0]], [[0.0, 0.0, 0.0]], dtype=jnp.float32)
+    s, _ = rollout(m, init_state(ball), 5000, 1e-3, max_events=0)
+    assert float(s.time) == pytest.approx(5.0, abs=1e-6)
+    # a float32 clock adding dt each step would be off by ~1.8e-4 s here
+    clock = np.float32(0.0)
+    for _ in range(5000):
+        clock = np.float32(clock + np.float32(1e-3))
+    assert abs(float(clock) - 5.0) > 1e-4
+
+
+def test_changing_dt_continues_from_the_current_time(model):
+    s, _ = rollout(model, init_state(shots(2)), 100, 1e-3)
+    s, _ = rollout(model, s, 100, 2e-3)
+    assert float(s.time) == pytest.approx(0.1 + 0.2, abs=1e-12)
+
+
+def test_simulate_is_init_state_then_rollout(model, whole):
+    r = simulate(model, shots(), N, 1e-3, two_rackets(N))
+    s, o = whole
+    np.testing.assert_array_equal(np.asarray(r.final.pos), np.asarray(s.ball.pos))
+    np.testing.assert_array_equal(np.asarray(r.events.kind), np.asarray(o.events.kind))
+    assert int(np.sum(np.asarray(r.events.kind) != NONE)) == int(np.sum(np.minimum(np.asarray(o.events.count), 8)))

@@ -1,0 +1,49 @@
+"""The ball axis sharded over 4 forced host devices gives the unsharded results (run in a
+subprocess: the device count is fixed when JAX starts)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+SCRIPT = textwrap.dedent("""
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    assert jax.device_count() == 4, jax.devices()
+    from ttsim_jax import Ball, init_state, load_model, per_ball_axes, rollout
+    from ttsim_jax.kernel.sharding import sharded_rollout
+    from ttsim_jax.physics import residual as R
+
+    rng = np.random.default_rng(0)
+    n = 32
+    balls = Ball.create(np.stack([rng.uniform(-1.6, -1.2, n), rng.uniform(-.5, .5, n), rng.uniform(.1, .4, n)], -1),
+                        np.stack([rng.uniform(3, 12, n), rng.uniform(-1, 1, n), rng.uniform(-2, 2, n)], -1),
+                        rng.uniform(-400, 400, (n, 3)))
+    m = load_model("conti2026")
+    e0 = jnp.linspace(0.85, 0.99, n)
+    mb = m.replace(table=m.table.replace(e0=e0))
+    axes = per_ball_axes(m, "table.e0")
+    s1, o1 = rollout(mb, init_state(balls), 300, 1e-3, model_axes=axes)
+    s2, o2 = sharded_rollout(mb, init_state(balls), 300, 1e-3, model_axes=axes)
+    assert len(s2.ball.pos.sharding.device_set) == 4
+    np.testing.assert_allclose(np.asarray(s2.ball.as_array()), np.asarray(s1.ball.as_array()), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(o2.events.kind), np.asarray(o1.events.kind))
+    np.testing.assert_array_equal(np.asarray(s2.status), np.asarray(s1.status))
+    assert int((np.asarray(o1.events.kind) > 0).sum()) > n
+    # resumes from a sharded state
+    s3, _ = sharded_rollout(mb, s2, 100, 1e-3, model_axes=axes)
+    s4, _ = rollout(mb, s1, 100, 1e-3, model_axes=axes)
+    np.testing.assert_allclose(np.asarray(s3.ball.as_array()), np.asarray(s4.ball.as_array()), rtol=1e-12, atol=1e-12)
+    print("SHARDED-OK", int((np.asarray(o1.events.kind) > 0).sum()))
+""")
+
+
+def test_sharded_equals_unsharded_on_four_host_devices():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "SHARDED-OK" in proc.stdout
