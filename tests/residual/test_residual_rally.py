@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import Ball, Racket, init_state, load_model, rollout, simulate
 from ttsim_jax.fit import residual as F
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import residual as R
@@ -130,3 +130,23 @@ def test_sampling_changes_post_states_unless_sigma_is_zero(setup):
         np.testing.assert_allclose(np.asarray(quiet.events.post.spin[b, k]),
                                    np.asarray(result.events.post.spin[b, k]), atol=1e-9)
         assert np.all(np.asarray(quiet.events.sigma[b, k]) == 0.0)
+
+
+def test_sampled_correction_depends_on_the_ball_not_on_its_buffer_slot(setup):
+    """A ball's sampled correction is drawn from its id and the step: the same with a one-row buffer
+    (every busy step overflows to the full batch), with the default buffer, and with the balls
+    in another order."""
+    _, _, model, _ = setup
+    key = jax.random.key(5)
+    one = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key, contact_capacity=1)
+    default = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key)
+    np.testing.assert_array_equal(np.asarray(one.events.kind), np.asarray(default.events.kind))
+    np.testing.assert_allclose(np.asarray(one.events.post.spin), np.asarray(default.events.post.spin), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(one.final.pos), np.asarray(default.final.pos), atol=1e-12)
+    # reversed order, same ids: the same draws per ball
+    order = np.arange(4)[::-1]
+    rev = jax.tree.map(lambda a: a[order], balls())
+    state, out = rollout(model, init_state(rev, ball_id=order), N_STEPS, 1e-3, schedule(), sample_residual=True,
+                         key=key)
+    np.testing.assert_allclose(np.asarray(out.events.post.spin)[order], np.asarray(default.events.post.spin),
+                               atol=1e-9)
