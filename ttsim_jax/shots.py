@@ -118,7 +118,7 @@ def landing_points(model, pos, vel, spin, h, n_steps):
         cross = (n < 2) & (p1[2] < radius) & (v1[2] < 0.0)
         frac = jnp.clip(safe_divide(p[2] - radius, p[2] - p1[2], 0.0), 0.0, 1.0)
         pc, vc, wc = p + frac * (p1 - p), v + frac * (v1 - v), w + frac * (w1 - w)
-        bp, bv, bw = table_stage.table_contact(model.table, radius, pc, vc, wc)
+        bp, bv, bw = table_stage.table_contact(model.table, radius, pc, vc, wc, edges=False)
         # the rest of the step after the bounce: a second-order Taylor step (as the rally kernel)
         rest = (1.0 - frac) * h
         acc = aero_stage.acceleration(model.aero, radius, mass, bp, bv, bw, 0.0)

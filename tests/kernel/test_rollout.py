@@ -92,7 +92,10 @@ def test_lean_step_equals_reference_on_thousands_of_shots():
     ref, ro = rollout(m, init_state(balls), 600, 1e-3, sched, reference=True)
     np.testing.assert_array_equal(np.asarray(lo.events.kind), np.asarray(ro.events.kind))
     np.testing.assert_array_equal(np.asarray(lean.status), np.asarray(ref.status))
-    np.testing.assert_allclose(np.asarray(lean.ball.pos), np.asarray(ref.ball.pos), atol=1e-5)
+    # the two compile differently, so float32 rounding differs; a contact on the table's edge
+    # turns a position difference into a normal difference 1/r (50 /m) times larger, and a
+    # 0.6 s flight after it into about 2e-5 m
+    np.testing.assert_allclose(np.asarray(lean.ball.pos), np.asarray(ref.ball.pos), atol=1e-4)
     assert int(np.sum(np.asarray(lo.events.kind) == RACKET)) > 500
 
 

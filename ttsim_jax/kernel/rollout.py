@@ -22,8 +22,9 @@ from flax import struct
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
-from ttsim_jax.kernel.step import step
+from ttsim_jax.kernel.step import refused_starts, step
 from ttsim_jax.params import Model
+from ttsim_jax.physics import events as ev
 from ttsim_jax.state import Ball
 
 
@@ -211,6 +212,12 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_ste
             carry = run(carry, split(schedule, n_chunks * every, tail, (tail,)), tail)
         return carry, rec
 
+    # a rally that has not started yet (dt 0): refuse balls inside the table, the net or a racket
+    start = None if schedule is None else jax.tree.map(lambda a: a[0], schedule)
+    if policy is not None:
+        start = jax.vmap(policy.fn, in_axes=(None, 0, None))(policy.params, state.ball, t0)
+    bad = (state.dt == 0) & refused_starts(model, axes, state.ball, start, rackets_batched or policy is not None)
+    state = state.replace(alive=state.alive & ~bad, status=jnp.where(bad, ev.INVALID, state.status))
     per_ball_sched = schedule is not None and rackets_batched  # (T, B, R, ...)
     if not block or b <= block:
         carry, rec = run_balls(model, state.ball, state.alive, state.status, state.ball_id, schedule)

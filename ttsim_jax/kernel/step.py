@@ -64,10 +64,14 @@ def ball_properties(model: Model):
 
 
 def flight(model: Model, ball: Ball, t, dt, integrator: str = "rk4") -> Ball:
-    """The ball at the end of the step in free flight."""
+    """The ball at the end of the step in free flight; a ball in sustained contact with the table
+    is put back onto it (``physics.table.slide``: it rolls or slides instead of bouncing)."""
     radius, mass = ball_properties(model)
-    return Ball(*aero_stage.flight_step(model.aero, radius, mass, ball.pos, ball.vel, ball.spin, t, dt,
-                                        model.effects, integrator))
+    free = aero_stage.flight_step(model.aero, radius, mass, ball.pos, ball.vel, ball.spin, t, dt,
+                                  model.effects, integrator)
+    touch = table_stage.touching(model.table, model.effects, radius, ball.pos, ball.vel)
+    slid = table_stage.slide(model.table, radius, *free, model.effects)
+    return Ball(*(jnp.where(touch, a, b) for a, b in zip(slid, free)))
 
 
 def is_valid(ball: Ball):
@@ -79,6 +83,20 @@ def is_valid(ball: Ball):
     return finite & sane
 
 
+def refused_starts(model: Model, axes, ball: Ball, rackets: Racket | None, rackets_batched: bool):
+    """(B,) whether each ball starts inside the table, the net or a racket (``events.inside_obstacle``).
+
+    Arguments:
+        model, axes: model parameters and their per-ball axes; ball: (B, 3) fields;
+        rackets: the rackets at the start ((R, ...) fields, (B, R, ...) if ``rackets_batched``) or None.
+    """
+    def inside(m, b, r):
+        return ev.inside_obstacle(m.table, m.effects, ball_properties(m)[0], b.pos, r)
+
+    phys, phys_axes = model.replace(residual=None), axes.replace(residual=None)
+    return jax.vmap(inside, in_axes=(phys_axes, 0, 0 if rackets_batched else None))(phys, ball, rackets)
+
+
 def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt):
     """Whether :func:`detect` or :func:`resolve` could report anything for this step (one ball).
 
@@ -88,7 +106,8 @@ def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None,
     """
     radius, _ = ball_properties(model)
     p0, v0, p1, v1 = ball.pos, ball.vel, free.pos, free.vel
-    flag = ev.table_may_hit(model.effects, radius, p0, p1)
+    flag = ev.table_may_hit(model.table, model.effects, radius, p0, p1)
+    flag |= ev.rest_candidate(model.table, model.effects, radius, p0, v0, p1, v1, free.spin).hit
     flag |= ev.floor_may_hit(model.table, radius, p1)
     flag |= ev.net_may_hit(p0, p1)
     if rackets is not None:
@@ -112,7 +131,11 @@ def detect(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt) -> 
     radius, _ = ball_properties(model)
     p0, v0, w0 = ball.pos, ball.vel, ball.spin
     p1, v1, w1 = free.pos, free.vel, free.spin
-    cands = [(ev.TABLE, ev.table_candidate(model.table, fx, radius, p0, v0, p1, v1, dt)),
+    # a ball in sustained contact does not bounce: it slid in flight() and may come to rest
+    table = ev.table_candidate(model.table, fx, radius, p0, v0, p1, v1, dt)
+    touch = table_stage.touching(model.table, fx, radius, p0, v0)
+    cands = [(ev.TABLE, table.replace(hit=table.hit & ~touch)),
+             (ev.REST, ev.rest_candidate(model.table, fx, radius, p0, v0, p1, v1, w1)),
              (ev.FLOOR, ev.floor_candidate(model.table, radius, p0, v0, p1, v1, dt)),
              (ev.NET, ev.net_candidate(model.table, radius, p0, v0, p1, v1, dt))]
     n_fixed = len(cands)
@@ -180,10 +203,8 @@ def resolve(ball: Ball, alive, free: Ball, prop: Proposal, post: Ball, after: Ba
     """
     kind = prop.kind
     bounced = (kind == ev.TABLE) | (kind == ev.RACKET)
-    rest = (kind == ev.TABLE) & (jnp.abs(post.vel[2]) < ev.REST_SPEED)
-    kind = jnp.where(rest, ev.REST, kind)
-    nxt = jax.tree.map(lambda a, b, c, d: jnp.where(rest, d, jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c))),
-                       after, prop.pre, free, post)
+    nxt = jax.tree.map(lambda a, b, c: jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c)),
+                       after, prop.pre, free)
     out = (kind == ev.NONE) & ev.out_of_play(nxt.pos)
     kind = jnp.where(out, ev.OUT, kind)
     invalid = ~is_valid(nxt)

@@ -9,6 +9,12 @@ point is fourth-order accurate in dt and the landing point converges as dt shrin
 detection of this kind cannot tunnel: a ball at 35 m/s against a racket at 10 m/s moves 4.5 cm
 relative to it in a 1 ms step, more than its diameter, and the sign change is still seen.
 
+The table is a box (``physics.table``): its gap is also sampled at mid-step, so that a ball that
+clips an edge or a corner within a step is caught, and its time of impact takes a few Newton steps
+kept inside the bracket of the sign change (the gap has a kink where the nearest point of the box
+moves from an edge onto a face). A ball in sustained contact with the table (rolling, sliding) has
+no table contacts; it ends as REST once slow (``rest_candidate``).
+
 Everything is branch-free (``jnp.where``) so that vmap runs one path for every ball; the earliest
 contact of the step wins (at most one per ball per step).
 """
@@ -25,24 +31,44 @@ from ttsim_jax.physics.numerics import safe_divide
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
 
-# A table contact that leaves the ball with less normal speed than this [m/s] (a bounce under
-# 0.5 mm) ends the ball as REST: it lies (or rolls) on the table, out of the game. Without it a
-# resting ball would "bounce" every step.
-REST_SPEED = 0.1
-
 # A contact is accepted if the ball started the step no deeper than this (fraction of its radius)
-# into the surface: a ball resting on the table or just released by a contact is re-detected.
+# into the surface: a ball resting on the table or just released by a contact is re-detected. A
+# ball deeper than this in the table or a racket, or with its centre inside the net's band, at the
+# start of a simulation is refused (INVALID, see :func:`inside_obstacle`).
 PENETRATION_TOLERANCE = 0.5
 # Balls leaving this box are out of play [m].
 PLAY_BOX = (8.0, 6.0, 8.0)
+# Newton steps for the table's time of impact (the first is as accurate as the other contacts'
+# on the playing surface; edges and corners need the others).
+TABLE_ITERATIONS = 4
+# Margin [m] of the swept box in :func:`table_may_hit`: the Hermite path bows off its chord by
+# under |a| dt^2 / 8 (0.1 mm at 200 m/s^2 and 2 ms) and a tilted surface rises 1 mm in 0.1 m.
+SWEEP_MARGIN = 2e-3
 
 
 def hermite(p0, v0, p1, v1, dt, tau):
-    """Position and velocity at fraction ``tau`` of the step on the cubic Hermite interpolant."""
+    """Position and velocity at fraction ``tau`` of the step on the cubic Hermite interpolant.
+
+    Written in the displacement p1 - p0, so that a coordinate that does not move (a vertical
+    drop's x and y) stays exactly constant in any float type.
+    """
     t2, t3 = tau * tau, tau * tau * tau
-    pos = (2 * t3 - 3 * t2 + 1) * p0 + (t3 - 2 * t2 + tau) * dt * v0 + (-2 * t3 + 3 * t2) * p1 + (t3 - t2) * dt * v1
-    dpos = (6 * t2 - 6 * tau) * p0 + (3 * t2 - 4 * tau + 1) * dt * v0 + (-6 * t2 + 6 * tau) * p1 + (3 * t2 - 2 * tau) * dt * v1
+    dp = p1 - p0
+    pos = p0 + (-2 * t3 + 3 * t2) * dp + (t3 - 2 * t2 + tau) * dt * v0 + (t3 - t2) * dt * v1
+    dpos = (-6 * t2 + 6 * tau) * dp + (3 * t2 - 4 * tau + 1) * dt * v0 + (3 * t2 - 2 * tau) * dt * v1
     return pos, dpos / dt
+
+
+def _bracketed_newton(tau, lo, hi, gap_fn, p0, v0, p1, v1, dt, iterations):
+    """Newton steps on the Hermite path from ``tau``, kept inside the bracket [lo, hi] of a gap that
+    falls through zero (bisection where a step leaves it): robust where the gap has a kink, as
+    where the nearest point of the table moves from an edge onto a face."""
+    for _ in range(iterations):
+        g, dg = jax.jvp(lambda s: gap_fn(hermite(p0, v0, p1, v1, dt, s)[0], s), (tau,), (jnp.ones_like(tau),))
+        lo, hi = jnp.where(g >= 0.0, tau, lo), jnp.where(g < 0.0, tau, hi)
+        tau_n = tau - safe_divide(g, dg, 0.0)
+        tau = jnp.where((tau_n >= lo) & (tau_n <= hi), tau_n, 0.5 * (lo + hi))
+    return tau
 
 
 def _root(g0, g1, gap_fn, p0, v0, p1, v1, dt):
@@ -67,17 +93,45 @@ class Candidate:
 
 
 def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
-    gap = lambda p, s: table_stage.penetration(effects, radius, p)  # noqa: E731
+    """Contact with the table box (playing surface, edges, ends, sides, underside).
+
+    The gap is also sampled at mid-step, so that a ball that clips an edge or a corner and is
+    clear of it again by the end of the step is still caught, in that step; the root is then
+    sought in the half of the step where the gap first turns negative.
+    """
+    gap = lambda p, s: table_stage.gap(table, effects, radius, p)  # noqa: E731
+    half = 0.5 * jnp.ones_like(dt)
     g0, g1 = gap(p0, 0.0), gap(p1, 1.0)
-    tau = _root(g0, g1, gap, p0, v0, p1, v1, dt)
+    gh = gap(hermite(p0, v0, p1, v1, dt, half)[0], half)
+    first = gh < 0.0
+    start = jnp.where(first, 0.0, half)
+    ga, gb = jnp.where(first, g0, gh), jnp.where(first, gh, g1)
+    tau = start + half * jnp.clip(safe_divide(ga, ga - gb, 0.0), 0.0, 1.0)
+    tau = _bracketed_newton(tau, start, start + half, gap, p0, v0, p1, v1, dt, TABLE_ITERATIONS)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
-    hit = _crossing(g0, g1, radius) & (vel[2] < 0.0) & table_stage.on_table(table, pos)
+    _, normal = table_stage.box_distance(table, effects, pos)
+    hit = _crossing(g0, jnp.minimum(gh, g1), radius) & (jnp.dot(vel, normal) < 0.0)
     return Candidate(hit=hit, tau=tau)
 
 
-def table_may_hit(effects, radius, p0, p1):
-    """Cheap superset of :func:`table_candidate`'s hits: the gap to the surface closes."""
-    return _crossing(table_stage.penetration(effects, radius, p0), table_stage.penetration(effects, radius, p1), radius)
+def table_may_hit(table, effects, radius, p0, p1):
+    """Cheap superset of :func:`table_candidate`'s hits: the box swept by the ball over the step
+    (the chord p0 -> p1, widened by a radius and ``SWEEP_MARGIN`` for the path's bow and a tilted
+    surface) meets the table, which the ball did not start deep in."""
+    h0, h1 = table_stage.surface(effects, p0)[0], table_stage.surface(effects, p1)[0]
+    reach = radius + SWEEP_MARGIN
+    lo, hi = jnp.minimum(p0, p1) - reach, jnp.maximum(p0, p1) + reach
+    box_hi = jnp.stack([0.5 * table.length, 0.5 * table.width, jnp.maximum(h0, h1)])
+    box_lo = jnp.stack([-0.5 * table.length, -0.5 * table.width, jnp.minimum(h0, h1) - table_stage.THICKNESS])
+    meets = jnp.all(lo <= box_hi) & jnp.all(hi >= box_lo)
+    return meets & (table_stage.gap(table, effects, radius, p0) >= -PENETRATION_TOLERANCE * radius)
+
+
+def rest_candidate(table, effects, radius, p0, v0, p1, v1, w1):
+    """A ball in sustained contact with the table at the start of the step that is at rest at its
+    end (``physics.table.at_rest``); at the end of the step (tau = 1)."""
+    hit = table_stage.touching(table, effects, radius, p0, v0) & table_stage.at_rest(table, effects, radius, p1, v1, w1)
+    return Candidate(hit=hit, tau=jnp.ones_like(p0[0]))
 
 
 def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
@@ -148,3 +202,28 @@ def earliest(candidates: list[tuple[int, Candidate]]):
     i = jnp.argmin(taus).astype(jnp.int32)
     hit = jnp.isfinite(taus[i])
     return jnp.where(hit, kinds[i], NONE), jnp.where(hit, taus[i], 1.0), i
+
+
+def inside_obstacle(table, effects, radius, pos, rackets=None):
+    """Whether a ball at ``pos`` overlaps the table or a racket, or the net, by more than
+    PENETRATION_TOLERANCE of its radius: a state no contact can resolve (refused at the start).
+
+    Arguments:
+        table: table parameters; effects: the model's effects; radius: ball radius [m];
+        pos: (3,) ball centre; rackets: :class:`Racket` with (R, ...) fields, or None.
+
+    Returns:
+        () bool.
+    """
+    deep = (1.0 - PENETRATION_TOLERANCE) * radius
+    inside = table_stage.gap(table, effects, radius, pos) < -PENETRATION_TOLERANCE * radius
+    # the net: a rectangle in the plane x = 0 from the surface to its top, out to its posts
+    half = 0.5 * table.width + table.net_overhang
+    to_net = pos - jnp.stack([jnp.zeros_like(pos[0]), jnp.clip(pos[1], -half, half),
+                              jnp.clip(pos[2], 0.0, table.net_height)])
+    inside |= jnp.sum(to_net * to_net) < deep * deep
+    if rackets is not None:
+        local = jnp.einsum("rji,rj->ri", rackets.rot, pos - rackets.pos)  # racket frame
+        on_face = jnp.sum((local[:, 1:3] / rackets.face) ** 2, axis=-1) <= 1.0
+        inside |= jnp.any(on_face & (jnp.abs(local[:, 0]) < deep))
+    return inside

@@ -3,6 +3,37 @@
 The table's playing surface is the plane z = 0 (ITTF: 2.74 m x 1.525 m, net 15.25 cm high at x = 0,
 its posts 15.25 cm outside each side line). Effects may tilt or warp it through the
 ``table_surface`` hook; the contact is then solved in the frame of the local surface normal.
+
+Geometry: the table is a box, the playing surface on top and ``THICKNESS`` (2.5 cm, a usual
+ITTF top; the paper does not give it) deep, the ball a sphere. A ball touches the table where its
+centre comes within one radius of the box; the contact normal points from the nearest point of
+the box to the ball centre, so a ball reaching an end or a side below the surface height meets
+the edge (the normal turns from z towards x or y), the corner, or the side face, and the same
+contact model responds in that normal's frame. Over the playing surface the normal is the
+surface's (effects included).
+
+Residual matrices (conti2026): the paper fitted them on bounces of rally balls, and they are
+applied with two bounds so that outside that data they cannot create motion:
+
+- faded with the horizontal speed (full above ``RESIDUAL_FADE_SPEED`` = 1 m/s, a smoothstep
+  below it, none for a vertical drop): their frame (velocity heading) is undefined for a
+  vertical drop, and the fitted bounces all travel several m/s along the table;
+- scaled by the largest factor in [0, 1] for which the contact creates neither kinetic energy
+  (translational + rotational, I = m r^2 / kappa) nor outgoing normal speed above the incoming
+  one. In the data range the factor is 1 (the paper's matrices unchanged); for grazing balls,
+  where the raw matrices would add up to 1.75 % of energy per bounce, it is less.
+
+Sustained contact: a contact that leaves less than ``REST_SPEED`` of normal speed (a bounce under
+0.5 mm) is perfectly inelastic: the ball stays on the surface (normal speed zero). A ball that
+starts a step touching the table (within ``CONTACT_SLOP`` of it, normal speed below
+``REST_SPEED``) flies freely over the step and is then put back onto the surface by
+:func:`slide`: the same contact model with e_n = 0 and no residual, i.e. a normal impulse that
+cancels the normal velocity gravity added over the step and Coulomb friction (mu) with that
+impulse. A sliding ball thus decelerates by about mu g until it rolls, a rolling ball rolls on
+(drag and Magnus act as in flight), the same at every dt. It leaves contact where the surface
+ends (rolling over the edge, it pivots about it until it falls away) or where lift exceeds
+gravity, and comes to rest (REST) once its velocity and its contact point's velocity are both
+below ``REST_SPEED``.
 """
 
 from __future__ import annotations
@@ -11,10 +42,22 @@ import jax.numpy as jnp
 from flax import struct
 
 from ttsim_jax.physics import hooks
-from ttsim_jax.physics.contact import ContactCoefficients, apply_matrices, contact_matrices, sliding_alpha
-from ttsim_jax.physics.numerics import safe_unit
+from ttsim_jax.physics.contact import (ContactCoefficients, apply_matrices, contact_matrices, sliding_alpha,
+                                       surface_velocity)
+from ttsim_jax.physics.numerics import safe_norm, safe_unit
 
 _Z = jnp.array([0.0, 0.0, 1.0])
+
+# Depth of the table top [m] (not in the paper; ITTF tops are usually about 2.5 cm).
+THICKNESS = 0.025
+# A contact leaving less normal speed than this [m/s] is perfectly inelastic, and a ball touching
+# the table whose velocity and contact-point velocity are both below it is at rest.
+REST_SPEED = 0.1
+# A ball this close to the table [m] at the start of a step, with normal speed below REST_SPEED,
+# is in sustained contact (above the g dt^2 / 2 a step of free flight sinks it, 20 um at 2 ms).
+CONTACT_SLOP = 1e-4
+# Horizontal speed [m/s] above which the residual matrices act fully.
+RESIDUAL_FADE_SPEED = 1.0
 
 
 @struct.dataclass
@@ -55,18 +98,53 @@ def surface(effects, pos):
     return hooks.apply(effects, "table_surface", (jnp.zeros_like(pos[2]), _Z.astype(pos.dtype)), pos=pos)
 
 
-def on_table(table: TableParams, pos):
-    """Whether the point's (x, y) lies over the playing surface."""
-    return (jnp.abs(pos[0]) <= 0.5 * table.length) & (jnp.abs(pos[1]) <= 0.5 * table.width)
+def box_distance(table: TableParams, effects, pos):
+    """Signed distance from a point to the table box and the outward unit normal there.
+
+    Over the playing surface (and above the box's mid-plane) it is the height above the surface
+    and the surface normal; elsewhere the distance to the nearest point of the box (negative
+    inside) and the direction from that point to ``pos``.
+
+    Arguments:
+        table: table parameters; effects: the model's effects (hook ``table_surface``);
+        pos: (3,) point, world frame.
+
+    Returns:
+        (distance [m], normal (3,)).
+    """
+    height, top_normal = surface(effects, pos)
+    rel = pos - jnp.stack([jnp.zeros_like(height), jnp.zeros_like(height), height - 0.5 * THICKNESS])
+    half = jnp.stack([0.5 * table.length, 0.5 * table.width, jnp.full_like(height, 0.5 * THICKNESS)])
+    d = jnp.abs(rel) - half  # > 0 beyond the face pair of that axis
+    sign = jnp.where(rel >= 0.0, 1.0, -1.0).astype(pos.dtype)
+    beyond = jnp.maximum(d, 0.0)
+    outside = safe_norm(beyond)
+    n_in = sign * (jnp.arange(3) == jnp.argmax(d)).astype(pos.dtype)
+    normal = safe_unit(beyond * sign, n_in)
+    dist = outside + jnp.minimum(jnp.max(d), 0.0)
+    top = (d[0] <= 0.0) & (d[1] <= 0.0) & (rel[2] >= 0.0)
+    return jnp.where(top, pos[2] - height, dist), jnp.where(top, top_normal, normal)
+
+
+def gap(table: TableParams, effects, radius, pos):
+    """Signed gap [m] between the ball's surface and the table (< 0: touching)."""
+    return box_distance(table, effects, pos)[0] - radius
 
 
 def residual_frame(vel):
     """R whose rows are (v_xy/|v_xy|, z x v_xy/|v_xy|, z): the paper's Eq. (table_rotation).
 
-    The identity when the horizontal velocity vanishes (the frame is undefined there).
+    The identity when the horizontal velocity vanishes (the frame is undefined there; the
+    residual is faded out there, see :func:`residual_fade`).
     """
     vh = safe_unit(jnp.stack([vel[0], vel[1], jnp.zeros_like(vel[0])]), jnp.array([1.0, 0.0, 0.0], vel.dtype))
     return jnp.stack([vh, jnp.cross(_Z.astype(vel.dtype), vh), _Z.astype(vel.dtype)])
+
+
+def residual_fade(vel):
+    """Weight of the residual correction: smoothstep of |v_xy| / RESIDUAL_FADE_SPEED (0 to 1)."""
+    s = jnp.clip(safe_norm(vel[:2]) / RESIDUAL_FADE_SPEED, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
 
 
 def restitution(table: TableParams, vz, effects=()):
@@ -75,36 +153,122 @@ def restitution(table: TableParams, vz, effects=()):
     return hooks.apply(effects, "table_restitution", e_n, vn=jnp.abs(vz))
 
 
+def kinetic_energy(kappa, radius, vel, spin):
+    """Kinetic energy per unit mass [J/kg]: |v|^2 / 2 + (r^2 / kappa) |w|^2 / 2 (I = m r^2 / kappa)."""
+    return 0.5 * jnp.sum(vel * vel, axis=-1) + 0.5 * radius * radius / kappa * jnp.sum(spin * spin, axis=-1)
+
+
+def residual_bound(kappa, radius, vel, spin, base_v, base_w, dv, dw):
+    """Largest lam in [0, 1] for which (base + lam d) has no more kinetic energy than (vel, spin)
+    and no more normal speed than the incoming |v_z|.
+
+    The energy is quadratic in lam, E(lam) = E_b + b lam + a lam^2; E_b <= E_in (the base model
+    dissipates), so its root above 0 exists and is taken in a cancellation-free form.
+    """
+    w2 = radius * radius / kappa
+    a = 0.5 * (jnp.sum(dv * dv) + w2 * jnp.sum(dw * dw))
+    b = jnp.sum(base_v * dv) + w2 * jnp.sum(base_w * dw)
+    c = jnp.maximum(kinetic_energy(kappa, radius, vel, spin) - kinetic_energy(kappa, radius, base_v, base_w), 0.0)
+    grows = a + b > c  # E(1) > E_in
+    disc = jnp.sqrt(jnp.where(grows, b * b + 4.0 * a * c, 1.0))
+    den = jnp.where(b >= 0.0, b + disc, 2.0 * a)
+    num = jnp.where(b >= 0.0, 2.0 * c, disc - b)
+    lam_e = jnp.where(grows & (den > 0.0), num / jnp.where(den > 0.0, den, 1.0), 1.0)
+    room = jnp.maximum(jnp.abs(vel[2]) - base_v[2], 0.0)
+    lam_n = jnp.where(dv[2] > room, room / jnp.where(dv[2] > room, dv[2], 1.0), 1.0)
+    return jnp.clip(jnp.minimum(lam_e, lam_n), 0.0, 1.0)
+
+
 def local_contact(table: TableParams, radius, vel, spin, effects=()):
     """Table contact in the surface frame (normal = z): returns (v+, w+).
 
-    Implements v+ = Ã_vv v + Ã_vw w, w+ = Ã_wv v + Ã_ww w with Ã = A - R^T dA R.
+    Implements v+ = Ã_vv v + Ã_vw w, w+ = Ã_wv v + Ã_ww w with Ã = A - R^T dA R, the residual
+    part dA faded with the horizontal speed and bounded (see the module docstring).
     """
     e_n = restitution(table, vel[2], effects)
     alpha = sliding_alpha(table.mu, e_n, vel, spin, radius, table.alpha_roll)
     coef = ContactCoefficients(e_n=e_n, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(e_n))
-    mats = contact_matrices(coef, radius, table.kappa)
+    base_v, base_w = apply_matrices(contact_matrices(coef, radius, table.kappa), vel, spin)
     rot = residual_frame(vel)
-    mats = tuple(a - rot.T @ da @ rot for a, da in zip(mats, table.residual))
-    return apply_matrices(mats, vel, spin)
+    dv, dw = apply_matrices(tuple(-rot.T @ da @ rot for da in table.residual), vel, spin)
+    lam = residual_fade(vel)
+    lam = lam * residual_bound(table.kappa, radius, vel, spin, base_v, base_w, lam * dv, lam * dw)
+    return base_v + lam * dv, base_w + lam * dw
 
 
-def table_contact(table: TableParams, radius, pos, vel, spin, effects=()):
+def _frame(normal):
+    """World -> contact frame whose third axis is ``normal``."""
+    x = jnp.array([1.0, 0.0, 0.0], normal.dtype)
+    alt = jnp.array([0.0, 1.0, 0.0], normal.dtype)
+    t1 = safe_unit(x - normal[0] * normal, safe_unit(alt - normal[1] * normal, x))
+    return jnp.stack([t1, jnp.cross(normal, t1), normal])
+
+
+def _geometry(table, effects, radius, pos, edges):
+    """(normal, position pushed out to touch) of a contact at ``pos``."""
+    if edges:
+        dist, normal = box_distance(table, effects, pos)
+        return normal, pos + jnp.maximum(radius - dist, 0.0) * normal
+    height, normal = surface(effects, pos)
+    return normal, jnp.concatenate([pos[:2], jnp.maximum(pos[2:], height + radius)])
+
+
+def table_contact(table: TableParams, radius, pos, vel, spin, effects=(), edges=True):
     """Post-contact (pos, vel, spin) of a ball touching the table at ``pos``.
 
-    The position is put back on the surface (centre one radius above it along the normal) so
-    that a ball at rest does not sink through the table step by step.
+    The position is put back on the table (centre one radius from it along the normal) so that a
+    ball at rest does not sink through the table step by step. A contact leaving less than
+    ``REST_SPEED`` of normal speed is perfectly inelastic (sustained contact).
+
+    Arguments:
+        table, radius: table parameters and ball radius; pos, vel, spin: the ball at the contact;
+        effects: the model's effects;
+        edges: the table is the box (ends, sides, edges); False: the playing surface extended
+            as an unbounded plane (for aiming).
+
+    Returns:
+        (pos, vel, spin) after the contact.
     """
-    height, normal = surface(effects, pos)
-    t1 = safe_unit(jnp.array([1.0, 0.0, 0.0], pos.dtype) - normal[0] * normal, jnp.array([1.0, 0.0, 0.0], pos.dtype))
-    frame = jnp.stack([t1, jnp.cross(normal, t1), normal])  # world -> surface frame
+    normal, pos_c = _geometry(table, effects, radius, pos, edges)
+    frame = _frame(normal)
     v_loc, w_loc = local_contact(table, radius, frame @ vel, frame @ spin, effects)
-    pos_c = jnp.concatenate([pos[:2], jnp.maximum(pos[2:], height + radius)])
+    v_loc = v_loc.at[2].set(jnp.where(v_loc[2] < REST_SPEED, 0.0, v_loc[2]))
     return pos_c, frame.T @ v_loc, frame.T @ w_loc
 
 
-def penetration(effects, radius, pos):
-    """Signed gap (m) between the ball's lowest point and the surface below it (< 0: touching)."""
-    height, _ = surface(effects, pos)
-    return pos[2] - radius - height
+def touching(table: TableParams, effects, radius, pos, vel):
+    """Whether a ball is in sustained contact: within CONTACT_SLOP of the table, normal speed
+    below REST_SPEED."""
+    dist, normal = box_distance(table, effects, pos)
+    return (jnp.abs(dist - radius) <= CONTACT_SLOP) & (jnp.abs(jnp.dot(vel, normal)) < REST_SPEED)
 
+
+def slide(table: TableParams, radius, pos, vel, spin, effects=()):
+    """Puts a ball in sustained contact back onto the table after a step of free flight.
+
+    A perfectly inelastic contact (e_n = 0, no residual, no restitution effects) in the frame of
+    the contact normal, applied only where the ball has sunk into the table moving inwards; a
+    ball that has moved away from the table (over the edge, lifted) is left as it is.
+
+    Returns:
+        (pos, vel, spin).
+    """
+    normal, pos_c = _geometry(table, effects, radius, pos, True)
+    frame = _frame(normal)
+    v_loc, w_loc = frame @ vel, frame @ spin
+    zero = jnp.zeros_like(v_loc[2])
+    alpha = sliding_alpha(table.mu, zero, v_loc, w_loc, radius, table.alpha_roll)
+    coef = ContactCoefficients(e_n=zero, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(zero))
+    v_c, w_c = apply_matrices(contact_matrices(coef, radius, table.kappa), v_loc, w_loc)
+    press = (gap(table, effects, radius, pos) < 0.0) & (v_loc[2] < 0.0)
+    return (jnp.where(press, pos_c, pos), jnp.where(press, frame.T @ v_c, vel),
+            jnp.where(press, frame.T @ w_c, spin))
+
+
+def at_rest(table: TableParams, effects, radius, pos, vel, spin):
+    """Whether a ball touching the table has its velocity and its contact point's velocity below
+    REST_SPEED."""
+    _, normal = box_distance(table, effects, pos)
+    frame = _frame(normal)
+    u = surface_velocity(frame @ vel, frame @ spin, radius)
+    return touching(table, effects, radius, pos, vel) & (safe_norm(vel) < REST_SPEED) & (safe_norm(u) < REST_SPEED)
