@@ -64,14 +64,20 @@ def ball_properties(model: Model):
 
 
 def flight(model: Model, ball: Ball, t, dt, integrator: str = "rk4") -> Ball:
-    """The ball at the end of the step in free flight; a ball in sustained contact with the table
-    is put back onto it (``physics.table.slide``: it rolls or slides instead of bouncing)."""
+    """The ball at the end of the step in free flight."""
     radius, mass = ball_properties(model)
-    free = aero_stage.flight_step(model.aero, radius, mass, ball.pos, ball.vel, ball.spin, t, dt,
-                                  model.effects, integrator)
+    return Ball(*aero_stage.flight_step(model.aero, radius, mass, ball.pos, ball.vel, ball.spin, t, dt,
+                                        model.effects, integrator))
+
+
+def settle(model: Model, ball: Ball, free: Ball) -> Ball:
+    """The end of the step for a ball that started it in sustained contact with the table: put back
+    onto the table (``physics.table.slide``: it rolls or slides instead of bouncing); ``free``
+    otherwise. Such balls are flagged by :func:`may_have_event`, so this runs in the gathered rows."""
+    radius, _ = ball_properties(model)
     touch = table_stage.touching(model.table, model.effects, radius, ball.pos, ball.vel)
-    slid = table_stage.slide(model.table, radius, *free, model.effects)
-    return Ball(*(jnp.where(touch, a, b) for a, b in zip(slid, free)))
+    slid = table_stage.slide(model.table, radius, free.pos, free.vel, free.spin, model.effects)
+    return Ball(*(jnp.where(touch, a, b) for a, b in zip(slid, (free.pos, free.vel, free.spin))))
 
 
 def is_valid(ball: Ball):
@@ -107,7 +113,8 @@ def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None,
     radius, _ = ball_properties(model)
     p0, v0, p1, v1 = ball.pos, ball.vel, free.pos, free.vel
     flag = ev.table_may_hit(model.table, model.effects, radius, p0, p1)
-    flag |= ev.rest_candidate(model.table, model.effects, radius, p0, v0, p1, v1, free.spin).hit
+    # sustained contact (it slides in :func:`settle` and may come to rest)
+    flag |= table_stage.touching(model.table, model.effects, radius, p0, v0)
     flag |= ev.floor_may_hit(model.table, radius, p1)
     flag |= ev.net_may_hit(p0, p1)
     if rackets is not None:
@@ -266,6 +273,7 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     phys, phys_axes = model.replace(residual=None), axes.replace(residual=None)
     m_c = take_rows(phys, phys_axes, safe)
     ball_c, free_c = jax.tree.map(take, ball), jax.tree.map(take, free)
+    free_c = jax.vmap(settle, in_axes=(phys_axes, 0, 0))(m_c, ball_c, free_c)
     alive_c = take(alive) & (rows < b)
     r_c = None if rackets is None else (jax.tree.map(take, rackets) if rackets_batched else rackets)
     r_ax = 0 if rackets_batched else None
