@@ -90,8 +90,9 @@ def plain_step(model, ball: Ball, first, rackets, dt):
     r, m = model.ball.radius, model.ball.mass
     p0, v0, w0 = ball.pos, ball.vel, ball.spin
     p1, v1, w1 = aero_stage.flight_step(model.aero, r, m, p0, v0, w0, 0.0, dt)
-    g0, g1 = table_stage.penetration((), r, p0), table_stage.penetration((), r, p1)
-    on_table = (g1 < 0.0) & (v1[2] < 0.0) & table_stage.on_table(model.table, p1)
+    g0, g1 = p0[2] - r, p1[2] - r  # the plane of the playing surface
+    over = (jnp.abs(p1[0]) <= 0.5 * model.table.length) & (jnp.abs(p1[1]) <= 0.5 * model.table.width)
+    on_table = (g1 < 0.0) & (v1[2] < 0.0) & over
     tp, tv, tw = table_stage.table_contact(model.table, r, p1, v1, w1)
     nxt = Ball(*(jnp.where(on_table, a, b) for a, b in zip((tp, tv, tw), (p1, v1, w1))))
     if rackets is not None:

@@ -92,7 +92,7 @@ BAD = {
     "data-info-not-a-dataset": (["data", "info", "{P}/dir"], ["{P}/dir", "metadata.json"]),
     "data-import-missing": (["data", "import", "{P}/nope", "--source", "tt3d", "--out", "{P}/o"], ["PATH", "{P}/nope"]),
     "data-import-binary": (["data", "import", "{P}/bin", "--source", "tt3d", "--out", "{P}/o"],
-                           ["{P}/bin", "not a tt3d recording"]),
+                           ["{P}/bin", "binary content"]),
     "data-import-out-under-a-file": (["data", "import", SAMPLE, "--source", "tt3d", "--out", "{P}/bin/o"],
                                      ["--out", "{P}/bin/o"]),
     "data-import-max-rmse-nan": (["data", "import", SAMPLE, "--source", "tt3d", "--out", "{P}/o", "--max-rmse", "nan"],

@@ -45,5 +45,5 @@ def normalise_schedule(racket: Racket, n_steps: int, batch: int):
     else:
         raise ValueError(f"racket schedule pos must be (T, 3), (T, R, 3) or (B, T, R, 3); got {racket.pos.shape}")
     if racket.pos.shape[0] < n_steps:
-        raise ValueError(f"racket schedule covers {racket.pos.shape[0]} steps, the rollout needs {n_steps}")
+        raise ValueError(f"racket schedule covers {racket.pos.shape[0]} steps, the simulation needs {n_steps}")
     return jax.tree.map(lambda a: a[:n_steps], racket), batched
