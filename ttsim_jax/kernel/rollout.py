@@ -117,8 +117,14 @@ def _check_per_ball(model, axes, batch):
 
 
 def chunk_length(n_steps: int) -> int:
-    """Steps per rematerialised chunk: about sqrt(n_steps), the memory-optimal split."""
-    return max(1, int(math.isqrt(n_steps)))
+    """Steps per rematerialised chunk: about sqrt(n_steps), the memory-optimal split.
+
+    A divisor of ``n_steps`` within a factor 2 of the square root is preferred: a remainder would
+    need a second scan, hence a second compiled copy of the step (a third more compile time).
+    """
+    root = max(1, math.isqrt(n_steps))
+    divisors = [d for d in range(max(1, root // 2), 2 * root + 1) if n_steps % d == 0]
+    return min(divisors, key=lambda d: abs(math.log(d / root)), default=root)
 
 
 class _Static:

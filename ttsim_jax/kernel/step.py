@@ -338,22 +338,39 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     base = jax.tree.map(lambda f, o: jnp.where(alive[:, None], f, o), free, ball)
     capacity = min(capacity, b)
 
-    def handle(rows):
-        nxt, kind, time, racket, pre, post, contact, sigma, stops = _events(
-            model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key, sample)
+    def events(rows):
+        return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key, sample)
+
+    def write(rows, out):
+        """The events ``out`` of the balls ``rows`` written into the batch (rows >= B are dropped)."""
+        nxt, kind, time, racket, pre, post, contact, sigma, stops = out
+        safe = jnp.minimum(rows, b - 1)
         put = lambda full, part: full.at[rows].set(part, mode="drop")  # noqa: E731
-        new_ball = jax.tree.map(put, base, nxt)
-        new_status = put(status, jnp.where(stops, kind, status[jnp.minimum(rows, b - 1)]))
-        new_alive = put(alive, alive[jnp.minimum(rows, b - 1)] & ~stops)
         new_log = None if log is None else log.write(rows, kind != ev.NONE, kind, time, racket, pre, post,
                                                      contact, sigma)
-        return new_ball, new_alive, new_status, new_log
+        return (jax.tree.map(put, base, nxt), put(alive, alive[safe] & ~stops),
+                put(status, jnp.where(stops, kind, status[safe])), new_log)
 
     if reference:
-        return handle(jnp.arange(b))
-    count = jnp.sum(flag)
-    nothing = lambda: jax.tree.map(_in_place_identity, (base, alive, status, log))  # noqa: E731
-    buffered = lambda: handle(jnp.nonzero(flag, size=capacity, fill_value=b)[0])  # noqa: E731
-    everyone = lambda: handle(jnp.arange(b))  # noqa: E731
-    branch = jnp.where(count == 0, 0, jnp.where(count <= capacity, 1, 2))
-    return jax.lax.switch(branch, [nothing, buffered, everyone])
+        rows = jnp.arange(b)
+        return write(rows, events(rows))
+    # The flagged balls go through one buffer of ``capacity`` rows at a time: usually once, a few
+    # times when many balls have an event in the same step. One buffer shape means one compiled copy
+    # of the contact models whatever the count (a second, full-batch branch doubled compile time);
+    # the buffers' results are written once, after the loop, so that no loop carries the event log.
+    n_buf = -(-b // capacity)
+
+    def buffers():
+        rows = jnp.nonzero(flag, size=n_buf * capacity, fill_value=b)[0]
+        if n_buf == 1:
+            return write(rows, events(rows))
+        blank = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(events, rows[:capacity]))
+
+        def one(_, r):
+            return None, jax.lax.cond(r[0] < b, events, lambda r: blank, r)
+
+        _, out = jax.lax.scan(one, None, rows.reshape(n_buf, capacity))
+        return write(rows, jax.tree.map(lambda a: a.reshape((n_buf * capacity,) + a.shape[2:]), out))
+
+    return jax.lax.cond(jnp.any(flag), buffers,
+                        lambda: jax.tree.map(_in_place_identity, (base, alive, status, log)))
