@@ -76,7 +76,18 @@ def _root(g0, g1, gap_fn, p0, v0, p1, v1, dt):
     tau = jnp.clip(safe_divide(g0, g0 - g1, 0.0), 0.0, 1.0)
     g, dg = jax.jvp(lambda s: gap_fn(hermite(p0, v0, p1, v1, dt, s)[0], s), (tau,), (jnp.ones_like(tau),))
     tau_n = tau - safe_divide(g, dg, 0.0)
-    return jnp.where((tau_n >= 0.0) & (tau_n <= 1.0), tau_n, tau)
+    return _implicit(jnp.where((tau_n >= 0.0) & (tau_n <= 1.0), tau_n, tau), gap_fn, p0, v0, p1, v1, dt)
+
+
+def _implicit(tau, gap_fn, p0, v0, p1, v1, dt):
+    """``tau`` (a root of the gap on the Hermite path) unchanged, with the derivative of the exact
+    root by the implicit function theorem, d tau = -(d gap) / (d gap / d tau), instead of the
+    derivative of the iterations that found it: exact at the root, and it keeps the second-order
+    terms of every Newton step out of reverse mode (they dominated the compile time of a gradient).
+    """
+    tau = jax.lax.stop_gradient(tau)
+    g, dg = jax.jvp(lambda s: gap_fn(hermite(p0, v0, p1, v1, dt, s)[0], s), (tau,), (jnp.ones_like(tau),))
+    return tau - safe_divide(g - jax.lax.stop_gradient(g), jax.lax.stop_gradient(dg), 0.0)
 
 
 def _crossing(g0, g1, radius):
@@ -107,7 +118,10 @@ def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
     start = jnp.where(first, 0.0, half)
     ga, gb = jnp.where(first, g0, gh), jnp.where(first, gh, g1)
     tau = start + half * jnp.clip(safe_divide(ga, ga - gb, 0.0), 0.0, 1.0)
-    tau = _bracketed_newton(tau, start, start + half, gap, p0, v0, p1, v1, dt, TABLE_ITERATIONS)
+    sg = jax.lax.stop_gradient
+    tau = _bracketed_newton(sg(tau), sg(start), sg(start + half), lambda p, s: table_stage.gap(
+        sg(table), sg(effects), sg(radius), p), sg(p0), sg(v0), sg(p1), sg(v1), sg(dt), TABLE_ITERATIONS)
+    tau = _implicit(tau, gap, p0, v0, p1, v1, dt)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
     _, normal = table_stage.box_distance(table, effects, pos)
     hit = _crossing(g0, jnp.minimum(gh, g1), radius) & (jnp.dot(vel, normal) < 0.0)
