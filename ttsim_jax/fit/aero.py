@@ -1,0 +1,360 @@
+"""Aerodynamic identification per flight segment: (C_D, C_M) and the initial state, by least squares.
+
+Each segment's observed positions p_i at times t_i are fitted by the flight stage
+(:func:`ttsim_jax.physics.aero.flight_step`, RK4, one step per observation interval by default)
+with constant coefficients and the segment's measured spin, over eight free parameters
+theta = (p0 (3), v0 (3), C_D, C_M): minimise sum_i |p(t_i; theta) - p_i|^2.
+
+The solver is a Levenberg-Marquardt loop written in ``jax.lax`` and vmapped over segments, so a
+whole batch is one compiled call:
+
+* the Jacobian comes from forward mode (eight tangents) through the integration;
+* the damped normal equations are solved after scaling the columns to unit norm, which keeps
+  float32 usable although the columns differ by orders of magnitude (metres, m/s, coefficients);
+* a step is kept only if it lowers the cost, with the damping divided by 3 on success and
+  multiplied by 10 on failure; a fixed number of iterations keeps the loop branch-free.
+
+Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
+that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
+0), and the integration is a ``while_loop`` that stops at the longest segment of the batch: the
+work follows the actual lengths while the compiled shape stays (``batch``, capacity). Segments
+are sorted by length so that a batch holds similar lengths. One capacity and one batch size mean
+one compilation.
+
+After the fit, each segment's effective speeds (the paper's force-averaged velocities) are computed
+along the fitted trajectory at the observation times:
+
+    drag:   v_eff = sum |v_i|^3 / sum |v_i|^2
+    Magnus: v_eff = sum |v_i|^2 sin(theta_i) / sum |v_i| sin(theta_i),  sin(theta_i) = |v_i x w| / (|v_i| |w|)
+
+:mod:`ttsim_jax.fit.aero_forms` regresses the fitted coefficients at these speeds into the paper's
+functional forms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, flight_step
+
+#: Where every fit starts: Nakashima's coefficients.
+CD_0, CM_0 = 0.54, 0.069
+#: Padded lengths (samples). A segment longer than the last is refused.
+CAPACITIES = (256, 1024, 4096)
+#: Segments per compiled call.
+BATCH = 256
+#: Levenberg-Marquardt iterations.
+ITERATIONS = 12
+#: Names of the fitted parameters, in order.
+PARAMS = ("x0", "y0", "z0", "vx0", "vy0", "vz0", "C_D", "C_M")
+
+
+@struct.dataclass
+class Air:
+    """Ball and air of the flight model (arrays, so that changing them does not recompile).
+
+    Attributes:
+        radius, mass: ball radius [m] and mass [kg].
+        rho_air: air density [kg/m^3]; nu: kinematic viscosity [m^2/s].
+        gravity: (3,) gravitational acceleration [m/s^2]; buoyancy: 1.0 with buoyancy, 0.0 without.
+    """
+
+    radius: jnp.ndarray
+    mass: jnp.ndarray
+    rho_air: jnp.ndarray
+    nu: jnp.ndarray
+    gravity: jnp.ndarray
+    buoyancy: jnp.ndarray
+
+    @classmethod
+    def from_model(cls, model, dtype=jnp.float32) -> "Air":
+        """The ball and air of a loaded :class:`~ttsim_jax.params.Model`."""
+        arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+        a = model.aero
+        return cls(arr(model.ball.radius), arr(model.ball.mass), arr(a.rho_air), arr(a.nu), arr(a.gravity),
+                   arr(a.buoyancy))
+
+    def aero(self, cd, cm) -> AeroParams:
+        """Flight parameters with constant coefficients ``cd``, ``cm``."""
+        return AeroParams(rho_air=self.rho_air, nu=self.nu, gravity=self.gravity, buoyancy=self.buoyancy,
+                          drag=ConstantCoefficient(cd), magnus=ConstantCoefficient(cm))
+
+
+# --------------------------------------------------------------------------- one segment
+def trajectory(theta, tau, spin, n, air: Air, substeps: int = 1):
+    """Positions and velocities of the constant-coefficient flight at the sample times.
+
+    Arguments:
+        theta: (8,) ``[p0, v0, C_D, C_M]`` at tau[0].
+        tau: (T,) sample times from the first [s]; padding repeats the last time.
+        spin: (3,) constant spin [rad/s].
+        n: number of samples to integrate to (the rest keep their initial zeros); may be larger
+            than the segment's own length (padded steps have dt = 0).
+        air: ball and air.
+        substeps: RK4 steps per observation interval (static).
+
+    Returns:
+        (P, V): (T, 3) positions [m] and velocities [m/s].
+    """
+    p0, v0 = theta[:3], theta[3:6]
+    aero = air.aero(theta[6], theta[7])
+    dts = jnp.diff(tau)
+    buf = jnp.zeros((tau.shape[0], 3), theta.dtype)
+
+    def body(carry):
+        i, p, v, ps, vs = carry
+        h = dts[i] / substeps
+        for _ in range(substeps):
+            p, v, _ = flight_step(aero, air.radius, air.mass, p, v, spin, 0.0, h)
+        return i + 1, p, v, ps.at[i + 1].set(p), vs.at[i + 1].set(v)
+
+    init = (jnp.asarray(0), p0, v0, buf.at[0].set(p0), buf.at[0].set(v0))
+    *_, ps, vs = jax.lax.while_loop(lambda c: c[0] < n - 1, body, init)
+    return ps, vs
+
+
+def residual(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """Masked position residuals (3T,) of one segment: ``(p(t_i; theta) - p_i) * mask_i``."""
+    ps, _ = trajectory(theta, tau, spin, n, air, substeps)
+    return ((ps - pos) * mask[:, None]).ravel()
+
+
+def initial_guess(tau, pos, mask, cd0=CD_0, cm0=CM_0):
+    """(8,) start of the fit: position and velocity at tau[0] from a per-axis parabola."""
+    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
+    coef, *_ = jnp.linalg.lstsq(a, pos * mask[:, None])
+    return jnp.concatenate([coef[0], coef[1], jnp.array([cd0, cm0], pos.dtype)])
+
+
+def _normal(fn, theta):
+    """Cost, J^T J, J^T r and the velocities (aux) at theta; ``fn(theta) -> (residual, velocities)``."""
+    jac, _ = jax.jacfwd(fn, has_aux=True)(theta)
+    r, vel = fn(theta)
+    return jnp.sum(r**2), jac.T @ jac, jac.T @ r, vel
+
+
+def _scaled(h):
+    """Column scales d and the scaled matrix H / (d d^T); d is never zero."""
+    diag = jnp.diagonal(h)
+    d = jnp.sqrt(diag + 1e-12 * jnp.max(diag) + jnp.finfo(h.dtype).tiny)
+    return d, h / (d[:, None] * d[None, :])
+
+
+def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
+    """Levenberg-Marquardt fit of one padded segment; see :func:`fit_batch`."""
+
+    def fn(th):
+        ps, vs = trajectory(th, tau, spin, n, air, substeps)
+        return ((ps - pos) * mask[:, None]).ravel(), vs
+
+    theta0 = initial_guess(tau, pos, mask)
+    eye = jnp.eye(theta0.shape[0], dtype=theta0.dtype)
+
+    def body(_, carry):
+        theta, lam, cost, h, g, vel = carry
+        d, hs = _scaled(h)
+        # The first pass has g = 0 and cost = inf: it evaluates the start and always keeps it,
+        # so the Jacobian code is traced once.
+        cand = theta - jnp.linalg.solve(hs + (lam + 1e-6) * eye, g / d) / d
+        c_new, h_new, g_new, v_new = _normal(fn, cand)
+        ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
+        pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        return (pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h), pick(g_new, g),
+                pick(v_new, vel))
+
+    init = (theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype), eye,
+            jnp.zeros_like(theta0), jnp.zeros_like(pos))
+    theta, _, cost, h, _, vel = jax.lax.fori_loop(0, iterations + 1, body, init)
+
+    count = jnp.sum(mask)
+    dof = jnp.maximum(3.0 * count - theta.shape[0], 1.0)
+    d, hs = _scaled(h)
+    cov = jnp.linalg.inv(hs + 1e-6 * eye) / (d[:, None] * d[None, :])
+    stderr = jnp.sqrt(jnp.maximum(jnp.diagonal(cov), 0.0) * cost / dof)
+
+    speed = jnp.linalg.norm(vel, axis=-1)
+    w = jnp.linalg.norm(spin)
+    sin = jnp.linalg.norm(jnp.cross(vel, spin), axis=-1) / jnp.maximum(speed * w, 1e-9)
+    ratio = lambda num, den: jnp.sum(mask * num) / jnp.maximum(jnp.sum(mask * den), 1e-12)  # noqa: E731
+    v_drag = ratio(speed**3, speed**2)
+    v_magnus = ratio(speed**2 * sin, speed * sin)
+    rmse = jnp.sqrt(cost / jnp.maximum(count, 1.0))
+    ok = jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rmse) & (count >= 3)
+    return dict(theta=jnp.where(ok, theta, jnp.nan), stderr=stderr, rmse=jnp.where(ok, rmse, jnp.nan),
+                v_eff_drag=v_drag, v_eff_magnus=v_magnus, mean_sin=ratio(sin, jnp.ones_like(sin)), ok=ok)
+
+
+def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
+    """Fits a padded batch of segments; compiled once per (batch, capacity, iterations, substeps).
+
+    Arguments:
+        tau: (S, T) times from each segment's first sample [s]; padding repeats the last time.
+        pos: (S, T, 3) observed positions [m]; mask: (S, T) 1 for samples, 0 for padding.
+        spin: (S, 3) spins [rad/s] (zeros when unknown: C_M then stays at its start value and its
+            standard error is huge).
+        n_max: longest segment of the batch (samples); integration stops there.
+        air: ball and air (:class:`Air`).
+        iterations, substeps: Levenberg-Marquardt iterations, RK4 steps per interval (static).
+
+    Returns:
+        dict of arrays: ``theta`` (S, 8) ``[p0, v0, C_D, C_M]`` (NaN where the fit failed),
+        ``stderr`` (S, 8) standard errors, ``rmse`` (S,) [m], ``v_eff_drag`` and ``v_eff_magnus``
+        (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin, ``ok``.
+    """
+    return _fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps)
+
+
+def _fit_batch_impl(tau, pos, mask, spin, n_max, air, iterations, substeps):
+    fn = lambda a, b, c, d: fit_one(a, b, c, d, n_max, air, iterations, substeps)  # noqa: E731
+    return jax.vmap(fn)(tau, pos, mask, spin)
+
+
+_fit_batch_jit = jax.jit(_fit_batch_impl, static_argnames=("iterations", "substeps"))
+
+
+# --------------------------------------------------------------------------- many segments
+@dataclasses.dataclass
+class SegmentFits:
+    """Fits of many segments (numpy, in the order the segments were given).
+
+    Attributes:
+        theta: (S, 8) fitted ``[p0, v0, C_D, C_M]`` (NaN where a fit failed or was not run).
+        stderr: (S, 8) standard errors of theta.
+        rmse: (S,) 3-D position RMSE of the fit [m].
+        v_eff_drag, v_eff_magnus: (S,) effective speeds [m/s].
+        spin: (S, 3) the spins used [rad/s].
+        n: (S,) samples per segment.
+        mean_sin: (S,) mean sine of the angle between velocity and spin.
+    """
+
+    theta: np.ndarray
+    stderr: np.ndarray
+    rmse: np.ndarray
+    v_eff_drag: np.ndarray
+    v_eff_magnus: np.ndarray
+    spin: np.ndarray
+    n: np.ndarray
+    mean_sin: np.ndarray
+
+    @property
+    def cd(self) -> np.ndarray:
+        return self.theta[:, 6]
+
+    @property
+    def cm(self) -> np.ndarray:
+        return self.theta[:, 7]
+
+    def __len__(self) -> int:
+        return len(self.rmse)
+
+
+def capacity(n: int) -> int:
+    """The padded length of a segment of ``n`` samples (the smallest of :data:`CAPACITIES`)."""
+    for c in CAPACITIES:
+        if n <= c:
+            return c
+    raise ValueError(f"a segment of {n} samples is longer than the largest capacity {CAPACITIES[-1]}")
+
+
+def pack(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins, rows: Sequence[int], size: int,
+         batch: int, dtype=np.float32):
+    """Pads segments ``rows`` into arrays (batch, size) for :func:`fit_batch`; unused rows are empty."""
+    tau = np.zeros((batch, size), dtype)
+    pos = np.zeros((batch, size, 3), dtype)
+    mask = np.zeros((batch, size), dtype)
+    spin = np.zeros((batch, 3), dtype)
+    for row, i in enumerate(rows):
+        t = np.asarray(times[i], np.float64)
+        k = len(t)
+        tau[row, :k] = t - t[0]
+        tau[row, k:] = tau[row, k - 1]
+        pos[row, :k] = positions[i]
+        pos[row, k:] = positions[i][-1]
+        mask[row, :k] = 1.0
+        spin[row] = spins[i]
+    return tau, pos, mask, spin
+
+
+def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins=None, *, air: Air | None = None,
+                 batch: int = BATCH, iterations: int = ITERATIONS, substeps: int = 1, dtype=np.float32,
+                 progress: Callable | None = None) -> SegmentFits:
+    """Fits every segment: sorted by length, padded to its capacity, in batches of ``batch``.
+
+    Arguments:
+        times: list of (T_i,) increasing sample times [s].
+        positions: list of (T_i, 3) observed positions [m].
+        spins: (S, 3) spins [rad/s] (default zeros).
+        air: ball and air (default: those of the bundled conti2026 model).
+        batch: segments per compiled call; iterations, substeps: see :func:`fit_batch`.
+        dtype: float type of the fit (float32 by default; float64 needs ``jax_enable_x64``).
+        progress: optional callable ``progress(n_done)`` called after each batch.
+
+    Returns:
+        :class:`SegmentFits`; segments with fewer than 3 samples are left NaN.
+    """
+    n_seg = len(times)
+    spins = np.zeros((n_seg, 3)) if spins is None else np.asarray(spins, np.float64).reshape(n_seg, 3)
+    if air is None:
+        from ttsim_jax.params import load_model
+
+        air = Air.from_model(load_model("conti2026"), dtype)
+    air = jax.tree.map(lambda x: jnp.asarray(x, dtype), air)
+    lengths = np.array([len(t) for t in times], int)
+    out = SegmentFits(theta=np.full((n_seg, 8), np.nan), stderr=np.full((n_seg, 8), np.nan),
+                      rmse=np.full(n_seg, np.nan), v_eff_drag=np.full(n_seg, np.nan),
+                      v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan))
+    groups: dict[int, list[int]] = {}
+    for i in np.argsort(lengths, kind="stable"):
+        if lengths[i] >= 3:
+            groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
+    done = 0
+    for size, members in sorted(groups.items()):
+        for start in range(0, len(members), batch):
+            idx = members[start : start + batch]
+            arrays = pack(times, positions, spins, idx, size, batch, dtype)
+            res = jax.device_get(fit_batch(*arrays, int(lengths[idx].max()), air, iterations, substeps))
+            k = len(idx)
+            out.theta[idx] = res["theta"][:k]
+            out.stderr[idx] = res["stderr"][:k]
+            out.rmse[idx] = res["rmse"][:k]
+            out.v_eff_drag[idx] = res["v_eff_drag"][:k]
+            out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
+            out.mean_sin[idx] = res["mean_sin"][:k]
+            done += k
+            if progress is not None:
+                progress(done)
+    return out
+
+
+def dataset_segments(ds, min_samples: int = 5):
+    """The flight segments of a dataset as lists for :func:`fit_segments`.
+
+    Arguments:
+        ds: a :class:`~ttsim_jax.data.Dataset` with segments.
+        min_samples: segments with fewer observations are left out.
+
+    Returns:
+        (segment_ids (S,), times list, positions list, spins (S, 3), spin_conf (S,)).
+    """
+    seg, obs = ds.segments, ds.observations
+    order = np.argsort(obs["segment_id"], kind="stable")
+    sorted_ids = obs["segment_id"][order]
+    pos = ds.positions
+    ids, times, positions, spins, conf = [], [], [], [], []
+    for k, sid in enumerate(seg["segment_id"]):
+        lo, hi = np.searchsorted(sorted_ids, [sid, sid + 1])
+        if hi - lo < min_samples:
+            continue
+        rows = order[lo:hi]
+        ids.append(int(sid))
+        times.append(obs["t"][rows])
+        positions.append(pos[rows])
+        spins.append([seg["spin_x"][k], seg["spin_y"][k], seg["spin_z"][k]])
+        conf.append(seg["spin_conf"][k])
+    return np.asarray(ids, np.int64), times, positions, np.asarray(spins, np.float64).reshape(-1, 3), np.asarray(conf)
