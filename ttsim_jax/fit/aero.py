@@ -187,7 +187,8 @@ def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, sub
     rmse = jnp.sqrt(cost / jnp.maximum(count, 1.0))
     ok = jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rmse) & (count >= 3)
     return dict(theta=jnp.where(ok, theta, jnp.nan), stderr=stderr, rmse=jnp.where(ok, rmse, jnp.nan),
-                v_eff_drag=v_drag, v_eff_magnus=v_magnus, mean_sin=ratio(sin, jnp.ones_like(sin)), ok=ok)
+                v_eff_drag=v_drag, v_eff_magnus=v_magnus, mean_sin=ratio(sin, jnp.ones_like(sin)), velocity=vel,
+                ok=ok)
 
 
 def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
@@ -205,7 +206,8 @@ def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATION
     Returns:
         dict of arrays: ``theta`` (S, 8) ``[p0, v0, C_D, C_M]`` (NaN where the fit failed),
         ``stderr`` (S, 8) standard errors, ``rmse`` (S,) [m], ``v_eff_drag`` and ``v_eff_magnus``
-        (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin, ``ok``.
+        (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin,
+        ``velocity`` (S, T, 3) fitted velocities at the sample times, ``ok``.
     """
     return _fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps)
 
@@ -231,6 +233,8 @@ class SegmentFits:
         spin: (S, 3) the spins used [rad/s].
         n: (S,) samples per segment.
         mean_sin: (S,) mean sine of the angle between velocity and spin.
+        velocities: per segment, (T_i, 3) fitted velocities at the sample times [m/s] (None if
+            not fitted).
     """
 
     theta: np.ndarray
@@ -241,6 +245,7 @@ class SegmentFits:
     spin: np.ndarray
     n: np.ndarray
     mean_sin: np.ndarray
+    velocities: list
 
     @property
     def cd(self) -> np.ndarray:
@@ -308,7 +313,8 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
     lengths = np.array([len(t) for t in times], int)
     out = SegmentFits(theta=np.full((n_seg, 8), np.nan), stderr=np.full((n_seg, 8), np.nan),
                       rmse=np.full(n_seg, np.nan), v_eff_drag=np.full(n_seg, np.nan),
-                      v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan))
+                      v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan),
+                      velocities=[None] * n_seg)
     groups: dict[int, list[int]] = {}
     for i in np.argsort(lengths, kind="stable"):
         if lengths[i] >= 3:
@@ -326,6 +332,8 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
             out.v_eff_drag[idx] = res["v_eff_drag"][:k]
             out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
             out.mean_sin[idx] = res["mean_sin"][:k]
+            for row, i in enumerate(idx):
+                out.velocities[i] = res["velocity"][row, : lengths[i]]
             done += k
             if progress is not None:
                 progress(done)
@@ -358,3 +366,61 @@ def dataset_segments(ds, min_samples: int = 5):
         spins.append([seg["spin_x"][k], seg["spin_y"][k], seg["spin_z"][k]])
         conf.append(seg["spin_conf"][k])
     return np.asarray(ids, np.int64), times, positions, np.asarray(spins, np.float64).reshape(-1, 3), np.asarray(conf)
+
+
+# --------------------------------------------------------------------------- synthetic segments
+def synthetic_segments(aero: AeroParams, radius, mass, n: int, *, seed: int = 0, coefficients=None,
+                       rate: float = 143.0, duration=(0.3, 0.6), speed=(4.0, 16.0), spin_rate=(50.0, 500.0),
+                       noise: float = 0.002, substeps: int = 7):
+    """Flight segments from known parameters, sampled like a tracking system, for identifiability checks.
+
+    Balls start near one end line (x = -1.3 m, y in +-0.3 m, z in 0.2-0.4 m) heading towards +x
+    (heading within +-10 deg, elevation -5 to 15 deg) with spin along a random axis.
+
+    Arguments:
+        aero: flight parameters of the truth (any coefficient models).
+        radius, mass: ball radius [m] and mass [kg].
+        n: number of segments.
+        seed: random seed.
+        coefficients: optional (n, 2) constant (C_D, C_M) per segment, replacing aero's models.
+        rate: sampling rate [Hz]; duration: range of segment durations [s].
+        speed: range of initial speeds [m/s]; spin_rate: range of spin rates [rad/s].
+        noise: standard deviation of the position noise per axis [m].
+        substeps: RK4 steps per sampling interval of the truth.
+
+    Returns:
+        (times list of (T_i,), positions list of (T_i, 3) noisy, spins (n, 3), states (n, 6) true
+        initial position and velocity).
+    """
+    rng = np.random.default_rng(seed)
+    p0 = np.stack([np.full(n, -1.3), rng.uniform(-0.3, 0.3, n), rng.uniform(0.2, 0.4, n)], 1)
+    head, elev = np.radians(rng.uniform(-10, 10, n)), np.radians(rng.uniform(-5, 15, n))
+    v0 = rng.uniform(*speed, n)[:, None] * np.stack(
+        [np.cos(elev) * np.cos(head), np.cos(elev) * np.sin(head), np.sin(elev)], 1)
+    axis = rng.normal(size=(n, 3))
+    spins = rng.uniform(*spin_rate, n)[:, None] * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    counts = np.round(rng.uniform(*duration, n) * rate).astype(int) + 1
+    steps = int(counts.max() - 1) * substeps
+    h = 1.0 / (rate * substeps)
+    coef = np.tile([[CD_0, CM_0]], (n, 1)) if coefficients is None else np.asarray(coefficients, np.float64)
+    dtype = jnp.zeros(()).dtype
+
+    def one(p, v, w, c):
+        air = aero if coefficients is None else aero.replace(drag=ConstantCoefficient(c[0]),
+                                                             magnus=ConstantCoefficient(c[1]))
+
+        def step(carry, _):
+            p, v = carry
+            p, v, _ = flight_step(air, radius, mass, p, v, w, 0.0, h)
+            return (p, v), p
+
+        _, ps = jax.lax.scan(step, (p, v), None, length=steps)
+        return jnp.concatenate([p[None], ps[substeps - 1::substeps]])
+
+    arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    paths = np.asarray(jax.jit(jax.vmap(one))(arr(p0), arr(v0), arr(spins), arr(coef)), np.float64)
+    times, positions = [], []
+    for i, k in enumerate(counts):
+        times.append(np.arange(k) / rate)
+        positions.append(paths[i, :k] + rng.normal(0.0, noise, (k, 3)))
+    return times, positions, spins, np.concatenate([p0, v0], 1)

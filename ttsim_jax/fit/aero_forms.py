@@ -14,6 +14,15 @@ sin-weighted one) and its spin rate. This module regresses them into the paper's
   reference speed are fitted, with the coefficients interpolated linearly in v as the model does,
   and a soft constraint that the two pieces meet at w_b.
 
+Which speed a segment's coefficient belongs to (``association``):
+
+* ``"v_eff"`` (the paper): the coefficient is the form evaluated at the effective speed, the mean
+  of the speeds |v_i| along the fitted trajectory weighted by the force's size (drag: |v_i|^2;
+  Magnus: |v_i| sin(theta_i)), which gives the paper's two v_eff formulas;
+* ``"averaged"``: the coefficient is the same weighted mean of the *form* over the samples. The
+  form is still linear in the fitted values, and a segment whose speed and spin ratio sweep across
+  a ridge or a trough of C_D(Sp) is no longer credited with the value at one mean point.
+
 Both are ridge-regularised towards the base model's values (``prior`` pseudo-observations per
 entry), so entries without data stay at the base model; :class:`FormFit` reports each entry's
 support (the summed interpolation weight of the segments that inform it) so that "where data
@@ -75,8 +84,56 @@ def _ridge(a, y, w, prior, alpha, extra_a=None, extra_y=None):
     return x
 
 
+ASSOCIATIONS = ("v_eff", "averaged")
+
+
+def force_weights(velocities, spin, kind: str):
+    """Per segment, the speeds along the fitted trajectory and the weights of the force's size.
+
+    Arguments:
+        velocities: list of (T_i, 3) fitted velocities [m/s] (``SegmentFits.velocities``).
+        spin: (S, 3) spins [rad/s].
+        kind: ``"drag"`` (weights |v|^2) or ``"magnus"`` (weights |v| sin(theta)).
+
+    Returns:
+        list of (speeds (T_i,), weights (T_i,) summing to 1). The weighted mean speed is the
+        paper's v_eff.
+    """
+    out = []
+    for vel, w in zip(velocities, np.asarray(spin, np.float64)):
+        vel = np.asarray(vel, np.float64)
+        speed = np.linalg.norm(vel, axis=1)
+        if kind == "drag":
+            weight = speed**2
+        elif kind == "magnus":
+            weight = np.linalg.norm(np.cross(vel, w), axis=1) / max(np.linalg.norm(w), 1e-9)
+        else:
+            raise ValueError(f"kind must be 'drag' or 'magnus', not {kind!r}")
+        total = weight.sum()
+        out.append((speed, weight / total if total > 0 else np.full(len(speed), 1.0 / len(speed))))
+    return out
+
+
+def _points(samples, association: str):
+    """Flattened (speeds, weights) and the segment of each point, for the chosen association."""
+    if association not in ASSOCIATIONS:
+        raise ValueError(f"association must be one of {ASSOCIATIONS}, not {association!r}")
+    if association == "v_eff":
+        samples = [(np.array([np.sum(sp * wt)]), np.ones(1)) for sp, wt in samples]
+    seg = np.concatenate([np.full(len(sp), j) for j, (sp, _) in enumerate(samples)]).astype(int)
+    speeds = np.concatenate([sp for sp, _ in samples])
+    weights = np.concatenate([wt for _, wt in samples])
+    return speeds, weights, seg
+
+
+def _segment_sum(rows, weights, seg, n):
+    out = np.zeros((n, rows.shape[1]))
+    np.add.at(out, seg, rows * weights[:, None])
+    return out
+
+
 def drag_design(table: aero_stage.DragTable, speed, spin_rate, radius, nu) -> np.ndarray:
-    """(S, K*P) matrix W with C_D(speed_j, spin_j) = W_j . cd.ravel() for the table's breakpoints."""
+    """(N, K*P) matrix W with C_D(speed_j, spin_j) = W_j . cd.ravel() for the table's breakpoints."""
     arr = lambda x: jnp.asarray(np.asarray(x, np.float64), jnp.float32)  # noqa: E731
 
     def cd_at(cd, v, w):
@@ -88,15 +145,17 @@ def drag_design(table: aero_stage.DragTable, speed, spin_rate, radius, nu) -> np
     return np.asarray(jac, np.float64).reshape(len(speed), -1)
 
 
-def fit_drag_table(base: aero_stage.DragTable, cd, stderr, speed, spin_rate, radius, nu, *, alpha: float = 1.0,
-                   floor: float = 0.01) -> FormFit:
+def fit_drag_table(base: aero_stage.DragTable, cd, stderr, samples, spin_rate, radius, nu, *,
+                   association: str = "v_eff", alpha: float = 1.0, floor: float = 0.01) -> FormFit:
     """Regresses per-segment C_D into the table of ``base`` (its breakpoints kept).
 
     Arguments:
         base: the base model's :class:`~ttsim_jax.physics.aero.DragTable` (prior and breakpoints).
         cd, stderr: (S,) fitted C_D and its standard error.
-        speed: (S,) drag effective speeds [m/s]; spin_rate: (S,) |w| [rad/s].
+        samples: :func:`force_weights` of the segments (kind ``"drag"``).
+        spin_rate: (S,) |w| [rad/s].
         radius, nu: ball radius [m], kinematic viscosity [m^2/s].
+        association: ``"v_eff"`` (the paper) or ``"averaged"`` (see the module docstring).
         alpha: prior strength, in pseudo-observations of median weight per entry.
         floor: added in quadrature to the standard errors [1] (no segment dominates).
 
@@ -104,7 +163,9 @@ def fit_drag_table(base: aero_stage.DragTable, cd, stderr, speed, spin_rate, rad
         :class:`FormFit` with ``values["cd"]`` (K, P).
     """
     prior = np.asarray(base.cd, np.float64)
-    a = drag_design(base, speed, spin_rate, radius, nu)
+    speeds, weights, seg = _points(samples, association)
+    rows = drag_design(base, speeds, np.asarray(spin_rate, np.float64)[seg], radius, nu)
+    a = _segment_sum(rows, weights, seg, len(cd))
     w = _weights(stderr, floor)
     x = _ridge(a, np.asarray(cd, np.float64), w, prior.ravel(), alpha)
     resid = a @ x - cd
@@ -117,14 +178,14 @@ MAGNUS_FITTED = ("m1", "s", "a", "b", "c")
 
 
 def _speed_weights(v_ref, speed) -> np.ndarray:
-    """(S, K) weights of the reference speeds in the model's linear interpolation of its coefficients."""
+    """(N, K) weights of the reference speeds in the model's linear interpolation of its coefficients."""
     eye = jnp.eye(len(v_ref), dtype=jnp.float32)
     f = jax.vmap(lambda v: aero_stage._piecewise(v, jnp.asarray(v_ref, jnp.float32), eye))
     return np.asarray(f(jnp.asarray(speed, jnp.float32)), np.float64)
 
 
 def _magnus_rows(lam, wb, w):
-    """Design rows over the scaled unknowns [m1', s, a', b', c] per reference speed (S, 5K)."""
+    """Design rows over the scaled unknowns [m1', s, a', b', c] per reference speed (N, 5K)."""
     ws = w / W_SCALE
     linear = (w <= lam @ wb)[:, None]
     cols = [lam * ws[:, None] * linear, lam * linear, lam * (ws**2)[:, None] * ~linear,
@@ -139,15 +200,16 @@ def _scale_magnus(values: dict, inverse: bool = False) -> dict:
             for k in MAGNUS_FITTED}
 
 
-def fit_magnus_table(base: aero_stage.MagnusTable, cm, stderr, speed, spin_rate, *, alpha: float = 1.0,
-                     floor: float = 0.01, continuity: float = 10.0) -> FormFit:
+def fit_magnus_table(base: aero_stage.MagnusTable, cm, stderr, samples, spin_rate, *, association: str = "v_eff",
+                     alpha: float = 1.0, floor: float = 0.01, continuity: float = 10.0) -> FormFit:
     """Regresses per-segment C_M into the piecewise form of ``base`` (its v_ref and w_b kept).
 
     Arguments:
         base: the base model's :class:`~ttsim_jax.physics.aero.MagnusTable`.
         cm, stderr: (S,) fitted C_M and its standard error.
-        speed: (S,) Magnus effective speeds [m/s]; spin_rate: (S,) |w| [rad/s].
-        alpha, floor: as in :func:`fit_drag_table`.
+        samples: :func:`force_weights` of the segments (kind ``"magnus"``).
+        spin_rate: (S,) |w| [rad/s].
+        association, alpha, floor: as in :func:`fit_drag_table`.
         continuity: weight (in pseudo-observations of median weight) of the rows asking the linear
             and quadratic pieces of each reference speed to meet at its w_b.
 
@@ -159,9 +221,10 @@ def fit_magnus_table(base: aero_stage.MagnusTable, cm, stderr, speed, spin_rate,
     k = len(v_ref)
     prior = {key: np.asarray(getattr(base, key), np.float64) for key in MAGNUS_FITTED}
     scaled_prior = _scale_magnus(prior)
-    lam = _speed_weights(v_ref, speed)
-    spin_rate = np.asarray(spin_rate, np.float64)
-    a = _magnus_rows(lam, wb, spin_rate)
+    speeds, weights, seg = _points(samples, association)
+    lam = _speed_weights(v_ref, speeds)
+    rows = _magnus_rows(lam, wb, np.asarray(spin_rate, np.float64)[seg])
+    a = _segment_sum(rows, weights, seg, len(cm))
     w = _weights(stderr, floor)
     # Continuity at w_b of each reference speed: m1' wb' + s - (a' wb'^2 + b' wb' + c) = 0.
     wbs = wb / W_SCALE
@@ -173,8 +236,8 @@ def fit_magnus_table(base: aero_stage.MagnusTable, cm, stderr, speed, spin_rate,
                alpha, beta * cont, np.zeros(k))
     values = _scale_magnus({key: x[i * k:(i + 1) * k] for i, key in enumerate(MAGNUS_FITTED)}, inverse=True)
     resid = a @ x - cm
-    return FormFit(values=values, prior=prior, support=lam.sum(0), n_used=len(cm),
-                   rms_residual=float(np.sqrt(np.sum(w * resid**2) / max(np.sum(w), 1e-30))))
+    return FormFit(values=values, prior=prior, support=_segment_sum(lam, weights, seg, len(cm)).sum(0),
+                   n_used=len(cm), rms_residual=float(np.sqrt(np.sum(w * resid**2) / max(np.sum(w), 1e-30))))
 
 
 # --------------------------------------------------------------------------- config export
