@@ -70,9 +70,38 @@ def test_without_spin_magnus_is_left_alone(constant):
 
 def test_padding_and_batch_company_do_not_change_a_fit(constant):
     _, times, pos, spins, _, fit = constant
-    alone = A.fit_segments(times[:1], pos[:1], spins[:1])
-    np.testing.assert_allclose(alone.theta[0], fit.theta[0], rtol=1e-4, atol=1e-5)
-    assert len(times[0]) < max(len(t) for t in times)
+    # Segment 0 among copies of the shortest segment: a batch of the same shape whose integration
+    # stops at segment 0's own length instead of the longest segment's.
+    short = int(np.argmin([len(t) for t in times]))
+    assert len(times[short]) < len(times[0]) < max(len(t) for t in times)
+    rows = [0] + [short] * (len(times) - 1)
+    company = A.fit_segments([times[i] for i in rows], [pos[i] for i in rows], spins[rows])
+    np.testing.assert_allclose(company.theta[0], fit.theta[0], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(company.theta[1], fit.theta[short], rtol=1e-4, atol=1e-5)
+
+
+def test_normal_equations_match_the_residuals_jacobian(model, constant):
+    _, times, pos, spins, _, fit = constant
+    air = A.Air.from_model(model)
+    tau, p, m, s = (jnp.asarray(a[0]) for a in A.pack(times, pos, spins, [0], A.capacity(len(times[0])), 1))
+    n = len(times[0])
+    theta = jnp.asarray(fit.theta[0], jnp.float32) + jnp.array([0.01, 0, 0, 0.1, 0, 0, 0.05, 0.02], jnp.float32)
+    cost, jtj, jtr, vel = A.normal_equations(theta, tau, p, m, s, n, air)
+    jac, r, vel_ref = A.jacobian(theta, tau, p, m, s, n, air)
+    np.testing.assert_allclose(r, A.residual(theta, tau, p, m, s, n, air), atol=1e-7)
+    np.testing.assert_allclose(cost, r @ r, rtol=1e-4)
+    np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-3, atol=1e-4 * float(jnp.max(jnp.abs(jtj))))
+    np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-3, atol=1e-4 * float(jnp.max(jnp.abs(jtr))))
+    np.testing.assert_allclose(vel, vel_ref, atol=1e-5)
+    # The forward-mode Jacobian against central differences in float64.
+    th64 = np.asarray(theta, np.float64)
+    air64 = A.Air.from_model(model, jnp.float64)
+    args64 = [jnp.asarray(a, jnp.float64) for a in (tau, p, m, s)]
+    for j, eps in ((4, 1e-5), (6, 1e-6), (7, 1e-6)):
+        e = np.zeros(8)
+        e[j] = eps
+        fd = (A.residual(th64 + e, *args64, n, air64) - A.residual(th64 - e, *args64, n, air64)) / (2 * eps)
+        np.testing.assert_allclose(jac[:, j], fd, rtol=2e-3, atol=1e-4 * np.max(np.abs(fd)))
 
 
 def test_effective_speeds_are_the_papers(constant):

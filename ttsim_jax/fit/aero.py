@@ -8,11 +8,14 @@ theta = (p0 (3), v0 (3), C_D, C_M): minimise sum_i |p(t_i; theta) - p_i|^2.
 The solver is a Levenberg-Marquardt loop written in ``jax.lax`` and vmapped over segments, so a
 whole batch is one compiled call:
 
-* the Jacobian comes from forward mode (eight tangents) through the integration;
+* the Jacobian comes from forward mode through the integration, for the five parameters that act
+  on the acceleration (the initial position's columns are the identity);
 * the damped normal equations are solved after scaling the columns to unit norm, which keeps
   float32 usable although the columns differ by orders of magnitude (metres, m/s, coefficients);
 * a step is kept only if it lowers the cost, with the damping divided by 3 on success and
-  multiplied by 10 on failure; a fixed number of iterations keeps the loop branch-free.
+  multiplied by 10 on failure; the loop ends when every segment of the batch has converged (a
+  step gains less than ``tol`` of the cost) or after ``ITERATIONS``. Every iteration is
+  one forward pass with tangents and no branch.
 
 Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
 that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
@@ -49,8 +52,8 @@ CD_0, CM_0 = 0.54, 0.069
 CAPACITIES = (256, 1024, 4096)
 #: Segments per compiled call.
 BATCH = 256
-#: Levenberg-Marquardt iterations.
-ITERATIONS = 12
+#: Most Levenberg-Marquardt iterations (a batch stops earlier once every segment has converged).
+ITERATIONS = 8
 #: Names of the fitted parameters, in order.
 PARAMS = ("x0", "y0", "z0", "vx0", "vy0", "vz0", "C_D", "C_M")
 
@@ -125,18 +128,88 @@ def residual(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
     return ((ps - pos) * mask[:, None]).ravel()
 
 
+def jacobian(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """(3T, 8) Jacobian of :func:`residual`, and the residual and velocities at theta.
+
+    The initial position does not act on the acceleration (no position-dependent forces in this
+    model), so its columns are the mask times the identity and only the other five parameters need
+    forward-mode tangents.
+
+    Returns:
+        (jac (3T, 8), residual (3T,), velocities (T, 3)).
+    """
+
+    def rest(x):
+        ps, vs = trajectory(jnp.concatenate([theta[:3], x]), tau, spin, n, air, substeps)
+        return ((ps - pos) * mask[:, None]).ravel(), vs
+
+    x = theta[3:]
+    # One integration carries the primal and the five tangents (jacfwd would integrate twice).
+    tangents = jnp.eye(x.shape[0], dtype=x.dtype)
+    (r, vel), (jac5, _) = jax.vmap(lambda t: jax.jvp(rest, (x,), (t,)), out_axes=((None, None), 1))(tangents)
+    jac_p0 = (mask[:, None, None] * jnp.eye(3, dtype=theta.dtype)).reshape(-1, 3)
+    return jnp.concatenate([jac_p0, jac5], axis=1), r, vel
+
+
+def normal_equations(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """Cost, J^T J and J^T r of :func:`residual`, accumulated sample by sample in one integration.
+
+    Equal to forming them from :func:`jacobian`, but nothing of length T is carried through the
+    loop: the state's sensitivities to (v0, C_D, C_M) ride along the integration (forward mode
+    through one RK4 step at a time) and each sample adds its 3 x 8 Jacobian block [I, D_i] to the
+    sums. Carrying (T, 3, 5) tangent buffers through a loop costs far more than the arithmetic.
+
+    Returns:
+        (cost, jtj (8, 8), jtr (8,), velocities (T, 3) at the sample times).
+    """
+    dtype = theta.dtype
+    dts = jnp.diff(tau)
+    eye3 = jnp.eye(3, dtype=dtype)
+    # Tangent directions over x = (v0, C_D, C_M): (dv0, dC_D, dC_M) per direction.
+    dv0 = jnp.concatenate([eye3, jnp.zeros((2, 3), dtype)])
+    dcoef = jnp.concatenate([jnp.zeros((3, 2), dtype), jnp.eye(2, dtype=dtype)])
+
+    def step(p, v, cd, cm, h):
+        aero = air.aero(cd, cm)
+        for _ in range(substeps):
+            p, v, _ = flight_step(aero, air.radius, air.mass, p, v, spin, 0.0, h)
+        return p, v
+
+    def add(sums, p, dp, i):
+        cost, jtj, jtr = sums
+        m = mask[i]
+        r = p - pos[i]
+        d = dp.T  # (3, 5): d p_i / d x
+        block = jnp.concatenate([eye3, d], axis=1)  # (3, 8)
+        return cost + m * (r @ r), jtj + m * (block.T @ block), jtr + m * (block.T @ r)
+
+    def body(carry):
+        i, p, v, dp, dv, sums, vel = carry
+        h = dts[i] / substeps
+        cd, cm = theta[6], theta[7]
+        tangent = lambda dp_, dv_, dc: jax.jvp(lambda p_, v_, c_: step(p_, v_, c_[0], c_[1], h),  # noqa: E731
+                                               (p, v, jnp.stack([cd, cm])), (dp_, dv_, dc))
+        (p2, v2), (dp2, dv2) = jax.vmap(tangent, out_axes=((None, None), 0))(dp, dv, dcoef)
+        return i + 1, p2, v2, dp2, dv2, add(sums, p2, dp2, i + 1), vel.at[i + 1].set(v2)
+
+    p0, v0 = theta[:3], theta[3:6]
+    dp0 = jnp.zeros((5, 3), dtype)
+    sums = add((jnp.zeros((), dtype), jnp.zeros((8, 8), dtype), jnp.zeros(8, dtype)), p0, dp0, 0)
+    vel = jnp.zeros((tau.shape[0], 3), dtype).at[0].set(v0)
+    *_, sums, vel = jax.lax.while_loop(lambda c: c[0] < n - 1, body, (jnp.asarray(0), p0, v0, dp0, dv0, sums, vel))
+    return (*sums, vel)
+
+
 def initial_guess(tau, pos, mask, cd0=CD_0, cm0=CM_0):
     """(8,) start of the fit: position and velocity at tau[0] from a per-axis parabola."""
     a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
-    coef, *_ = jnp.linalg.lstsq(a, pos * mask[:, None])
+    coef = _spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
     return jnp.concatenate([coef[0], coef[1], jnp.array([cd0, cm0], pos.dtype)])
 
 
-def _normal(fn, theta):
-    """Cost, J^T J, J^T r and the velocities (aux) at theta; ``fn(theta) -> (residual, velocities)``."""
-    jac, _ = jax.jacfwd(fn, has_aux=True)(theta)
-    r, vel = fn(theta)
-    return jnp.sum(r**2), jac.T @ jac, jac.T @ r, vel
+def _spd_solve(a, b):
+    """a^-1 b for a symmetric positive definite a (Cholesky: far cheaper to compile than LU)."""
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)
 
 
 def _scaled(h):
@@ -146,49 +219,68 @@ def _scaled(h):
     return d, h / (d[:, None] * d[None, :])
 
 
-def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
+def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1, tol: float = 1e-4):
     """Levenberg-Marquardt fit of one padded segment; see :func:`fit_batch`."""
 
-    def fn(th):
-        ps, vs = trajectory(th, tau, spin, n, air, substeps)
-        return ((ps - pos) * mask[:, None]).ravel(), vs
+    def normal(theta):
+        return normal_equations(theta, tau, pos, mask, spin, n, air, substeps)
 
     theta0 = initial_guess(tau, pos, mask)
     eye = jnp.eye(theta0.shape[0], dtype=theta0.dtype)
 
-    def body(_, carry):
-        theta, lam, cost, h, g, vel = carry
+    def body(carry):
+        k, theta, lam, cost, h, g, vel, _ = carry
         d, hs = _scaled(h)
         # The first pass has g = 0 and cost = inf: it evaluates the start and always keeps it,
         # so the Jacobian code is traced once.
-        cand = theta - jnp.linalg.solve(hs + (lam + 1e-6) * eye, g / d) / d
-        c_new, h_new, g_new, v_new = _normal(fn, cand)
+        cand = theta - _spd_solve(hs + (lam + 1e-6) * eye, g / d) / d
+        c_new, h_new, g_new, v_new = normal(cand)
         ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
+        # Converged: a step, kept or not, that gains less than tol of the cost (a segment that
+        # cannot be fitted stops too: its RMSE tells).
+        done = (c_new >= cost * (1.0 - tol)) & (k > 0)
         pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
-        return (pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h), pick(g_new, g),
-                pick(v_new, vel))
+        return (k + 1, pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h),
+                pick(g_new, g), pick(v_new, vel), done)
 
-    init = (theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype), eye,
-            jnp.zeros_like(theta0), jnp.zeros_like(pos))
-    theta, _, cost, h, _, vel = jax.lax.fori_loop(0, iterations + 1, body, init)
+    init = (jnp.asarray(0), theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype), eye,
+            jnp.zeros_like(theta0), jnp.zeros_like(pos), jnp.asarray(False))
+    # Under vmap the loop runs until every segment of the batch has converged.
+    k, theta, _, cost, h, _, vel, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
 
-    count = jnp.sum(mask)
-    dof = jnp.maximum(3.0 * count - theta.shape[0], 1.0)
-    d, hs = _scaled(h)
-    cov = jnp.linalg.inv(hs + 1e-6 * eye) / (d[:, None] * d[None, :])
-    stderr = jnp.sqrt(jnp.maximum(jnp.diagonal(cov), 0.0) * cost / dof)
+    return dict(theta=theta, cost=cost, jtj=h, velocity=vel, iterations=k - 1)
 
-    speed = jnp.linalg.norm(vel, axis=-1)
-    w = jnp.linalg.norm(spin)
-    sin = jnp.linalg.norm(jnp.cross(vel, spin), axis=-1) / jnp.maximum(speed * w, 1e-9)
-    ratio = lambda num, den: jnp.sum(mask * num) / jnp.maximum(jnp.sum(mask * den), 1e-12)  # noqa: E731
-    v_drag = ratio(speed**3, speed**2)
-    v_magnus = ratio(speed**2 * sin, speed * sin)
-    rmse = jnp.sqrt(cost / jnp.maximum(count, 1.0))
-    ok = jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rmse) & (count >= 3)
-    return dict(theta=jnp.where(ok, theta, jnp.nan), stderr=stderr, rmse=jnp.where(ok, rmse, jnp.nan),
-                v_eff_drag=v_drag, v_eff_magnus=v_magnus, mean_sin=ratio(sin, jnp.ones_like(sin)), velocity=vel,
-                ok=ok)
+
+def summarize(raw: dict, mask, spin) -> dict:
+    """Per-segment statistics of a batch's fits, on the host (numpy; kept out of the compiled fit).
+
+    Arguments:
+        raw: what the compiled fit returned (``theta``, ``cost``, ``jtj``, ``velocity``, ``iterations``).
+        mask: (S, T) sample mask; spin: (S, 3) spins.
+
+    Returns:
+        The dict described in :func:`fit_batch`.
+    """
+    theta, cost, h, vel = (np.asarray(raw[k], np.float64) for k in ("theta", "cost", "jtj", "velocity"))
+    mask, spin = np.asarray(mask, np.float64), np.asarray(spin, np.float64)
+    count = mask.sum(1)
+    dof = np.maximum(3.0 * count - theta.shape[1], 1.0)
+    d = np.sqrt(np.diagonal(h, axis1=1, axis2=2) + 1e-12)
+    hs = h / (d[:, :, None] * d[:, None, :]) + 1e-6 * np.eye(theta.shape[1])
+    cov = np.linalg.inv(hs) / (d[:, :, None] * d[:, None, :])
+    stderr = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0) * (cost / dof)[:, None])
+    speed = np.linalg.norm(vel, axis=-1)
+    w = np.linalg.norm(spin, axis=-1)[:, None]
+    sin = np.linalg.norm(np.cross(vel, spin[:, None, :]), axis=-1) / np.maximum(speed * w, 1e-9)
+
+    def ratio(num, den):
+        return (mask * num).sum(1) / np.maximum((mask * den).sum(1), 1e-12)
+
+    rmse = np.sqrt(cost / np.maximum(count, 1.0))
+    ok = np.all(np.isfinite(theta), axis=1) & np.isfinite(rmse) & (count >= 3)
+    return dict(theta=np.where(ok[:, None], theta, np.nan), stderr=stderr, rmse=np.where(ok, rmse, np.nan),
+                v_eff_drag=ratio(speed**3, speed**2), v_eff_magnus=ratio(speed**2 * sin, speed * sin),
+                mean_sin=ratio(sin, np.ones_like(sin)), velocity=vel, iterations=np.asarray(raw["iterations"]), ok=ok)
 
 
 def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
@@ -207,9 +299,11 @@ def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATION
         dict of arrays: ``theta`` (S, 8) ``[p0, v0, C_D, C_M]`` (NaN where the fit failed),
         ``stderr`` (S, 8) standard errors, ``rmse`` (S,) [m], ``v_eff_drag`` and ``v_eff_magnus``
         (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin,
-        ``velocity`` (S, T, 3) fitted velocities at the sample times, ``ok``.
+        ``velocity`` (S, T, 3) fitted velocities at the sample times, ``iterations`` (S,) taken
+        (the batch's loop runs until its slowest segment converges), ``ok``.
     """
-    return _fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps)
+    raw = jax.device_get(_fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps))
+    return summarize(raw, mask, spin)
 
 
 def _fit_batch_impl(tau, pos, mask, spin, n_max, air, iterations, substeps):
@@ -296,7 +390,8 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
         positions: list of (T_i, 3) observed positions [m].
         spins: (S, 3) spins [rad/s] (default zeros).
         air: ball and air (default: those of the bundled conti2026 model).
-        batch: segments per compiled call; iterations, substeps: see :func:`fit_batch`.
+        batch: segments per compiled call (fewer segments of one capacity: their count rounded up
+            to a multiple of 8); iterations, substeps: see :func:`fit_batch`.
         dtype: float type of the fit (float32 by default; float64 needs ``jax_enable_x64``).
         progress: optional callable ``progress(n_done)`` called after each batch.
 
@@ -321,10 +416,12 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
             groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
     done = 0
     for size, members in sorted(groups.items()):
-        for start in range(0, len(members), batch):
-            idx = members[start : start + batch]
-            arrays = pack(times, positions, spins, idx, size, batch, dtype)
-            res = jax.device_get(fit_batch(*arrays, int(lengths[idx].max()), air, iterations, substeps))
+        # A group that fits in one batch is padded only to a multiple of 8 (one compile either way).
+        rows = batch if len(members) > batch else -(-len(members) // 8) * 8
+        for start in range(0, len(members), rows):
+            idx = members[start : start + rows]
+            arrays = pack(times, positions, spins, idx, size, rows, dtype)
+            res = fit_batch(*arrays, int(lengths[idx].max()), air, iterations, substeps)
             k = len(idx)
             out.theta[idx] = res["theta"][:k]
             out.stderr[idx] = res["stderr"][:k]
