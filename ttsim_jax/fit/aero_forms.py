@@ -132,17 +132,34 @@ def _segment_sum(rows, weights, seg, n):
     return out
 
 
+def _chunked(fn, *arrays, chunk: int = 4096) -> np.ndarray:
+    """fn over the points of 1-D ``arrays`` in padded chunks of one size (one compilation for any count)."""
+    n = len(arrays[0])
+    out = []
+    for start in range(0, max(n, 1), chunk):
+        part = [np.asarray(a[start:start + chunk], np.float32) for a in arrays]
+        k = len(part[0])
+        part = [np.pad(a, (0, chunk - k), mode="edge") if k else np.ones(chunk, np.float32) for a in part]
+        out.append(np.asarray(fn(*part), np.float64)[:k])
+    return np.concatenate(out)
+
+
+@jax.jit
+def _drag_rows(cd, re_ref, sp, re_cap, radius, nu, speed, spin_rate):
+    def cd_at(cd, v, w):
+        # No lower clamp: the table is then exactly linear in its C_D values.
+        t = aero_stage.DragTable(re_ref, sp, cd, re_cap, jnp.asarray(-jnp.inf, cd.dtype))
+        return aero_stage.drag_table(t, v, w, radius, nu)
+
+    return jax.vmap(jax.jacfwd(cd_at), in_axes=(None, 0, 0))(cd, speed, spin_rate)
+
+
 def drag_design(table: aero_stage.DragTable, speed, spin_rate, radius, nu) -> np.ndarray:
     """(N, K*P) matrix W with C_D(speed_j, spin_j) = W_j . cd.ravel() for the table's breakpoints."""
     arr = lambda x: jnp.asarray(np.asarray(x, np.float64), jnp.float32)  # noqa: E731
-
-    def cd_at(cd, v, w):
-        # No lower clamp: the table is then exactly linear in its C_D values.
-        t = aero_stage.DragTable(arr(table.re_ref), arr(table.sp), cd, arr(table.re_cap), jnp.asarray(-jnp.inf))
-        return aero_stage.drag_table(t, v, w, radius, nu)
-
-    jac = jax.vmap(jax.jacfwd(cd_at), in_axes=(None, 0, 0))(arr(table.cd), arr(speed), arr(spin_rate))
-    return np.asarray(jac, np.float64).reshape(len(speed), -1)
+    fixed = (arr(table.re_ref), arr(table.sp), arr(table.re_cap), arr(radius), arr(nu))
+    jac = _chunked(lambda v, w: _drag_rows(arr(table.cd), *fixed, v, w), speed, spin_rate)
+    return jac.reshape(len(speed), -1)
 
 
 def fit_drag_table(base: aero_stage.DragTable, cd, stderr, samples, spin_rate, radius, nu, *,
@@ -179,9 +196,13 @@ MAGNUS_FITTED = ("m1", "s", "a", "b", "c")
 
 def _speed_weights(v_ref, speed) -> np.ndarray:
     """(N, K) weights of the reference speeds in the model's linear interpolation of its coefficients."""
-    eye = jnp.eye(len(v_ref), dtype=jnp.float32)
-    f = jax.vmap(lambda v: aero_stage._piecewise(v, jnp.asarray(v_ref, jnp.float32), eye))
-    return np.asarray(f(jnp.asarray(speed, jnp.float32)), np.float64)
+    return _chunked(lambda v: _interpolation_weights(v, jnp.asarray(v_ref, jnp.float32)), speed)
+
+
+@jax.jit
+def _interpolation_weights(x, xp):
+    eye = jnp.eye(xp.shape[0], dtype=xp.dtype)
+    return jax.vmap(lambda v: aero_stage._piecewise(v, xp, eye))(x)
 
 
 def _magnus_rows(lam, wb, w):
