@@ -90,25 +90,24 @@ class Air:
 
 
 # --------------------------------------------------------------------------- one segment
-def trajectory(theta, tau, spin, n, air: Air, substeps: int = 1):
-    """Positions and velocities of the constant-coefficient flight at the sample times.
+def integrate(aero: AeroParams, p0, v0, tau, spin, n, air: Air, substeps: int = 1):
+    """Positions and velocities of a flight under any flight parameters at the sample times.
 
     Arguments:
-        theta: (8,) ``[p0, v0, C_D, C_M]`` at tau[0].
+        aero: flight parameters (any coefficient models).
+        p0, v0: (3,) state at tau[0].
         tau: (T,) sample times from the first [s]; padding repeats the last time.
         spin: (3,) constant spin [rad/s].
         n: number of samples to integrate to (the rest keep their initial zeros); may be larger
             than the segment's own length (padded steps have dt = 0).
-        air: ball and air.
+        air: the ball's radius and mass (its air is not used: ``aero`` has its own).
         substeps: RK4 steps per observation interval (static).
 
     Returns:
         (P, V): (T, 3) positions [m] and velocities [m/s].
     """
-    p0, v0 = theta[:3], theta[3:6]
-    aero = air.aero(theta[6], theta[7])
     dts = jnp.diff(tau)
-    buf = jnp.zeros((tau.shape[0], 3), theta.dtype)
+    buf = jnp.zeros((tau.shape[0], 3), p0.dtype)
 
     def body(carry):
         i, p, v, ps, vs = carry
@@ -120,6 +119,11 @@ def trajectory(theta, tau, spin, n, air: Air, substeps: int = 1):
     init = (jnp.asarray(0), p0, v0, buf.at[0].set(p0), buf.at[0].set(v0))
     *_, ps, vs = jax.lax.while_loop(lambda c: c[0] < n - 1, body, init)
     return ps, vs
+
+
+def trajectory(theta, tau, spin, n, air: Air, substeps: int = 1):
+    """:func:`integrate` with constant coefficients: theta = ``[p0, v0, C_D, C_M]`` (8,)."""
+    return integrate(air.aero(theta[6], theta[7]), theta[:3], theta[3:6], tau, spin, n, air, substeps)
 
 
 def residual(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
@@ -410,31 +414,44 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
                       rmse=np.full(n_seg, np.nan), v_eff_drag=np.full(n_seg, np.nan),
                       v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan),
                       velocities=[None] * n_seg)
+    done = 0
+    for idx, arrays, n_max in batches(times, positions, spins, batch, dtype):
+        res = fit_batch(*arrays, n_max, air, iterations, substeps)
+        k = len(idx)
+        out.theta[idx] = res["theta"][:k]
+        out.stderr[idx] = res["stderr"][:k]
+        out.rmse[idx] = res["rmse"][:k]
+        out.v_eff_drag[idx] = res["v_eff_drag"][:k]
+        out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
+        out.mean_sin[idx] = res["mean_sin"][:k]
+        for row, i in enumerate(idx):
+            out.velocities[i] = res["velocity"][row, : lengths[i]]
+        done += k
+        if progress is not None:
+            progress(done)
+    return out
+
+
+def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3):
+    """Padded batches of segments: sorted by length, grouped by capacity, ``batch`` rows each.
+
+    A group that fits in one batch is padded only to a multiple of 8 rows (one compilation
+    either way); otherwise every batch of the group has ``batch`` rows.
+
+    Yields:
+        (idx, (tau, pos, mask, spin), n_max): the segments' indices (rows beyond ``len(idx)`` are
+        empty), the arrays of :func:`pack` and the longest segment's length.
+    """
+    lengths = np.array([len(t) for t in times], int)
     groups: dict[int, list[int]] = {}
     for i in np.argsort(lengths, kind="stable"):
-        if lengths[i] >= 3:
+        if lengths[i] >= min_samples:
             groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
-    done = 0
     for size, members in sorted(groups.items()):
-        # A group that fits in one batch is padded only to a multiple of 8 (one compile either way).
         rows = batch if len(members) > batch else -(-len(members) // 8) * 8
         for start in range(0, len(members), rows):
             idx = members[start : start + rows]
-            arrays = pack(times, positions, spins, idx, size, rows, dtype)
-            res = fit_batch(*arrays, int(lengths[idx].max()), air, iterations, substeps)
-            k = len(idx)
-            out.theta[idx] = res["theta"][:k]
-            out.stderr[idx] = res["stderr"][:k]
-            out.rmse[idx] = res["rmse"][:k]
-            out.v_eff_drag[idx] = res["v_eff_drag"][:k]
-            out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
-            out.mean_sin[idx] = res["mean_sin"][:k]
-            for row, i in enumerate(idx):
-                out.velocities[i] = res["velocity"][row, : lengths[i]]
-            done += k
-            if progress is not None:
-                progress(done)
-    return out
+            yield idx, pack(times, positions, spins, idx, size, rows, dtype), int(lengths[idx].max())
 
 
 def dataset_segments(ds, min_samples: int = 5):

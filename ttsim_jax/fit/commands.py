@@ -7,7 +7,7 @@ and :mod:`ttsim_jax.fit.residual`.
 errors are raised (the library's errors, :class:`ttsim_jax.cli.UsageError`) and reported by
 :func:`ttsim_jax.cli.main` with status 2.
 
-    ttsim fit --data DATA --out MODEL.toml [--base conti2026] [--association averaged|v_eff]
+    ttsim fit --data DATA --out MODEL.toml [--base conti2026] [--association averaged|v_eff] [--forms drag,magnus]
               [--min-spin-conf C] [--max-rmse-mm R] [--test-fraction F] [--seed S] [--force] [--quiet]
     ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
                          [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
@@ -94,6 +94,8 @@ def _register_fit(subparsers) -> None:
     p.add_argument("--association", choices=ASSOCIATIONS, default="averaged",
                    help="how a segment's coefficient enters the forms: 'averaged', the force-weighted mean of the form "
                    "along the segment (default), or 'v_eff', the form at the paper's effective speed")
+    p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default="drag,magnus",
+                   help="which forms to fit; the other keeps the base model's values (default: %(default)s)")
     p.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C",
                    help="segments with a lower spin confidence are not used (default: %(default)s)")
     p.add_argument("--max-rmse-mm", type=positive_float, default=20.0, metavar="R",
@@ -133,7 +135,7 @@ def cmd_fit(args) -> int:
     try:
         result = identify_aero(ds, args.base, association=args.association, min_spin_conf=args.min_spin_conf,
                                max_rmse=args.max_rmse_mm / 1000.0, test_fraction=args.test_fraction, seed=args.seed,
-                               progress=progress)
+                               forms=tuple(args.forms.split(",")), progress=progress)
     finally:
         if bar is not None:
             bar.close()

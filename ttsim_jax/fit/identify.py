@@ -73,8 +73,9 @@ class AeroIdentification:
         used = self.used
         lines.append(f"        C_D median {np.median(self.fits.cd[used]):.3f}, C_M median {np.median(self.fits.cm[used]):.3f}, "
                      f"drag v_eff {np.min(self.fits.v_eff_drag[used]):.1f}-{np.max(self.fits.v_eff_drag[used]):.1f} m/s")
-        lines.append(f"regress ({self.association}): C_D table weighted RMS residual {self.drag.rms_residual:.4f}; "
-                     f"C_M form {self.magnus.rms_residual:.4f}")
+        lines.append(f"regress ({self.association}; {', '.join(self.settings['forms'])}): weighted RMS residual of the "
+                     f"C_D table {self.drag.rms_residual:.4f}, of the C_M form {self.magnus.rms_residual:.4f} (nan: "
+                     "not fitted, the base model's)")
         lines.append("  C_D table (rows: reference speeds; * = entry supported by data, support >= 1):")
         for k, row in enumerate(self.drag.values["cd"]):
             cells = " ".join(f"{v:.3f}{'*' if self.drag.support[k, j] >= 1 else ' '}" for j, v in enumerate(row))
@@ -110,6 +111,17 @@ def _clean(a) -> list:
     return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, np.float64)]
 
 
+FORMS = ("drag", "magnus")
+
+
+def _unfitted(form) -> F.FormFit:
+    """The base model's values of a form that is not regressed."""
+    keys = ("cd",) if hasattr(form, "cd") else F.MAGNUS_FITTED
+    values = {k: np.asarray(getattr(form, k), np.float64) for k in keys}
+    support = np.zeros(np.shape(values[keys[0]]))
+    return F.FormFit(values=values, prior=values, support=support, n_used=0, rms_residual=float("nan"))
+
+
 def split_sessions(session_ids, test_fraction: float, seed: int) -> np.ndarray:
     """The held-out sessions: a ``test_fraction`` of the distinct ids, drawn with ``seed``."""
     ids = np.unique(np.asarray(session_ids))
@@ -121,7 +133,7 @@ def split_sessions(session_ids, test_fraction: float, seed: int) -> np.ndarray:
 
 def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "averaged", min_spin_conf: float = 0.5,
                   max_rmse: float = 0.02, min_samples: int = 5, test_fraction: float = 0.0, seed: int = 0,
-                  alpha: float = 1.0, progress: Callable | None = None) -> AeroIdentification:
+                  alpha: float = 1.0, forms: tuple = FORMS, progress: Callable | None = None) -> AeroIdentification:
     """Identifies C_D(Re, Sp) and C_M(v, w) from a dataset's flight segments.
 
     Arguments:
@@ -133,6 +145,8 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
         min_spin_conf, max_rmse, min_samples: segment selection (see the module docstring).
         test_fraction, seed: fraction of sessions held out (for evaluation), and the seed of the draw.
         alpha: prior strength of the regression (pseudo-observations per entry).
+        forms: which forms to regress (``"drag"``, ``"magnus"``); one left out keeps the base
+            model's values.
         progress: optional ``progress(n_done, n_total)`` called after each fitted batch.
 
     Returns:
@@ -182,15 +196,18 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     if used.any():
         w = np.linalg.norm(spins[used], axis=1)
         vel = [v for v, u in zip(fits.velocities, used) if u]
-        drag = F.fit_drag_table(model.aero.drag, fits.cd[used], fits.stderr[used, 6],
-                                F.force_weights(vel, spins[used], "drag"), w, float(model.ball.radius),
-                                float(model.aero.nu), association=association, alpha=alpha)
-        magnus = F.fit_magnus_table(model.aero.magnus, fits.cm[used], fits.stderr[used, 7],
-                                    F.force_weights(vel, spins[used], "magnus"), w, association=association,
-                                    alpha=alpha)
+        drag, magnus = _unfitted(model.aero.drag), _unfitted(model.aero.magnus)
+        if "drag" in forms:
+            drag = F.fit_drag_table(model.aero.drag, fits.cd[used], fits.stderr[used, 6],
+                                    F.force_weights(vel, spins[used], "drag"), w, float(model.ball.radius),
+                                    float(model.aero.nu), association=association, alpha=alpha)
+        if "magnus" in forms:
+            magnus = F.fit_magnus_table(model.aero.magnus, fits.cm[used], fits.stderr[used, 7],
+                                        F.force_weights(vel, spins[used], "magnus"), w, association=association,
+                                        alpha=alpha)
     seconds["regress"] = time.perf_counter() - t0
     settings = dict(min_spin_conf=min_spin_conf, max_rmse=max_rmse, min_samples=min_samples,
-                    test_fraction=test_fraction, seed=seed, alpha=alpha)
+                    test_fraction=test_fraction, seed=seed, alpha=alpha, forms=list(forms))
     return AeroIdentification(base=base_path, association=association, segment_ids=ids, fits=fits, used=used,
                               counts=counts, test_sessions=list(test_sessions), drag=drag, magnus=magnus,
                               seconds=seconds, settings=settings)
