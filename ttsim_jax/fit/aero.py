@@ -9,9 +9,12 @@ The solver is a Levenberg-Marquardt loop written in ``jax.lax`` and vmapped over
 whole batch is one compiled call:
 
 * the Jacobian comes from forward mode through the integration, for the five parameters that act
-  on the acceleration (the initial position's columns are the identity);
-* the damped normal equations are solved after scaling the columns to unit norm, which keeps
-  float32 usable although the columns differ by orders of magnitude (metres, m/s, coefficients);
+  on the acceleration (the initial position's columns are the identity), and J^T J, J^T r are
+  summed sample by sample during that one integration (:func:`normal_equations`), so nothing of
+  the segment's length is carried through the loop;
+* the damped normal equations are solved (Cholesky) after scaling the columns to unit norm, which
+  keeps float32 usable although the columns differ by orders of magnitude (metres, m/s,
+  coefficients); standard errors and effective speeds are computed on the host afterwards;
 * a step is kept only if it lowers the cost, with the damping divided by 3 on success and
   multiplied by 10 on failure; the loop ends when every segment of the batch has converged (a
   step gains less than ``tol`` of the cost) or after ``ITERATIONS``. Every iteration is
