@@ -61,3 +61,11 @@ def test_fit_drag_only_keeps_the_base_magnus_form(tmp_path):
         np.testing.assert_allclose(np.asarray(getattr(model.aero.magnus, key)),
                                    np.asarray(getattr(base.aero.magnus, key)), rtol=1e-5)
     assert not np.allclose(np.asarray(model.aero.drag.cd), np.asarray(base.aero.drag.cd))
+
+
+def test_every_fit_option_has_help():
+    from ttsim_jax.cli import build_parser
+
+    fit = build_parser()._subparsers._group_actions[0].choices["fit"]
+    assert all(action.help for action in fit._actions)
+    assert "--forms" in fit.format_help() and "averaged" in fit.format_help()
