@@ -157,7 +157,7 @@ def test_version_and_help(capsys):
     assert ttsim_jax.__version__ in capsys.readouterr().out
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
-    for command in ("simulate", "data", "generate", "train", "evaluate"):
+    for command in ("simulate", "data", "generate", "fit", "train", "evaluate"):
         assert command in out
 
 

@@ -269,8 +269,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(
         prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import, "
-                                  "generate and inspect data, train and evaluate the racket residual network. "
-                                  "World frame: origin at the centre of the table surface, x along the table, z "
+                                  "generate and inspect data, fit aerodynamics, train and evaluate the racket "
+                                  "residual network. World frame: origin at the centre of the table surface, x along the table, z "
                                   "up; SI units.")
     parser.add_argument("--version", action="version", version=f"ttsim-jax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

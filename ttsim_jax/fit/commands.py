@@ -1,11 +1,14 @@
-"""The ``ttsim train residual`` and ``ttsim evaluate residual`` commands. Thin: parsing and
-printing; the work is in :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
+"""The ``ttsim fit``, ``ttsim train residual`` and ``ttsim evaluate residual`` commands. Thin:
+parsing and printing; the work is in :mod:`ttsim_jax.fit.identify`, :mod:`ttsim_jax.fit.contacts`
+and :mod:`ttsim_jax.fit.residual`.
 
 ``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
 ``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user
 errors are raised (the library's errors, :class:`ttsim_jax.cli.UsageError`) and reported by
 :func:`ttsim_jax.cli.main` with status 2.
 
+    ttsim fit --data DATA --out MODEL.toml [--base conti2026] [--association averaged|v_eff] [--forms drag,magnus]
+              [--min-spin-conf C] [--max-rmse-mm R] [--test-fraction F] [--seed S] [--force] [--quiet]
     ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
                          [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
                          [--clusters K] [--resume | --force]
@@ -24,7 +27,8 @@ import sys
 import tomllib
 from pathlib import Path
 
-from ttsim_jax.cli import UsageError, existing_dir, existing_file, positive_int, seed, text_file, writable_file
+from ttsim_jax.cli import (UsageError, existing_dir, existing_file, finite_float, model_name_or_file, positive_float,
+                           positive_int, seed, text_file, writable_file)
 
 MODELS = ("conti2026", "durr2026")
 
@@ -58,13 +62,104 @@ def _group(subparsers, name: str, help: str, description: str):
     return sub
 
 
+def _fraction(text: str) -> float:
+    value = finite_float(text)
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
+    return value
+
+
+def _register_fit(subparsers) -> None:
+    from ttsim_jax.fit.aero_forms import ASSOCIATIONS
+
+    p = subparsers.add_parser(
+        "fit",
+        help="identify a model's aerodynamics (C_D table, C_M form) from a dataset's flight segments",
+        description="Fit C_D, C_M and the initial state to every flight segment of DATA that has a measured spin "
+        "(one compiled, batched Levenberg-Marquardt solver), drop segments whose fit RMSE exceeds --max-rmse-mm, "
+        "regress the coefficients into the paper's forms (the C_D breakpoint table over Re and Sp, C_M linear/"
+        "quadratic in the spin rate per reference speed; breakpoints and entries without data from --base) and "
+        "write the model config OUT (loadable with load_model / --model OUT) and a summary OUT.fit.json. "
+        "Table and racket contact parameters are copied from --base; the racket residual network is trained by "
+        "'ttsim train residual'.",
+    )
+    p.add_argument("--data", required=True, metavar="DATA", type=existing_dir,
+                   help="dataset directory (see docs/data_format.md; 'ttsim data import' converts the public datasets)")
+    p.add_argument("--out", required=True, metavar="OUT", type=writable_file,
+                   help="model config to write, e.g. runs/fitted.toml ('.toml' is added if missing); the model's "
+                   "name is the file's stem")
+    p.add_argument("--base", default="conti2026", metavar="MODEL", type=model_name_or_file,
+                   help="base model: ball, air, the forms' breakpoints, the values where data is missing, and every "
+                   "non-aerodynamic parameter (default: %(default)s)")
+    p.add_argument("--association", choices=ASSOCIATIONS, default="averaged",
+                   help="how a segment's coefficient enters the forms: 'averaged', the force-weighted mean of the form "
+                   "along the segment (default), or 'v_eff', the form at the paper's effective speed")
+    p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default="drag,magnus",
+                   help="which forms to fit; the other keeps the base model's values (default: %(default)s)")
+    p.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C",
+                   help="segments with a lower spin confidence are not used (default: %(default)s)")
+    p.add_argument("--max-rmse-mm", type=positive_float, default=20.0, metavar="R",
+                   help="segments whose constant-coefficient fit has a larger 3-D RMSE are dropped (default: %(default)s)")
+    p.add_argument("--test-fraction", type=_fraction, default=0.0, metavar="F",
+                   help="fraction of sessions held out of the fit, listed in OUT.fit.json for evaluation "
+                   "(default: %(default)s)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the held-out draw (default: %(default)s)")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_fit)
+
+
+def cmd_fit(args) -> int:
+    """``fit``: aerodynamic identification of a dataset -> model config + JSON summary."""
+    from tqdm import tqdm
+
+    from ttsim_jax.data import load
+    from ttsim_jax.fit.identify import identify_aero, write_model
+    from ttsim_jax.io_atomic import atomic_write
+
+    out = Path(args.out)
+    if out.suffix != ".toml":
+        out = out.with_name(out.name + ".toml")
+    summary_path = out.with_suffix(".fit.json")
+    if out.exists() and not args.force:
+        raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
+    ds = load(args.data)
+    print(f"loaded {args.data}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations")
+    bar = None if args.quiet else tqdm(total=0, desc="fit segments", unit="seg", file=sys.stderr)
+
+    def progress(done, total):
+        if bar is not None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+    try:
+        result = identify_aero(ds, args.base, association=args.association, min_spin_conf=args.min_spin_conf,
+                               max_rmse=args.max_rmse_mm / 1000.0, test_fraction=args.test_fraction, seed=args.seed,
+                               forms=tuple(args.forms.split(",")), progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    print(result.summary())
+    if result.drag is None:
+        raise UsageError(f"--data {args.data}: no segment with a measured spin (confidence >= {args.min_spin_conf}) "
+                         f"fits within {args.max_rmse_mm} mm; nothing to write")
+    write_model(result, out, source=f"aerodynamics fitted by ttsim fit on {os.fspath(args.data)} "
+                f"({result.counts['used']} segments, {result.association} association) over {result.base.name}")
+    meta = result.to_dict()
+    meta.update(data=os.fspath(args.data), model=str(out))
+    atomic_write(summary_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
+    print(f"wrote {out} (load_model({str(out)!r}) or --model {out}) and {summary_path}")
+    return 0
+
+
 def register(subparsers) -> None:
-    """Adds ``train residual`` and ``evaluate residual`` to an argparse subparsers object.
+    """Adds ``fit``, ``train residual`` and ``evaluate residual`` to an argparse subparsers object.
 
     Arguments:
         subparsers: what ``ArgumentParser.add_subparsers()`` returned. If a ``train`` or
             ``evaluate`` command already exists there, ``residual`` is added to it.
     """
+    _register_fit(subparsers)
     train = _group(subparsers, "train", "fit model components to measured data",
                    "Fit model components to measured data.")
     p = train.add_parser(

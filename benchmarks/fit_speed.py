@@ -1,0 +1,136 @@
+"""Speed of the aerodynamic identification: the batched fit against scipy's least_squares.
+
+Fits 200 SpinDOE flight segments (those with a measured spin; initial position, initial velocity,
+C_D and C_M per segment) twice in one process:
+
+* batched: :func:`ttsim_jax.fit.aero.fit_segments`, one compiled vmapped Levenberg-Marquardt call;
+  timed from cold (tracing and compilation included: the first call of the process) and warm;
+* scipy: ``scipy.optimize.least_squares(method="lm")`` per segment over the same residual function
+  (:func:`ttsim_jax.fit.aero.residual`, jitted, the segment padded to the same capacity) from the
+  same start, with the Jacobian either by scipy's finite differences (``jac="2-point"``, the plain
+  use; the residual runs in float64 so that the differences mean something) or by the jitted
+  forward-mode Jacobian :func:`ttsim_jax.fit.aero.jacobian` (``jac="jax"``, float32 like the
+  batched fit); timed with and without the compilation of those functions.
+
+Prints JSON (times, the ratios scipy / batched from this one run, the agreement of the fitted
+coefficients, the machine and its load average: the machine may be shared, so compare ratios from
+one run, not times across runs).
+
+    python benchmarks/fit_speed.py --data ../shared/data/real/spindoe --out benchmarks/results/fit_speed_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _real_spindoe() -> Path:
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "spindoe"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=_real_spindoe(), help="SpinDOE folder (default: %(default)s)")
+    p.add_argument("--segments", type=int, default=200, help="segments to fit (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    args = p.parse_args(argv)
+
+    t_start = time.perf_counter()
+    c_start = time.process_time()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # for scipy's float64 residual; the batched fit stays float32
+    import jax.numpy as jnp
+    from scipy.optimize import least_squares
+
+    from ttsim_jax.data.importers import import_source
+    from ttsim_jax.fit import aero as A
+
+    ds = import_source(args.data, "spindoe")
+    ids, times, positions, spins, conf = A.dataset_segments(ds)
+    keep = np.flatnonzero(conf >= 0.5)[: args.segments]
+    if len(keep) < args.segments:
+        print(f"only {len(keep)} segments with a measured spin", file=sys.stderr)
+    times = [times[i] for i in keep]
+    positions = [positions[i] for i in keep]
+    spins = spins[keep]
+    t_loaded, c_loaded = time.perf_counter(), time.process_time()
+
+    # ---- batched, cold (the process's first fit: tracing and compilation included)
+    t0, c0 = time.perf_counter(), time.process_time()
+    cold = A.fit_segments(times, positions, spins)
+    t_cold, c_cold = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    warm = A.fit_segments(times, positions, spins)
+    t_warm, c_warm = time.perf_counter() - t0, time.process_time() - c0
+
+    # ---- scipy over the same residual
+    from ttsim_jax.params import load_model
+
+    size = max(A.capacity(len(t)) for t in times)
+    res_jit = jax.jit(A.residual)
+    jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0])
+    guess_jit = jax.jit(A.initial_guess)
+
+    def run_scipy(jac_kind: str):
+        dtype = np.float64 if jac_kind == "2-point" else np.float32
+        air = A.Air.from_model(load_model("conti2026"), dtype)
+        t0 = time.perf_counter()
+        theta, nfev = [], 0
+        for i in range(len(times)):
+            tau, pos, mask, spin = (jnp.asarray(a[0]) for a in A.pack(times, positions, spins, [i], size, 1, dtype))
+            args_ = (tau, pos, mask, spin, jnp.asarray(len(times[i])), air)
+            x0 = np.asarray(guess_jit(tau, pos, mask), np.float64)
+            fun = lambda th: np.asarray(res_jit(jnp.asarray(th, dtype), *args_), np.float64)  # noqa: E731
+            jac = "2-point"
+            if jac_kind == "jax":
+                jac = lambda th: np.asarray(jac_jit(jnp.asarray(th, dtype), *args_), np.float64)  # noqa: E731
+            sol = least_squares(fun, x0, jac=jac, method="lm")
+            theta.append(sol.x)
+            nfev += sol.nfev
+        return time.perf_counter() - t0, np.asarray(theta), nfev
+
+    scipy = {}
+    for kind in ("2-point", "jax"):
+        first, theta, nfev = run_scipy(kind)  # includes compiling the residual (and Jacobian) once
+        again, theta, _ = run_scipy(kind)
+        d = np.abs(theta[:, 6:] - warm.theta[:, 6:])
+        scipy[kind] = {
+            "total_s": first, "warm_s": again, "function_evaluations": int(nfev),
+            "ratio_to_batched_cold": first / t_cold, "ratio_to_batched_warm": again / t_warm,
+            "median_abs_diff_cd_cm": np.median(d, axis=0).tolist(),
+            "p95_abs_diff_cd_cm": np.percentile(d, 95, axis=0).tolist(),
+        }
+
+    result = {
+        "benchmark": "aerodynamic identification speed",
+        "command": "python benchmarks/fit_speed.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "segments": len(times),
+        "samples": int(sum(len(t) for t in times)),
+        "longest_segment": int(max(len(t) for t in times)),
+        "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm, "iterations": A.ITERATIONS, "batch": A.BATCH,
+                    "median_rmse_mm": float(np.nanmedian(warm.rmse) * 1e3),
+                    "cold_equals_warm": bool(np.allclose(cold.theta, warm.theta, equal_nan=True))},
+        "scipy_least_squares_lm": scipy,
+        "import_s": t_loaded - t_start,
+        "import_cpu_s": c_loaded - c_start,
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                    "load_average": os.getloadavg(), "jax": jax.__version__, "backend": jax.default_backend()},
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

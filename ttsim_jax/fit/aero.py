@@ -1,0 +1,543 @@
+"""Aerodynamic identification per flight segment: (C_D, C_M) and the initial state, by least squares.
+
+Each segment's observed positions p_i at times t_i are fitted by the flight stage
+(:func:`ttsim_jax.physics.aero.flight_step`, RK4, one step per observation interval by default)
+with constant coefficients and the segment's measured spin, over eight free parameters
+theta = (p0 (3), v0 (3), C_D, C_M): minimise sum_i |p(t_i; theta) - p_i|^2.
+
+The solver is a Levenberg-Marquardt loop written in ``jax.lax`` and vmapped over segments, so a
+whole batch is one compiled call:
+
+* the Jacobian comes from forward mode through the integration, for the five parameters that act
+  on the acceleration (the initial position's columns are the identity), and J^T J, J^T r are
+  summed sample by sample during that one integration (:func:`normal_equations`), so nothing of
+  the segment's length is carried through the loop;
+* the damped normal equations are solved (Cholesky) after scaling the columns to unit norm, which
+  keeps float32 usable although the columns differ by orders of magnitude (metres, m/s,
+  coefficients); standard errors and effective speeds are computed on the host afterwards;
+* a step is kept only if it lowers the cost, with the damping divided by 3 on success and
+  multiplied by 10 on failure; the loop ends when every segment of the batch has converged (a
+  step gains less than ``tol`` of the cost) or after ``ITERATIONS``. Every iteration is
+  one forward pass with tangents and no branch.
+
+Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
+that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
+0), and the integration is a ``while_loop`` that stops at the longest segment of the batch: the
+work follows the actual lengths while the compiled shape stays (``batch``, capacity). Segments
+are sorted by length so that a batch holds similar lengths. One capacity and one batch size mean
+one compilation.
+
+After the fit, each segment's effective speeds (the paper's force-averaged velocities) are computed
+along the fitted trajectory at the observation times:
+
+    drag:   v_eff = sum |v_i|^3 / sum |v_i|^2
+    Magnus: v_eff = sum |v_i|^2 sin(theta_i) / sum |v_i| sin(theta_i),  sin(theta_i) = |v_i x w| / (|v_i| |w|)
+
+:mod:`ttsim_jax.fit.aero_forms` regresses the fitted coefficients at these speeds into the paper's
+functional forms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, flight_step
+
+#: Where every fit starts: Nakashima's coefficients.
+CD_0, CM_0 = 0.54, 0.069
+#: Padded lengths (samples). A segment longer than the last is refused.
+CAPACITIES = (256, 1024, 4096)
+#: Segments per compiled call.
+BATCH = 256
+#: Most Levenberg-Marquardt iterations (a batch stops earlier once every segment has converged).
+ITERATIONS = 8
+#: Names of the fitted parameters, in order.
+PARAMS = ("x0", "y0", "z0", "vx0", "vy0", "vz0", "C_D", "C_M")
+
+
+@struct.dataclass
+class Air:
+    """Ball and air of the flight model (arrays, so that changing them does not recompile).
+
+    Attributes:
+        radius, mass: ball radius [m] and mass [kg].
+        rho_air: air density [kg/m^3]; nu: kinematic viscosity [m^2/s].
+        gravity: (3,) gravitational acceleration [m/s^2]; buoyancy: 1.0 with buoyancy, 0.0 without.
+    """
+
+    radius: jnp.ndarray
+    mass: jnp.ndarray
+    rho_air: jnp.ndarray
+    nu: jnp.ndarray
+    gravity: jnp.ndarray
+    buoyancy: jnp.ndarray
+
+    @classmethod
+    def from_model(cls, model, dtype=jnp.float32) -> "Air":
+        """The ball and air of a loaded :class:`~ttsim_jax.params.Model`."""
+        arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+        a = model.aero
+        return cls(arr(model.ball.radius), arr(model.ball.mass), arr(a.rho_air), arr(a.nu), arr(a.gravity),
+                   arr(a.buoyancy))
+
+    def aero(self, cd, cm) -> AeroParams:
+        """Flight parameters with constant coefficients ``cd``, ``cm``."""
+        return AeroParams(rho_air=self.rho_air, nu=self.nu, gravity=self.gravity, buoyancy=self.buoyancy,
+                          drag=ConstantCoefficient(cd), magnus=ConstantCoefficient(cm))
+
+
+# --------------------------------------------------------------------------- one segment
+def integrate(aero: AeroParams, p0, v0, tau, spin, n, air: Air, substeps: int = 1):
+    """Positions and velocities of a flight under any flight parameters at the sample times.
+
+    Arguments:
+        aero: flight parameters (any coefficient models).
+        p0, v0: (3,) state at tau[0].
+        tau: (T,) sample times from the first [s]; padding repeats the last time.
+        spin: (3,) constant spin [rad/s].
+        n: number of samples to integrate to (the rest keep their initial zeros); may be larger
+            than the segment's own length (padded steps have dt = 0).
+        air: the ball's radius and mass (its air is not used: ``aero`` has its own).
+        substeps: RK4 steps per observation interval (static).
+
+    Returns:
+        (P, V): (T, 3) positions [m] and velocities [m/s].
+    """
+    dts = jnp.diff(tau)
+    buf = jnp.zeros((tau.shape[0], 3), p0.dtype)
+
+    def body(carry):
+        i, p, v, ps, vs = carry
+        h = dts[i] / substeps
+        for _ in range(substeps):
+            p, v, _ = flight_step(aero, air.radius, air.mass, p, v, spin, 0.0, h)
+        return i + 1, p, v, ps.at[i + 1].set(p), vs.at[i + 1].set(v)
+
+    init = (jnp.asarray(0), p0, v0, buf.at[0].set(p0), buf.at[0].set(v0))
+    *_, ps, vs = jax.lax.while_loop(lambda c: c[0] < n - 1, body, init)
+    return ps, vs
+
+
+def trajectory(theta, tau, spin, n, air: Air, substeps: int = 1):
+    """:func:`integrate` with constant coefficients: theta = ``[p0, v0, C_D, C_M]`` (8,)."""
+    return integrate(air.aero(theta[6], theta[7]), theta[:3], theta[3:6], tau, spin, n, air, substeps)
+
+
+def residual(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """Masked position residuals (3T,) of one segment: ``(p(t_i; theta) - p_i) * mask_i``."""
+    ps, _ = trajectory(theta, tau, spin, n, air, substeps)
+    return ((ps - pos) * mask[:, None]).ravel()
+
+
+def jacobian(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """(3T, 8) Jacobian of :func:`residual`, and the residual and velocities at theta.
+
+    The initial position does not act on the acceleration (no position-dependent forces in this
+    model), so its columns are the mask times the identity and only the other five parameters need
+    forward-mode tangents.
+
+    Returns:
+        (jac (3T, 8), residual (3T,), velocities (T, 3)).
+    """
+
+    def rest(x):
+        ps, vs = trajectory(jnp.concatenate([theta[:3], x]), tau, spin, n, air, substeps)
+        return ((ps - pos) * mask[:, None]).ravel(), vs
+
+    x = theta[3:]
+    # One integration carries the primal and the five tangents (jacfwd would integrate twice).
+    tangents = jnp.eye(x.shape[0], dtype=x.dtype)
+    (r, vel), (jac5, _) = jax.vmap(lambda t: jax.jvp(rest, (x,), (t,)), out_axes=((None, None), 1))(tangents)
+    jac_p0 = (mask[:, None, None] * jnp.eye(3, dtype=theta.dtype)).reshape(-1, 3)
+    return jnp.concatenate([jac_p0, jac5], axis=1), r, vel
+
+
+def normal_equations(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1):
+    """Cost, J^T J and J^T r of :func:`residual`, accumulated sample by sample in one integration.
+
+    Equal to forming them from :func:`jacobian`, but nothing of length T is carried through the
+    loop: the state's sensitivities to (v0, C_D, C_M) ride along the integration (forward mode
+    through one RK4 step at a time) and each sample adds its 3 x 8 Jacobian block [I, D_i] to the
+    sums. Carrying (T, 3, 5) tangent buffers through a loop costs far more than the arithmetic.
+
+    Returns:
+        (cost, jtj (8, 8), jtr (8,), velocities (T, 3) at the sample times).
+    """
+    dtype = theta.dtype
+    dts = jnp.diff(tau)
+    eye3 = jnp.eye(3, dtype=dtype)
+    # Tangent directions over x = (v0, C_D, C_M): (dv0, dC_D, dC_M) per direction.
+    dv0 = jnp.concatenate([eye3, jnp.zeros((2, 3), dtype)])
+    dcoef = jnp.concatenate([jnp.zeros((3, 2), dtype), jnp.eye(2, dtype=dtype)])
+
+    def step(p, v, cd, cm, h):
+        aero = air.aero(cd, cm)
+        for _ in range(substeps):
+            p, v, _ = flight_step(aero, air.radius, air.mass, p, v, spin, 0.0, h)
+        return p, v
+
+    def add(sums, p, dp, i):
+        cost, jtj, jtr = sums
+        m = mask[i]
+        r = p - pos[i]
+        d = dp.T  # (3, 5): d p_i / d x
+        block = jnp.concatenate([eye3, d], axis=1)  # (3, 8)
+        return cost + m * (r @ r), jtj + m * (block.T @ block), jtr + m * (block.T @ r)
+
+    def body(carry):
+        i, p, v, dp, dv, sums, vel = carry
+        h = dts[i] / substeps
+        cd, cm = theta[6], theta[7]
+        tangent = lambda dp_, dv_, dc: jax.jvp(lambda p_, v_, c_: step(p_, v_, c_[0], c_[1], h),  # noqa: E731
+                                               (p, v, jnp.stack([cd, cm])), (dp_, dv_, dc))
+        (p2, v2), (dp2, dv2) = jax.vmap(tangent, out_axes=((None, None), 0))(dp, dv, dcoef)
+        return i + 1, p2, v2, dp2, dv2, add(sums, p2, dp2, i + 1), vel.at[i + 1].set(v2)
+
+    p0, v0 = theta[:3], theta[3:6]
+    dp0 = jnp.zeros((5, 3), dtype)
+    sums = add((jnp.zeros((), dtype), jnp.zeros((8, 8), dtype), jnp.zeros(8, dtype)), p0, dp0, 0)
+    vel = jnp.zeros((tau.shape[0], 3), dtype).at[0].set(v0)
+    *_, sums, vel = jax.lax.while_loop(lambda c: c[0] < n - 1, body, (jnp.asarray(0), p0, v0, dp0, dv0, sums, vel))
+    return (*sums, vel)
+
+
+def initial_guess(tau, pos, mask, cd0=CD_0, cm0=CM_0):
+    """(8,) start of the fit: position and velocity at tau[0] from a per-axis parabola."""
+    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
+    coef = _spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
+    return jnp.concatenate([coef[0], coef[1], jnp.array([cd0, cm0], pos.dtype)])
+
+
+def _spd_solve(a, b):
+    """a^-1 b for a symmetric positive definite a (Cholesky: far cheaper to compile than LU)."""
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)
+
+
+def _scaled(h):
+    """Column scales d and the scaled matrix H / (d d^T); d is never zero."""
+    diag = jnp.diagonal(h)
+    d = jnp.sqrt(diag + 1e-12 * jnp.max(diag) + jnp.finfo(h.dtype).tiny)
+    return d, h / (d[:, None] * d[None, :])
+
+
+def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1, tol: float = 1e-4):
+    """Levenberg-Marquardt fit of one padded segment; see :func:`fit_batch`."""
+
+    def normal(theta):
+        return normal_equations(theta, tau, pos, mask, spin, n, air, substeps)
+
+    theta0 = initial_guess(tau, pos, mask)
+    eye = jnp.eye(theta0.shape[0], dtype=theta0.dtype)
+
+    def body(carry):
+        k, theta, lam, cost, h, g, vel, _ = carry
+        d, hs = _scaled(h)
+        # The first pass has g = 0 and cost = inf: it evaluates the start and always keeps it,
+        # so the Jacobian code is traced once.
+        cand = theta - _spd_solve(hs + (lam + 1e-6) * eye, g / d) / d
+        c_new, h_new, g_new, v_new = normal(cand)
+        ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
+        # Converged: a step, kept or not, that gains less than tol of the cost (a segment that
+        # cannot be fitted stops too: its RMSE tells).
+        done = (c_new >= cost * (1.0 - tol)) & (k > 0)
+        pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        return (k + 1, pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h),
+                pick(g_new, g), pick(v_new, vel), done)
+
+    init = (jnp.asarray(0), theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype), eye,
+            jnp.zeros_like(theta0), jnp.zeros_like(pos), jnp.asarray(False))
+    # Under vmap the loop runs until every segment of the batch has converged.
+    k, theta, _, cost, h, _, vel, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
+
+    return dict(theta=theta, cost=cost, jtj=h, velocity=vel, iterations=k - 1)
+
+
+def summarize(raw: dict, mask, spin) -> dict:
+    """Per-segment statistics of a batch's fits, on the host (numpy; kept out of the compiled fit).
+
+    Arguments:
+        raw: what the compiled fit returned (``theta``, ``cost``, ``jtj``, ``velocity``, ``iterations``).
+        mask: (S, T) sample mask; spin: (S, 3) spins.
+
+    Returns:
+        The dict described in :func:`fit_batch`.
+    """
+    theta, cost, h, vel = (np.asarray(raw[k], np.float64) for k in ("theta", "cost", "jtj", "velocity"))
+    mask, spin = np.asarray(mask, np.float64), np.asarray(spin, np.float64)
+    count = mask.sum(1)
+    dof = np.maximum(3.0 * count - theta.shape[1], 1.0)
+    d = np.sqrt(np.diagonal(h, axis1=1, axis2=2) + 1e-12)
+    hs = h / (d[:, :, None] * d[:, None, :]) + 1e-6 * np.eye(theta.shape[1])
+    cov = np.linalg.inv(hs) / (d[:, :, None] * d[:, None, :])
+    stderr = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0) * (cost / dof)[:, None])
+    speed = np.linalg.norm(vel, axis=-1)
+    w = np.linalg.norm(spin, axis=-1)[:, None]
+    sin = np.linalg.norm(np.cross(vel, spin[:, None, :]), axis=-1) / np.maximum(speed * w, 1e-9)
+
+    def ratio(num, den):
+        return (mask * num).sum(1) / np.maximum((mask * den).sum(1), 1e-12)
+
+    rmse = np.sqrt(cost / np.maximum(count, 1.0))
+    ok = np.all(np.isfinite(theta), axis=1) & np.isfinite(rmse) & (count >= 3)
+    return dict(theta=np.where(ok[:, None], theta, np.nan), stderr=stderr, rmse=np.where(ok, rmse, np.nan),
+                v_eff_drag=ratio(speed**3, speed**2), v_eff_magnus=ratio(speed**2 * sin, speed * sin),
+                mean_sin=ratio(sin, np.ones_like(sin)), velocity=vel, iterations=np.asarray(raw["iterations"]), ok=ok)
+
+
+def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
+    """Fits a padded batch of segments; compiled once per (batch, capacity, iterations, substeps).
+
+    Arguments:
+        tau: (S, T) times from each segment's first sample [s]; padding repeats the last time.
+        pos: (S, T, 3) observed positions [m]; mask: (S, T) 1 for samples, 0 for padding.
+        spin: (S, 3) spins [rad/s] (zeros when unknown: C_M then stays at its start value and its
+            standard error is huge).
+        n_max: longest segment of the batch (samples); integration stops there.
+        air: ball and air (:class:`Air`).
+        iterations, substeps: Levenberg-Marquardt iterations, RK4 steps per interval (static).
+
+    Returns:
+        dict of arrays: ``theta`` (S, 8) ``[p0, v0, C_D, C_M]`` (NaN where the fit failed),
+        ``stderr`` (S, 8) standard errors, ``rmse`` (S,) [m], ``v_eff_drag`` and ``v_eff_magnus``
+        (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin,
+        ``velocity`` (S, T, 3) fitted velocities at the sample times, ``iterations`` (S,) taken
+        (the batch's loop runs until its slowest segment converges), ``ok``.
+    """
+    raw = jax.device_get(_fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps))
+    return summarize(raw, mask, spin)
+
+
+def _fit_batch_impl(tau, pos, mask, spin, n_max, air, iterations, substeps):
+    fn = lambda a, b, c, d: fit_one(a, b, c, d, n_max, air, iterations, substeps)  # noqa: E731
+    return jax.vmap(fn)(tau, pos, mask, spin)
+
+
+_fit_batch_jit = jax.jit(_fit_batch_impl, static_argnames=("iterations", "substeps"))
+
+
+# --------------------------------------------------------------------------- many segments
+@dataclasses.dataclass
+class SegmentFits:
+    """Fits of many segments (numpy, in the order the segments were given).
+
+    Attributes:
+        theta: (S, 8) fitted ``[p0, v0, C_D, C_M]`` (NaN where a fit failed or was not run).
+        stderr: (S, 8) standard errors of theta.
+        rmse: (S,) 3-D position RMSE of the fit [m].
+        v_eff_drag, v_eff_magnus: (S,) effective speeds [m/s].
+        spin: (S, 3) the spins used [rad/s].
+        n: (S,) samples per segment.
+        mean_sin: (S,) mean sine of the angle between velocity and spin.
+        velocities: per segment, (T_i, 3) fitted velocities at the sample times [m/s] (None if
+            not fitted).
+    """
+
+    theta: np.ndarray
+    stderr: np.ndarray
+    rmse: np.ndarray
+    v_eff_drag: np.ndarray
+    v_eff_magnus: np.ndarray
+    spin: np.ndarray
+    n: np.ndarray
+    mean_sin: np.ndarray
+    velocities: list
+
+    @property
+    def cd(self) -> np.ndarray:
+        return self.theta[:, 6]
+
+    @property
+    def cm(self) -> np.ndarray:
+        return self.theta[:, 7]
+
+    def __len__(self) -> int:
+        return len(self.rmse)
+
+
+def capacity(n: int) -> int:
+    """The padded length of a segment of ``n`` samples (the smallest of :data:`CAPACITIES`)."""
+    for c in CAPACITIES:
+        if n <= c:
+            return c
+    raise ValueError(f"a segment of {n} samples is longer than the largest capacity {CAPACITIES[-1]}")
+
+
+def pack(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins, rows: Sequence[int], size: int,
+         batch: int, dtype=np.float32):
+    """Pads segments ``rows`` into arrays (batch, size) for :func:`fit_batch`; unused rows are empty."""
+    tau = np.zeros((batch, size), dtype)
+    pos = np.zeros((batch, size, 3), dtype)
+    mask = np.zeros((batch, size), dtype)
+    spin = np.zeros((batch, 3), dtype)
+    for row, i in enumerate(rows):
+        t = np.asarray(times[i], np.float64)
+        k = len(t)
+        tau[row, :k] = t - t[0]
+        tau[row, k:] = tau[row, k - 1]
+        pos[row, :k] = positions[i]
+        pos[row, k:] = positions[i][-1]
+        mask[row, :k] = 1.0
+        spin[row] = spins[i]
+    return tau, pos, mask, spin
+
+
+def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins=None, *, air: Air | None = None,
+                 batch: int = BATCH, iterations: int = ITERATIONS, substeps: int = 1, dtype=np.float32,
+                 progress: Callable | None = None) -> SegmentFits:
+    """Fits every segment: sorted by length, padded to its capacity, in batches of ``batch``.
+
+    Arguments:
+        times: list of (T_i,) increasing sample times [s].
+        positions: list of (T_i, 3) observed positions [m].
+        spins: (S, 3) spins [rad/s] (default zeros).
+        air: ball and air (default: those of the bundled conti2026 model).
+        batch: segments per compiled call (fewer segments of one capacity: their count rounded up
+            to a multiple of 8); iterations, substeps: see :func:`fit_batch`.
+        dtype: float type of the fit (float32 by default; float64 needs ``jax_enable_x64``).
+        progress: optional callable ``progress(n_done)`` called after each batch.
+
+    Returns:
+        :class:`SegmentFits`; segments with fewer than 3 samples are left NaN.
+    """
+    n_seg = len(times)
+    spins = np.zeros((n_seg, 3)) if spins is None else np.asarray(spins, np.float64).reshape(n_seg, 3)
+    if air is None:
+        from ttsim_jax.params import load_model
+
+        air = Air.from_model(load_model("conti2026"), dtype)
+    air = jax.tree.map(lambda x: jnp.asarray(x, dtype), air)
+    lengths = np.array([len(t) for t in times], int)
+    out = SegmentFits(theta=np.full((n_seg, 8), np.nan), stderr=np.full((n_seg, 8), np.nan),
+                      rmse=np.full(n_seg, np.nan), v_eff_drag=np.full(n_seg, np.nan),
+                      v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan),
+                      velocities=[None] * n_seg)
+    done = 0
+    for idx, arrays, n_max in batches(times, positions, spins, batch, dtype):
+        res = fit_batch(*arrays, n_max, air, iterations, substeps)
+        k = len(idx)
+        out.theta[idx] = res["theta"][:k]
+        out.stderr[idx] = res["stderr"][:k]
+        out.rmse[idx] = res["rmse"][:k]
+        out.v_eff_drag[idx] = res["v_eff_drag"][:k]
+        out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
+        out.mean_sin[idx] = res["mean_sin"][:k]
+        for row, i in enumerate(idx):
+            out.velocities[i] = res["velocity"][row, : lengths[i]]
+        done += k
+        if progress is not None:
+            progress(done)
+    return out
+
+
+def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3):
+    """Padded batches of segments: sorted by length, grouped by capacity, ``batch`` rows each.
+
+    A group that fits in one batch is padded only to a multiple of 8 rows (one compilation
+    either way); otherwise every batch of the group has ``batch`` rows.
+
+    Yields:
+        (idx, (tau, pos, mask, spin), n_max): the segments' indices (rows beyond ``len(idx)`` are
+        empty), the arrays of :func:`pack` and the longest segment's length.
+    """
+    lengths = np.array([len(t) for t in times], int)
+    groups: dict[int, list[int]] = {}
+    for i in np.argsort(lengths, kind="stable"):
+        if lengths[i] >= min_samples:
+            groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
+    for size, members in sorted(groups.items()):
+        rows = batch if len(members) > batch else -(-len(members) // 8) * 8
+        for start in range(0, len(members), rows):
+            idx = members[start : start + rows]
+            yield idx, pack(times, positions, spins, idx, size, rows, dtype), int(lengths[idx].max())
+
+
+def dataset_segments(ds, min_samples: int = 5):
+    """The flight segments of a dataset as lists for :func:`fit_segments`.
+
+    Arguments:
+        ds: a :class:`~ttsim_jax.data.Dataset` with segments.
+        min_samples: segments with fewer observations are left out.
+
+    Returns:
+        (segment_ids (S,), times list, positions list, spins (S, 3), spin_conf (S,)).
+    """
+    seg, obs = ds.segments, ds.observations
+    order = np.argsort(obs["segment_id"], kind="stable")
+    sorted_ids = obs["segment_id"][order]
+    pos = ds.positions
+    ids, times, positions, spins, conf = [], [], [], [], []
+    for k, sid in enumerate(seg["segment_id"]):
+        lo, hi = np.searchsorted(sorted_ids, [sid, sid + 1])
+        if hi - lo < min_samples:
+            continue
+        rows = order[lo:hi]
+        ids.append(int(sid))
+        times.append(obs["t"][rows])
+        positions.append(pos[rows])
+        spins.append([seg["spin_x"][k], seg["spin_y"][k], seg["spin_z"][k]])
+        conf.append(seg["spin_conf"][k])
+    return np.asarray(ids, np.int64), times, positions, np.asarray(spins, np.float64).reshape(-1, 3), np.asarray(conf)
+
+
+# --------------------------------------------------------------------------- synthetic segments
+def synthetic_segments(aero: AeroParams, radius, mass, n: int, *, seed: int = 0, coefficients=None,
+                       rate: float = 143.0, duration=(0.3, 0.6), speed=(4.0, 16.0), spin_rate=(50.0, 500.0),
+                       noise: float = 0.002, substeps: int = 7):
+    """Flight segments from known parameters, sampled like a tracking system, for identifiability checks.
+
+    Balls start near one end line (x = -1.3 m, y in +-0.3 m, z in 0.2-0.4 m) heading towards +x
+    (heading within +-10 deg, elevation -5 to 15 deg) with spin along a random axis.
+
+    Arguments:
+        aero: flight parameters of the truth (any coefficient models).
+        radius, mass: ball radius [m] and mass [kg].
+        n: number of segments.
+        seed: random seed.
+        coefficients: optional (n, 2) constant (C_D, C_M) per segment, replacing aero's models.
+        rate: sampling rate [Hz]; duration: range of segment durations [s].
+        speed: range of initial speeds [m/s]; spin_rate: range of spin rates [rad/s].
+        noise: standard deviation of the position noise per axis [m].
+        substeps: RK4 steps per sampling interval of the truth.
+
+    Returns:
+        (times list of (T_i,), positions list of (T_i, 3) noisy, spins (n, 3), states (n, 6) true
+        initial position and velocity).
+    """
+    rng = np.random.default_rng(seed)
+    p0 = np.stack([np.full(n, -1.3), rng.uniform(-0.3, 0.3, n), rng.uniform(0.2, 0.4, n)], 1)
+    head, elev = np.radians(rng.uniform(-10, 10, n)), np.radians(rng.uniform(-5, 15, n))
+    v0 = rng.uniform(*speed, n)[:, None] * np.stack(
+        [np.cos(elev) * np.cos(head), np.cos(elev) * np.sin(head), np.sin(elev)], 1)
+    axis = rng.normal(size=(n, 3))
+    spins = rng.uniform(*spin_rate, n)[:, None] * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    counts = np.round(rng.uniform(*duration, n) * rate).astype(int) + 1
+    steps = int(counts.max() - 1) * substeps
+    h = 1.0 / (rate * substeps)
+    coef = np.tile([[CD_0, CM_0]], (n, 1)) if coefficients is None else np.asarray(coefficients, np.float64)
+    dtype = jnp.zeros(()).dtype
+
+    def one(p, v, w, c):
+        air = aero if coefficients is None else aero.replace(drag=ConstantCoefficient(c[0]),
+                                                             magnus=ConstantCoefficient(c[1]))
+
+        def step(carry, _):
+            p, v = carry
+            p, v, _ = flight_step(air, radius, mass, p, v, w, 0.0, h)
+            return (p, v), p
+
+        _, ps = jax.lax.scan(step, (p, v), None, length=steps)
+        return jnp.concatenate([p[None], ps[substeps - 1::substeps]])
+
+    arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    paths = np.asarray(jax.jit(jax.vmap(one))(arr(p0), arr(v0), arr(spins), arr(coef)), np.float64)
+    times, positions = [], []
+    for i, k in enumerate(counts):
+        times.append(np.arange(k) / rate)
+        positions.append(paths[i, :k] + rng.normal(0.0, noise, (k, 3)))
+    return times, positions, spins, np.concatenate([p0, v0], 1)
