@@ -5,7 +5,7 @@ import pytest
 
 from ttsim_jax import Ball, Racket, RacketPolicy, load_model, simulate, stack_models
 from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
-from ttsim_jax.kernel.rollout import _rollout
+from ttsim_jax.kernel.rollout import _rollout, memory_bytes
 
 
 def serve_batch(n=6, seed=0):
@@ -148,6 +148,15 @@ def test_recording_above_memory_budget_is_refused_with_size():
         simulate(m, b, 1000, record_every=1, memory_budget_bytes=1000)
     r = simulate(m, b, 1000, record_every=100)
     assert r.trajectory.pos.shape == (2, 10, 3)
+    # the estimate is the size of what the rollout returns
+    need = memory_bytes(2, 1000, 100, 8, r.final.pos.dtype)
+    size = lambda tree: sum(x.nbytes for x in jax.tree.leaves(tree))  # noqa: E731
+    assert need["state"] == size(r.state)
+    assert need["event_log"] == size(r.events)
+    assert need["recording"] == size(r.trajectory)
+    # an event log too large for the budget is refused too, before anything compiles
+    with pytest.raises(ValueError, match=r"event log 0\.\d\d GiB.*budget"):
+        simulate(m, b, 1000, max_events=10**6, memory_budget_bytes=2**20)
 
 
 def test_floor_stops_the_ball():

@@ -272,6 +272,24 @@ def recording_bytes(batch: int, n_steps: int, record_every: int, itemsize: int) 
     return 0 if not record_every else batch * (n_steps // record_every) * 9 * itemsize
 
 
+def _nbytes(tree) -> int:
+    return int(sum(math.prod(x.shape) * x.dtype.itemsize for x in jax.tree.leaves(tree)))
+
+
+def memory_bytes(batch: int, n_steps: int, record_every: int, max_events: int, dtype) -> dict[str, int]:
+    """What a forward rollout holds per batch [bytes]: its state, event log and recording, and the
+    total (their sum; a step's temporaries come on top, a few hundred bytes per ball of a block).
+
+    The sizes come from the shapes of the arrays themselves (``jax.eval_shape``), so they follow
+    any change of the state or the log.
+    """
+    ball = Ball(*(jax.ShapeDtypeStruct((batch, 3), dtype),) * 3)
+    state = _nbytes(jax.eval_shape(init_state, ball))
+    log = _nbytes(jax.eval_shape(lambda: EventLog.empty(batch, max_events, dtype))) if max_events else 0
+    rec = recording_bytes(batch, n_steps, record_every, jnp.dtype(dtype).itemsize)
+    return dict(state=state, event_log=log, recording=rec, total=state + log + rec)
+
+
 def default_capacity(batch: int) -> int:
     """Contact buffer rows: B/32, at least 8 (a ball has a contact every ~100-300 steps)."""
     return min(batch, max(8, math.ceil(batch / 32)))
@@ -310,7 +328,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         block_size: run the batch in blocks of this many balls, one after the other, each through
             the whole rollout (same results); default 1,024 on CPU (cache-sized), none on GPU; 0
             for none.
-        memory_budget_bytes: a recording above this is refused before compiling.
+        memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
+            need more is refused before compiling, with the sizes.
 
     Returns:
         (state, :class:`RolloutOutput`).
@@ -323,12 +342,15 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         raise ValueError(f"n_steps must be positive (an int), got {n_steps!r}")
     if record_every and n_steps % record_every:
         raise ValueError(f"record_every={record_every} must divide n_steps={n_steps}")
-    need = recording_bytes(batch, n_steps, record_every, ball.pos.dtype.itemsize)
-    if need > memory_budget_bytes:
+    need = memory_bytes(batch, n_steps, record_every, max_events, ball.pos.dtype)
+    if need["total"] > memory_budget_bytes:
+        gib = lambda n: f"{n / 2**30:.2f} GiB"  # noqa: E731
         raise ValueError(
-            f"recording {batch} balls every {record_every} steps for {n_steps} steps needs "
-            f"{need / 2**30:.2f} GiB, above the memory budget of {memory_budget_bytes / 2**30:.2f} GiB; "
-            "record less often (record_every), fewer balls, or raise memory_budget_bytes")
+            f"a rollout of {batch} balls for {n_steps} steps (record_every={record_every}, "
+            f"max_events={max_events}) needs {gib(need['total'])} (state {gib(need['state'])}, event log "
+            f"{gib(need['event_log'])}, recording {gib(need['recording'])}), above the memory budget of "
+            f"{gib(memory_budget_bytes)}; record less often (record_every), log fewer events (max_events), "
+            "run fewer balls per call, or raise memory_budget_bytes")
     axes = _resolve_axes(model, model_axes)
     _check_per_ball(model, axes, batch)
     schedule, policy, batched = None, None, False
