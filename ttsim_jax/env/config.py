@@ -160,8 +160,11 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: not a valid TOML file ({e})") from None
     for key, value in (overrides or {}).items():
-        section, _, name = key.rpartition(".")
-        (raw.setdefault(section, {}) if section else raw)[name] = value
+        section, _, name = key.partition(".")
+        if name:
+            raw.setdefault(section, {})[name] = value
+        else:
+            raw[section] = value
     return parse_task_config(raw, str(path))
 
 

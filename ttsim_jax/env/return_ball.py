@@ -374,19 +374,28 @@ def _advance(p: Rally, kind, pos, valid) -> Rally:
                  landing=jnp.where((post & table & ~own)[:, None], pos[:, :2], p.landing))
 
 
-@partial(jax.jit, static_argnums=(0,))
+def _key(key):
+    """A key as the compiled functions expect it (a uint32 pair); actions are cast to float32 alike,
+    so that a float64 or integer action does not compile the step anew."""
+    return jnp.asarray(key, jnp.uint32)
+
+
+_reset = jax.jit(lambda env, key, params: env.reset(key, params), static_argnums=(0,))
+_step = jax.jit(lambda env, key, state, action, params: env.step(key, state, action, params), static_argnums=(0,))
+_step_env = jax.jit(lambda env, key, state, action, params: env.step_env(key, state, action, params),
+                    static_argnums=(0,))
+
+
 def jit_reset(env: ReturnBall, key, params):
     """Jitted :meth:`ReturnBall.reset` (the env object is static: one compile per env)."""
-    return env.reset(key, params)
+    return _reset(env, _key(key), params)
 
 
-@partial(jax.jit, static_argnums=(0,))
 def jit_step(env: ReturnBall, key, state, action, params):
-    """Jitted :meth:`ReturnBall.step`."""
-    return env.step(key, state, action, params)
+    """Jitted :meth:`ReturnBall.step` (one compile per env)."""
+    return _step(env, _key(key), state, jnp.asarray(action, jnp.float32), params)
 
 
-@partial(jax.jit, static_argnums=(0,))
 def jit_step_env(env: ReturnBall, key, state, action, params):
     """Jitted :meth:`ReturnBall.step_env`."""
-    return env.step_env(key, state, action, params)
+    return _step_env(env, _key(key), state, jnp.asarray(action, jnp.float32), params)
