@@ -112,7 +112,7 @@ def default_task_path(name: str = "return_ball") -> Path:
     return config_dir() / "tasks" / f"{name}.toml"
 
 
-def _convert(where: str, default, value):
+def convert_value(where: str, default, value):
     """``value`` checked against the type and length of ``default``."""
     if isinstance(default, bool):
         if not isinstance(value, bool):
@@ -133,7 +133,7 @@ def _convert(where: str, default, value):
         if default and not isinstance(default[0], str):
             if len(value) != len(default):
                 raise ConfigError(f"{where} = {value!r}: expected {len(default)} numbers")
-            return tuple(_convert(where, 0.0, v) for v in value)
+            return tuple(convert_value(where, default[0], v) for v in value)
         return tuple(value)
     raise ConfigError(f"{where} = {value!r}: unexpected value")
 
@@ -168,32 +168,37 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
     return parse_task_config(raw, str(path))
 
 
+def read_section(raw: dict, name: str, cls, source: str, positive=(), non_negative=()):
+    """An instance of the dataclass ``cls`` from the TOML table ``raw[name]`` (missing keys keep their
+    defaults), every value checked against its default's type; raises :class:`ConfigError` naming
+    the file, the table, the key and the value."""
+    section = raw.get(name, {})
+    if not isinstance(section, dict):
+        raise ConfigError(f"{source}: [{name}] must be a table")
+    defaults = cls()
+    known = {f.name for f in dataclasses.fields(cls)}
+    bad = set(section) - known
+    if bad:
+        raise ConfigError(f"{source}: [{name}] unknown key(s) {sorted(bad)}; known: {sorted(known)}")
+    values = {}
+    for key, value in section.items():
+        where = f"{source}: [{name}] {key}"
+        v = convert_value(where, getattr(defaults, key), value)
+        if key in positive and (v <= 0 if not isinstance(v, tuple) else any(x <= 0 for x in v)):
+            raise ConfigError(f"{where} = {value!r}: must be positive")
+        if key in non_negative and v < 0:
+            raise ConfigError(f"{where} = {value!r}: must not be negative")
+        values[key] = v
+    return cls(**values)
+
+
 def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     """A :class:`TaskConfig` from the parsed TOML ``raw`` (see :func:`load_task_config`)."""
     unknown = set(raw) - set(_SECTIONS) - {"model", "randomisation"}
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: model, randomisation, "
                           f"{', '.join(_SECTIONS)}")
-    out = {}
-    for name, cls in _SECTIONS.items():
-        section = raw.get(name, {})
-        if not isinstance(section, dict):
-            raise ConfigError(f"{source}: [{name}] must be a table")
-        defaults = cls()
-        known = {f.name for f in dataclasses.fields(cls)}
-        bad = set(section) - known
-        if bad:
-            raise ConfigError(f"{source}: [{name}] unknown key(s) {sorted(bad)}; known: {sorted(known)}")
-        values = {}
-        for key, value in section.items():
-            where = f"{source}: [{name}] {key}"
-            v = _convert(where, getattr(defaults, key), value)
-            if key in _POSITIVE and v <= 0:
-                raise ConfigError(f"{where} = {value!r}: must be positive")
-            if key in _NON_NEGATIVE and v < 0:
-                raise ConfigError(f"{where} = {value!r}: must not be negative")
-            values[key] = v
-        out[name] = cls(**values)
+    out = {name: read_section(raw, name, cls, source, _POSITIVE, _NON_NEGATIVE) for name, cls in _SECTIONS.items()}
     racket = out["racket"]
     for lo, hi, what in (("workspace_lo", "workspace_hi", "workspace"), ("angle_lo", "angle_hi", "angle")):
         if any(a >= b for a, b in zip(getattr(racket, lo), getattr(racket, hi))):
@@ -217,7 +222,7 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
         raise ConfigError(f"{source}: [randomisation] must be a table")
     for key, value in rand.items():
         where = f"{source}: [randomisation] {key!r}"
-        lo, hi = _convert(where, (0.0, 0.0), value)
+        lo, hi = convert_value(where, (0.0, 0.0), value)
         if lo > hi:
             raise ConfigError(f"{where} = {value!r}: low must not exceed high")
         ranges.append((key, lo, hi))

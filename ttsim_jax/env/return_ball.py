@@ -117,21 +117,40 @@ class EnvParams:
     target: jnp.ndarray
 
 
-def shot_bank(model: Model, config: TaskConfig):
+def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     """The incoming shots: ``sample_shots`` of the configured types, redrawing any faster or spinning
     faster than the configured maxima.
+
+    Aiming thousands of shots through the model takes a minute on a CPU, so an aimed bank is kept in
+    ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache``), named by a hash of the ``[shots]`` settings,
+    the model's parameters and the sampler's source; ``cache=False`` always draws afresh.
 
     Returns:
         (:class:`Ball` (S, 3) float32 numpy fields, (S,) int shot type index into ``config.shots.types``).
     """
-    from ttsim_jax.shots import sample_shots
+    import hashlib
+    import inspect
+    import os
+    from pathlib import Path
+
+    from ttsim_jax import shots as shots_module
 
     c = config.shots
+    path = None
+    if cache and c.aim:
+        digest = hashlib.sha256(repr(c).encode())
+        for leaf in jax.tree.leaves(model):
+            digest.update(np.asarray(leaf).tobytes())
+        digest.update(inspect.getsource(shots_module).encode())
+        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ttsim_jax"
+        path = root / f"shots-{digest.hexdigest()[:20]}.npz"
+        if path.is_file():
+            with np.load(path) as f:
+                return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]
     kept, labels, seed = [], [], c.seed
     while sum(len(k) for k in kept) < c.bank:
-        n = 2 * c.bank
-        ball, lab = sample_shots(n, seed=seed, types=list(c.types), radius=float(model.ball.radius),
-                                 model=model if c.aim else None)
+        ball, lab = shots_module.sample_shots(2 * c.bank, seed=seed, types=list(c.types),
+                                              radius=float(model.ball.radius), model=model if c.aim else None)
         ok = ((np.linalg.norm(ball.vel, axis=-1) <= c.max_speed) & (np.linalg.norm(ball.spin, axis=-1) <= c.max_spin)
               & np.isfinite(ball.vel).all(-1))
         if not ok.any():
@@ -143,7 +162,20 @@ def shot_bank(model: Model, config: TaskConfig):
     arr = np.concatenate(kept)[:c.bank].astype(np.float32)
     lab = np.concatenate(labels)[:c.bank]
     index = {name: i for i, name in enumerate(c.types)}
-    return Ball(pos=arr[:, 0:3], vel=arr[:, 3:6], spin=arr[:, 6:9]), np.array([index[s] for s in lab], np.int32)
+    bank = Ball(pos=arr[:, 0:3], vel=arr[:, 3:6], spin=arr[:, 6:9])
+    types = np.array([index[s] for s in lab], np.int32)
+    if path is not None:
+        import io
+
+        from ttsim_jax.io_atomic import atomic_write
+
+        buf = io.BytesIO()
+        np.savez(buf, pos=bank.pos, vel=bank.vel, spin=bank.spin, types=types)
+        try:
+            atomic_write(path, buf.getvalue())
+        except OSError:  # a read-only home: no cache, same bank
+            pass
+    return bank, types
 
 
 def _set_leaf(model, path: str, value):
