@@ -1,11 +1,14 @@
-"""The learning agent's racket: a kinematic body driven by velocity commands at the control rate.
+"""The learning agent's racket: a kinematic body driven by acceleration commands at the control rate.
 
-Each control period the policy commands a velocity of the face centre (3) and rates of the face's
-two angles (pitch: face opened upwards, yaw: face turned across the table). The racket moves towards
-the command with at most its acceleration limits, at constant acceleration over the period, inside
-its workspace box; the period is cut into the kernel's physics steps, each a racket moving at
-constant velocity (the kernel's racket model), so the schedule is the exact piecewise-linear
-interpolation of that motion.
+Each control period the policy commands an acceleration of the face centre (3) and of the face's
+two angles (pitch: face opened upwards, yaw: face turned across the table), as fractions of their
+limits. The racket moves at that constant acceleration over the period, reduced where it would
+exceed the speed limits, inside its workspace box (a coordinate driven into a wall stops there);
+the period is cut into the kernel's physics steps, each a racket moving at constant velocity (the
+kernel's racket model), so the schedule is the piecewise-linear interpolation of that motion.
+
+Acceleration commands keep the policy's effect smooth and linear (a velocity command under an
+acceleration limit saturates for most commands, which hides the action's effect from learning).
 """
 
 from __future__ import annotations
@@ -72,14 +75,18 @@ def angular_velocity(angle, rate):
     return rate[0] * jnp.stack([-sy, cy, jnp.zeros_like(cy)]) + rate[1] * jnp.array([0.0, 0.0, 1.0], cy.dtype)
 
 
-def _ramp(x, v, command, max_accel, lo, hi, period, n_sub):
-    """Constant-acceleration motion of one group of coordinates towards a commanded velocity.
+def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub):
+    """Constant-acceleration motion of one group of coordinates over a control period.
+
+    Arguments:
+        x, v: (d,) position and velocity; fraction: (d,) commanded acceleration / its limit, in [-1, 1].
 
     Returns:
         (positions at the n_sub step starts (n_sub, d), mean velocities over each step (n_sub, d),
         end position (d,), end velocity (d,), acceleration used / its limit (d,)).
     """
-    accel = jnp.clip((command - v) / period, -max_accel, max_accel)
+    v = jnp.clip(v, -max_speed, max_speed)
+    accel = jnp.clip(fraction * max_accel, (-max_speed - v) / period, (max_speed - v) / period)
     h = period / n_sub
     t = jnp.arange(n_sub, dtype=x.dtype)[:, None] * h
     pos = jnp.clip(x + v * t + 0.5 * accel * t * t, lo, hi)
@@ -95,9 +102,9 @@ def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int
 
     Arguments:
         limits: :class:`RacketLimits`; state: :class:`RacketState` with (3,) / (2,) fields.
-        action: (5,) in [-1, 1]: velocity of the face centre as fractions of ``max_speed`` (3), then
-            the angle rates as fractions of ``max_rate`` (2); non-finite entries count as 0, others
-            are clipped to [-1, 1].
+        action: (5,) in [-1, 1]: acceleration of the face centre as fractions of ``max_accel`` (3),
+            then the angles' accelerations as fractions of ``max_angle_accel`` (2); non-finite
+            entries count as 0, others are clipped to [-1, 1].
         period: control period [s]; n_sub: physics steps in it (static).
 
     Returns:
@@ -105,10 +112,10 @@ def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int
         mean squared acceleration as a fraction of its limit).
     """
     a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0).astype(state.pos.dtype)
-    pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3] * limits.max_speed, limits.max_accel,
+    pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3], limits.max_accel, limits.max_speed,
                                           limits.lo, limits.hi, period, n_sub)
-    ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5] * limits.max_rate,
-                                           limits.max_angle_accel, limits.angle_lo, limits.angle_hi, period, n_sub)
+    ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5], limits.max_angle_accel,
+                                           limits.max_rate, limits.angle_lo, limits.angle_hi, period, n_sub)
     rot = jax.vmap(rotation)(ang)
     omega = jax.vmap(angular_velocity)(ang, rate)
     face = jnp.broadcast_to(limits.face, (n_sub, 2))

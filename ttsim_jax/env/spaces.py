@@ -15,5 +15,6 @@ def observation_space(env) -> spaces.Box:
 
 
 def action_space(env) -> spaces.Box:
-    """Box (5,) float32 in [-1, 1]: face-centre velocity, then face-angle rates, as fractions of their limits."""
+    """Box (5,) float32 in [-1, 1]: face-centre acceleration, then face-angle accelerations, as fractions
+    of their limits."""
     return spaces.Box(-1.0, 1.0, (env.action_dim,), np.float32)
