@@ -27,9 +27,10 @@ def register(subparsers) -> None:
     mode.add_argument("--resume", action="store_true", help="continue the run in OUT from its checkpoint")
     mode.add_argument("--force", action="store_true", help="start afresh even if OUT holds a checkpoint")
     p.add_argument("--total-env-steps", type=positive_int, default=None, metavar="N",
-                   help="stop after this many environment steps (default: the config's)")
+                   help="stop after this many environment steps in all (default: the config's)")
     p.add_argument("--time-limit", type=positive_float, default=None, metavar="S",
-                   help="stop after this many seconds of training (default: the config's)")
+                   help="stop after this many seconds of training, a resumed run's earlier time included "
+                        "(default: the config's)")
     p.add_argument("--seed", type=seed, default=None, help="seed (default: the config's)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=cmd_train_ppo)
