@@ -8,6 +8,9 @@ from ttsim_jax.params import ConfigError, Model, load_model, stack_models
 from ttsim_jax.kernel import (EventLog, RacketPolicy, RallyResult, RallyState, RolloutOutput, init_state, per_ball_axes,
                               rollout, simulate)
 from ttsim_jax.state import Ball, Racket
+from ttsim_jax.env.registration import register_envs
+
+register_envs()
 
 __version__ = "0.1.0"
 

@@ -32,8 +32,10 @@ def _user_errors() -> tuple:
     from ttsim_jax.params import ConfigError
     from ttsim_jax.physics.residual import CheckpointError
     from ttsim_jax.physics.residual import ConfigError as ResidualConfigError
+    from ttsim_jax.rl.checkpoint import CheckpointError as PolicyCheckpointError
 
-    return (UsageError, ConfigError, ResidualConfigError, CheckpointError, DataError, GeneratorError, EffectError,
+    return (UsageError, ConfigError, ResidualConfigError, CheckpointError, PolicyCheckpointError, DataError,
+            GeneratorError, EffectError,
             FileExistsError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
 
 
@@ -266,11 +268,13 @@ def build_parser() -> argparse.ArgumentParser:
     from ttsim_jax.data import commands as data_commands
     from ttsim_jax.data import generator_cli
     from ttsim_jax.fit import commands as fit_commands
+    from ttsim_jax.rl import commands as rl_commands
 
     parser = argparse.ArgumentParser(
         prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import, "
                                   "generate and inspect data, fit aerodynamics, train and evaluate the racket "
-                                  "residual network. World frame: origin at the centre of the table surface, x along the table, z "
+                                  "residual network, train and play a racket policy (PPO). "
+                                  "World frame: origin at the centre of the table surface, x along the table, z "
                                   "up; SI units.")
     parser.add_argument("--version", action="version", version=f"ttsim-jax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -278,6 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
     data_commands.register(sub)
     generator_cli.register(sub)
     fit_commands.register(sub)
+    rl_commands.register(sub)
     return parser
 
 

@@ -1,0 +1,271 @@
+"""The functional ReturnBall environment: spaces, determinism, automatic reset, no retrace, extreme
+inputs, domain randomisation, the rally's bookkeeping and the racket's kinematic limits.
+
+One compiled shape: 8 environments, built through ``gymnasium.make_vec`` (module fixture); every
+test that steps reuses its compiled step.
+"""
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ttsim_jax  # noqa: F401  (registers the environments)
+from ttsim_jax.env import racket as racket_kin
+from ttsim_jax.env import return_ball
+from ttsim_jax.env.config import load_task_config
+from ttsim_jax.env.return_ball import (LEGAL, MISS, NET, OUT, RUNNING, VOLLEY, Rally, _advance, jit_reset, jit_step)
+from ttsim_jax.params import ConfigError
+from ttsim_jax.physics import events as ev
+
+N = 8
+OVERRIDES = {"shots.bank": 64, "shots.aim": False}
+
+
+@pytest.fixture(scope="module")
+def vec():
+    env = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides=OVERRIDES)
+    env.reset(seed=0)
+    return env
+
+
+@pytest.fixture(scope="module")
+def run(vec):
+    """Steps the vector environment with zero actions until every environment finished once."""
+    obs0, _ = vec.reset(seed=1)
+    env, params = vec.env, vec.params
+    key = jax.random.PRNGKey(5)
+    _, state = jit_reset(env, key, params)
+    history = []
+    for i in range(env.max_steps + 1):
+        k = jax.random.fold_in(key, i)
+        out = jit_step(env, k, state, jnp.zeros((N, 5)), params)
+        history.append((state, out))
+        state = out[1]
+        done = np.stack([np.asarray(o[3]) | np.asarray(o[4]) for _, o in history])
+        if done.any(0).all():
+            break
+    return history
+
+
+def test_spaces_shapes_and_dtypes(vec):
+    assert vec.single_observation_space.shape == (25,) and vec.single_observation_space.dtype == np.float32
+    assert vec.single_action_space.shape == (5,) and vec.single_action_space.dtype == np.float32
+    assert vec.observation_space.shape == (N, 25) and vec.action_space.shape == (N, 5)
+    obs, _ = vec.reset(seed=2)
+    assert obs.shape == (N, 25) and obs.dtype == np.float32 and vec.observation_space.contains(obs)
+    obs, reward, terminated, truncated, info = vec.step(vec.action_space.sample())
+    assert obs.shape == (N, 25) and obs.dtype == np.float32 and vec.observation_space.contains(obs)
+    assert reward.shape == (N,) and reward.dtype == np.float32
+    assert terminated.shape == truncated.shape == (N,) and terminated.dtype == bool
+    assert info["final_obs"].shape == (N, 25) and info["outcome"].shape == (N,)
+    assert vec.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.SAME_STEP
+
+
+def test_same_key_same_step_other_key_other_shots(vec):
+    env, params = vec.env, vec.params
+    obs_a, state = jit_reset(env, jax.random.PRNGKey(3), params)
+    obs_b, _ = jit_reset(env, jax.random.PRNGKey(3), params)
+    obs_c, other = jit_reset(env, jax.random.PRNGKey(4), params)
+    np.testing.assert_array_equal(obs_a, obs_b)
+    assert not np.array_equal(np.asarray(state.shot), np.asarray(other.shot))
+    action = jnp.full((N, 5), 0.3)
+    one = jit_step(env, jax.random.PRNGKey(7), state, action, params)
+    two = jit_step(env, jax.random.PRNGKey(7), state, action, params)
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the vector env seeded alike gives the same episode
+    runs = []
+    for _ in range(2):
+        vec.reset(seed=11)
+        runs.append([vec.step(np.full((N, 5), 0.2, np.float32))[:2] for _ in range(3)])
+    for (o1, r1), (o2, r2) in zip(*runs):
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(r1, r2)
+
+
+def test_vmap_over_keys_matches_separate_resets(vec):
+    env, params = vec.env, vec.params
+    keys = jax.random.split(jax.random.PRNGKey(9), 2)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    for i in range(2):
+        o, s = jit_reset(env, keys[i], params)
+        np.testing.assert_allclose(obs[i], o, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(state.shot[i], s.shot)
+
+
+def test_autoreset_gives_a_fresh_episode_and_keeps_the_final_observation(vec, run):
+    env, params = vec.env, vec.params
+    seen = 0
+    for before, (obs, state, reward, terminated, truncated, info) in run:
+        done = np.asarray(terminated | truncated)
+        for i in np.flatnonzero(done):
+            seen += 1
+            final = np.asarray(info["final_obs"][i])
+            # the final observation is the finished episode's: its clock is the step count, not 0
+            assert final[-3] == pytest.approx(float(before.t[i] + 1) * env.period, rel=1e-5)
+            assert not np.array_equal(final, np.asarray(obs[i]))
+            # the new episode: time 0, nothing happened, ball alive at a shot of the bank
+            assert obs[i, -3] == 0.0 and obs[i, -2] == 0.0 and obs[i, -1] == 0.0
+            assert int(state.t[i]) == 0 and int(state.progress.outcome[i]) == RUNNING
+            assert bool(state.rally.alive[i])
+            np.testing.assert_array_equal(np.asarray(state.rally.ball.pos[i]),
+                                          np.asarray(params.shots.pos[int(state.shot[i])]))
+            assert np.all(np.asarray(state.racket.vel[i]) == 0.0)
+        for i in np.flatnonzero(~done):  # the others go on
+            assert int(state.t[i]) == int(before.t[i]) + 1
+            np.testing.assert_array_equal(np.asarray(info["final_obs"][i]), np.asarray(obs[i]))
+    assert seen >= N
+    # a racket standing still never returns a ball: every ending is a miss or the opponent's fault
+    outcomes = np.concatenate([np.asarray(o[5]["outcome"])[np.asarray(o[3])] for _, o in run])
+    assert not np.isin(outcomes, [LEGAL]).any()
+
+
+def test_no_retrace_across_steps(vec):
+    vec.reset(seed=4)
+    vec.step(vec.action_space.sample())
+    size = return_ball._step._cache_size()
+    for _ in range(5):
+        vec.step(vec.action_space.sample())
+    vec.reset(seed=5)
+    vec.step(vec.action_space.sample())
+    # a float64 or integer action is cast, not compiled for
+    jit_step(vec.env, np.array([0, 1], np.uint32), vec._state, np.zeros((N, 5), np.float64), vec.params)
+    jit_step(vec.env, jax.random.PRNGKey(1), vec._state, np.zeros((N, 5), np.int64), vec.params)
+    assert return_ball._step._cache_size() == size
+
+
+def test_extreme_actions_and_states_stay_finite(vec):
+    env, params = vec.env, vec.params
+    _, state = jit_reset(env, jax.random.PRNGKey(1), params)
+    ball = state.rally.ball
+    wild = ball.replace(pos=ball.pos.at[0].set(jnp.nan).at[1].set(1e9), vel=ball.vel.at[2].set(1e6),
+                        spin=ball.spin.at[3].set(jnp.inf))
+    state = state.replace(rally=state.rally.replace(ball=wild))
+    action = jnp.array([[jnp.nan, jnp.inf, -jnp.inf, 1e30, -1e30]] * N, jnp.float32)
+    for i in range(3):
+        obs, state, reward, terminated, truncated, info = jit_step(env, jax.random.PRNGKey(i), state, action, params)
+        assert np.isfinite(np.asarray(obs)).all() and np.isfinite(np.asarray(reward)).all()
+        pos = np.asarray(state.racket.pos)
+        assert (pos >= np.asarray(params.limits.lo) - 1e-6).all() and (pos <= np.asarray(params.limits.hi) + 1e-6).all()
+        assert np.isfinite(np.asarray(state.racket.vel)).all()
+
+
+def test_domain_randomisation_draws_per_environment_values_in_range(vec):
+    env, params = vec.env, vec.params
+    assert env.paths == ("table.e0", "racket.e0", "aero.rho_air")
+    _, state = jit_reset(env, jax.random.PRNGKey(2), params)
+    v = np.asarray(state.model_values)
+    assert v.shape == (N, 3)
+    assert (v >= np.asarray(params.rand_lo)).all() and (v <= np.asarray(params.rand_hi)).all()
+    assert len(np.unique(v[:, 0])) == N
+    model, axes = env.model_for(params, state.model_values)
+    np.testing.assert_array_equal(np.asarray(model.table.e0), v[:, 0])
+    np.testing.assert_array_equal(np.asarray(model.aero.rho_air), v[:, 2])
+    assert axes.table.e0 == 0 and axes.table.mu is None
+
+
+def _events(*rows):
+    """(kind (1,), pos (1, 3)) per event."""
+    return [(jnp.array([k]), jnp.array([p], jnp.float32)) for k, p in rows]
+
+
+def _play(rows):
+    p = Rally(bounced=jnp.zeros(1, bool), hit=jnp.zeros(1, bool), outcome=jnp.zeros(1, jnp.int32),
+              landing=jnp.zeros((1, 2), jnp.float32))
+    for kind, pos in _events(*rows):
+        p = _advance(p, kind, pos, jnp.array(True))
+    return p
+
+
+@pytest.mark.parametrize("rows, outcome", [
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.RACKET, (1.6, 0.1, 0.3)), (ev.TABLE, (-0.9, 0.2, 0.02))], LEGAL),
+    ([(ev.TABLE, (-0.9, 0.0, 0.02)), (ev.TABLE, (0.6, 0.0, 0.02)), (ev.RACKET, (1.5, 0.0, 0.3)),
+      (ev.NET, (0.0, 0.0, 0.1)), (ev.TABLE, (-0.5, 0.0, 0.02))], NET),  # a serve, returned into the net
+    ([(ev.RACKET, (1.5, 0.0, 0.3))], VOLLEY),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.TABLE, (1.2, 0.1, 0.02))], MISS),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.FLOOR, (2.0, 0.1, -0.74))], MISS),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.RACKET, (1.6, 0.1, 0.3)), (ev.FLOOR, (-3.0, 0.0, -0.74))], OUT),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.RACKET, (1.6, 0.1, 0.3)), (ev.TABLE, (0.5, 0.0, 0.02))], OUT),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.RACKET, (1.6, 0.1, 0.3)), (ev.RACKET, (1.6, 0.1, 0.3))], OUT),
+    ([(ev.TABLE, (0.8, 0.1, 0.02)), (ev.RACKET, (1.6, 0.1, 0.3))], RUNNING),
+])
+def test_rally_bookkeeping(rows, outcome):
+    p = _play(rows)
+    assert int(p.outcome[0]) == outcome
+    if outcome == LEGAL:
+        np.testing.assert_allclose(np.asarray(p.landing[0]), [-0.9, 0.2])
+    # nothing after the end changes it
+    later = _advance(p, jnp.array([ev.TABLE]), jnp.array([[-0.5, 0.0, 0.02]], jnp.float32), jnp.array(True))
+    if outcome != RUNNING:
+        assert int(later.outcome[0]) == outcome
+
+
+def test_racket_respects_its_limits_and_the_schedule_is_its_motion():
+    limits = racket_kin.RacketLimits(
+        lo=jnp.array([1.4, -1.0, 0.0]), hi=jnp.array([3.0, 1.0, 1.2]), max_speed=jnp.array(8.0),
+        max_accel=jnp.array(80.0), angle_lo=jnp.array([-1.0, -0.8]), angle_hi=jnp.array([1.0, 0.8]),
+        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]))
+    state = racket_kin.RacketState(pos=jnp.array([2.0, 0.0, 0.3]), vel=jnp.zeros(3), angle=jnp.zeros(2),
+                                   rate=jnp.zeros(2))
+    period, n = 0.01, 10
+    speeds = []
+    command = jax.jit(racket_kin.command, static_argnums=(4,))
+    for k in range(40):
+        old = state
+        state, sched, effort = command(limits, state, jnp.array([1.0, -1.0, 1.0, 1.0, -1.0]), period, n)
+        # full acceleration: 80 m/s^2 over 10 ms is 0.8 m/s per period and axis, less only at the
+        # speed limit; a coordinate stopped by a wall of the workspace stops
+        at_wall = (np.asarray(state.pos) == np.asarray(limits.lo)) | (np.asarray(state.pos) == np.asarray(limits.hi))
+        dv = np.abs(np.asarray(state.vel - old.vel))
+        at_speed = np.abs(np.asarray(state.vel)) >= 8.0 - 1e-5
+        assert np.all(dv[~at_wall] <= 0.8 + 1e-5) and np.all(np.asarray(state.vel)[at_wall] == 0.0)
+        np.testing.assert_allclose(dv[~at_wall & ~at_speed], 0.8, atol=1e-5)
+        assert np.all(np.abs(np.asarray(state.vel)) <= 8.0 + 1e-5)
+        assert np.all(np.asarray(state.pos) >= np.asarray(limits.lo) - 1e-6)
+        assert np.all(np.asarray(state.pos) <= np.asarray(limits.hi) + 1e-6)
+        # the schedule moves at constant velocity per physics step and ends where the racket ends
+        p, v = np.asarray(sched.pos[:, 0]), np.asarray(sched.vel[:, 0])
+        np.testing.assert_allclose(p[1:], p[:-1] + v[:-1] * period / n, atol=1e-5)
+        np.testing.assert_allclose(p[-1] + v[-1] * period / n, np.asarray(state.pos), atol=1e-5)
+        assert 0.0 <= float(effort) <= 1.0 + 1e-6
+        rot = np.asarray(sched.rot[0, 0])
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-5)
+        speeds.append(float(np.abs(np.asarray(state.vel)).max()))
+    assert max(speeds) == pytest.approx(8.0, abs=1e-4)  # it does reach its speed limit
+    # it ended at the walls it was driven into (x, z at the top, y at the bottom), stopped there
+    np.testing.assert_allclose(np.asarray(state.pos), [3.0, -1.0, 1.2], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.vel), 0.0, atol=1e-6)
+    # at rest with zero angles the face looks at the opponent
+    np.testing.assert_allclose(np.asarray(racket_kin.rotation(jnp.zeros(2)))[:, 0], [-1.0, 0.0, 0.0], atol=1e-7)
+
+
+def test_angular_velocity_is_the_rotation_rate():
+    angle, rate, h = jnp.array([0.3, -0.4]), jnp.array([2.0, -5.0]), 1e-4
+    r0, r1 = (np.asarray(racket_kin.rotation(a), np.float64) for a in (angle, angle + h * rate))
+    skew = (r1 - r0) / h @ r0.T
+    omega = np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
+    np.testing.assert_allclose(omega, np.asarray(racket_kin.angular_velocity(angle, rate)), atol=2e-2)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"shots.max_speed": -1.0}, "max_speed"),
+    ({"racket.workspace_lo": [1.4, 2.0, 0.0]}, "workspace_lo"),
+    ({"control.rate_hz": 300.0}, "whole number"),
+    ({"reward.bogus": 1.0}, "bogus"),
+    ({"shots.types": ["serve", "tomahawk"]}, "tomahawk"),
+    ({"randomisation.table.e0": [0.9, 0.8]}, "low must not exceed high"),
+])
+def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        load_task_config(None, overrides)
+    assert "return_ball.toml" in str(info.value)
+
+
+def test_unknown_randomised_parameter_is_refused():
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    config = load_task_config(None, dict(OVERRIDES, **{"randomisation.table.bounciness": [0.1, 0.2]}))
+    with pytest.raises(ConfigError, match="bounciness"):
+        ReturnBall(config, 2).default_params()

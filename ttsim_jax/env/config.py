@@ -1,0 +1,232 @@
+"""The ReturnBall task's settings (``configs/tasks/*.toml``), read and checked at load time.
+
+A bad file is refused with a :class:`~ttsim_jax.params.ConfigError` naming the file, the key and
+the value, before anything is compiled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ttsim_jax.params import ConfigError, config_dir
+
+
+@dataclass(frozen=True)
+class ShotsConfig:
+    types: tuple = ("serve", "topspin_drive", "backspin_drive", "push", "block")
+    max_speed: float = 20.0
+    max_spin: float = 600.0
+    bank: int = 4096
+    seed: int = 0
+    aim: bool = True
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    rate_hz: float = 100.0
+    physics_dt: float = 1e-3
+    max_time: float = 2.0
+
+
+@dataclass(frozen=True)
+class RacketConfig:
+    workspace_lo: tuple = (1.4, -1.0, 0.0)
+    workspace_hi: tuple = (3.0, 1.0, 1.2)
+    start: tuple = (2.0, 0.0, 0.3)
+    start_jitter: tuple = (0.1, 0.3, 0.1)
+    max_speed: float = 8.0
+    max_accel: float = 80.0
+    angle_lo: tuple = (-1.0, -0.8)
+    angle_hi: tuple = (1.0, 0.8)
+    max_angle_rate: float = 15.0
+    max_angle_accel: float = 600.0
+    face: tuple = (0.0775, 0.0755)
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    spin: bool = True
+    noise_pos: float = 0.0
+    noise_vel: float = 0.0
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    contact: float = 1.0
+    legal: float = 2.0
+    target: float = 1.0
+    target_scale: float = 1.0
+    target_point: tuple = (-0.9, 0.0)
+    net: float = -1.0
+    out: float = -1.0
+    miss: float = -1.0
+    motion: float = 0.02
+    approach: float = 0.5
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Everything that defines a ReturnBall task (see ``configs/tasks/return_ball.toml``).
+
+    Attributes:
+        model: bundled model name or model .toml path.
+        shots, control, racket, observation, reward: the sections of the file.
+        randomisation: ((dotted model path, low, high), ...) per-environment uniform ranges.
+        source: the file it was read from ("" for the defaults).
+    """
+
+    model: str = "conti2026"
+    shots: ShotsConfig = field(default_factory=ShotsConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    racket: RacketConfig = field(default_factory=RacketConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    randomisation: tuple = ()
+    source: str = ""
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step."""
+        return int(round(1.0 / (self.control.rate_hz * self.control.physics_dt)))
+
+    @property
+    def max_steps(self) -> int:
+        """Control steps before an episode is truncated."""
+        return int(math.ceil(self.control.max_time * self.control.rate_hz))
+
+
+_SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketConfig,
+             "observation": ObservationConfig, "reward": RewardConfig}
+# keys that must be positive
+_POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
+             "max_angle_accel", "target_scale"}
+_NON_NEGATIVE = {"noise_pos", "noise_vel", "motion", "approach"}
+
+
+def default_task_path(name: str = "return_ball") -> Path:
+    """The bundled task file ``configs/tasks/NAME.toml``."""
+    return config_dir() / "tasks" / f"{name}.toml"
+
+
+def convert_value(where: str, default, value):
+    """``value`` checked against the type and length of ``default``."""
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} = {value!r}: expected true or false")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} = {value!r}: expected an integer")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{where} = {value!r}: expected a finite number")
+        return float(value)
+    if isinstance(default, tuple):
+        if not isinstance(value, list) or (default and isinstance(default[0], str)) != (
+                bool(value) and all(isinstance(v, str) for v in value)):
+            raise ConfigError(f"{where} = {value!r}: expected a list like {list(default)!r}")
+        if default and not isinstance(default[0], str):
+            if len(value) != len(default):
+                raise ConfigError(f"{where} = {value!r}: expected {len(default)} numbers")
+            return tuple(convert_value(where, default[0], v) for v in value)
+        return tuple(value)
+    raise ConfigError(f"{where} = {value!r}: unexpected value")
+
+
+def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
+    """Reads and checks a task file.
+
+    Arguments:
+        path: a task .toml file, a bundled task name (``"return_ball"``, ``"return_ball_pro"``), or
+            None for ``return_ball``.
+        overrides: ``{"section.key": value}`` applied on top of the file (``{"shots.bank": 64}``).
+
+    Returns:
+        A :class:`TaskConfig`; raises :class:`ConfigError` naming the file, key and value.
+    """
+    path = default_task_path() if path is None else Path(path)
+    if path.suffix != ".toml" and not path.exists():
+        path = default_task_path(str(path))
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such task file")
+    try:
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not a valid TOML file ({e})") from None
+    for key, value in (overrides or {}).items():
+        section, _, name = key.partition(".")
+        if name:
+            raw.setdefault(section, {})[name] = value
+        else:
+            raw[section] = value
+    return parse_task_config(raw, str(path))
+
+
+def read_section(raw: dict, name: str, cls, source: str, positive=(), non_negative=()):
+    """An instance of the dataclass ``cls`` from the TOML table ``raw[name]`` (missing keys keep their
+    defaults), every value checked against its default's type; raises :class:`ConfigError` naming
+    the file, the table, the key and the value."""
+    section = raw.get(name, {})
+    if not isinstance(section, dict):
+        raise ConfigError(f"{source}: [{name}] must be a table")
+    defaults = cls()
+    known = {f.name for f in dataclasses.fields(cls)}
+    bad = set(section) - known
+    if bad:
+        raise ConfigError(f"{source}: [{name}] unknown key(s) {sorted(bad)}; known: {sorted(known)}")
+    values = {}
+    for key, value in section.items():
+        where = f"{source}: [{name}] {key}"
+        v = convert_value(where, getattr(defaults, key), value)
+        if key in positive and (v <= 0 if not isinstance(v, tuple) else any(x <= 0 for x in v)):
+            raise ConfigError(f"{where} = {value!r}: must be positive")
+        if key in non_negative and v < 0:
+            raise ConfigError(f"{where} = {value!r}: must not be negative")
+        values[key] = v
+    return cls(**values)
+
+
+def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
+    """A :class:`TaskConfig` from the parsed TOML ``raw`` (see :func:`load_task_config`)."""
+    unknown = set(raw) - set(_SECTIONS) - {"model", "randomisation"}
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: model, randomisation, "
+                          f"{', '.join(_SECTIONS)}")
+    out = {name: read_section(raw, name, cls, source, _POSITIVE, _NON_NEGATIVE) for name, cls in _SECTIONS.items()}
+    racket = out["racket"]
+    for lo, hi, what in (("workspace_lo", "workspace_hi", "workspace"), ("angle_lo", "angle_hi", "angle")):
+        if any(a >= b for a, b in zip(getattr(racket, lo), getattr(racket, hi))):
+            raise ConfigError(f"{source}: [racket] {lo} = {list(getattr(racket, lo))} must be below "
+                              f"{hi} = {list(getattr(racket, hi))} in every coordinate ({what})")
+    if any(not a <= s <= b for a, s, b in zip(racket.workspace_lo, racket.start, racket.workspace_hi)):
+        raise ConfigError(f"{source}: [racket] start = {list(racket.start)} lies outside the workspace")
+    from ttsim_jax.shots import SHOT_TYPES
+
+    shots = out["shots"]
+    if not shots.types or set(shots.types) - set(SHOT_TYPES):
+        raise ConfigError(f"{source}: [shots] types = {list(shots.types)}: unknown or none; known: {list(SHOT_TYPES)}")
+    control = out["control"]
+    ratio = 1.0 / (control.rate_hz * control.physics_dt)
+    if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+        raise ConfigError(f"{source}: [control] rate_hz = {control.rate_hz} and physics_dt = {control.physics_dt}: "
+                          "a control period must be a whole number of physics steps")
+    ranges = []
+    rand = raw.get("randomisation", {})
+    if not isinstance(rand, dict):
+        raise ConfigError(f"{source}: [randomisation] must be a table")
+    for key, value in rand.items():
+        where = f"{source}: [randomisation] {key!r}"
+        lo, hi = convert_value(where, (0.0, 0.0), value)
+        if lo > hi:
+            raise ConfigError(f"{where} = {value!r}: low must not exceed high")
+        ranges.append((key, lo, hi))
+    model = raw.get("model", "conti2026")
+    if not isinstance(model, str):
+        raise ConfigError(f"{source}: model = {model!r}: expected a model name or path")
+    return TaskConfig(model=model, randomisation=tuple(ranges), source=source, **out)

@@ -1,0 +1,125 @@
+"""The learning agent's racket: a kinematic body driven by acceleration commands at the control rate.
+
+Each control period the policy commands an acceleration of the face centre (3) and of the face's
+two angles (pitch: face opened upwards, yaw: face turned across the table), as fractions of their
+limits. The racket moves at that constant acceleration over the period, reduced where it would
+exceed the speed limits, inside its workspace box (a coordinate driven into a wall stops there);
+the period is cut into the kernel's physics steps, each a racket moving at constant velocity (the
+kernel's racket model), so the schedule is the piecewise-linear interpolation of that motion.
+
+Acceleration commands keep the policy's effect smooth and linear (a velocity command under an
+acceleration limit saturates for most commands, which hides the action's effect from learning).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ttsim_jax.state import Racket
+
+
+@struct.dataclass
+class RacketState:
+    """One racket (fields (..., n)).
+
+    Attributes:
+        pos: (..., 3) face centre [m]; vel: (..., 3) its velocity [m/s].
+        angle: (..., 2) pitch and yaw of the face [rad]; rate: (..., 2) their rates [rad/s].
+    """
+
+    pos: jnp.ndarray
+    vel: jnp.ndarray
+    angle: jnp.ndarray
+    rate: jnp.ndarray
+
+
+@struct.dataclass
+class RacketLimits:
+    """Kinematic limits (see ``[racket]`` of the task file); (3,) and (2,) arrays, scalars."""
+
+    lo: jnp.ndarray
+    hi: jnp.ndarray
+    max_speed: jnp.ndarray
+    max_accel: jnp.ndarray
+    angle_lo: jnp.ndarray
+    angle_hi: jnp.ndarray
+    max_rate: jnp.ndarray
+    max_angle_accel: jnp.ndarray
+    face: jnp.ndarray
+
+
+def rotation(angle):
+    """Racket frame -> world for face angles (pitch, yaw): at zero the face normal points along -x
+    (towards the opponent), pitch turns it upwards, yaw about z.
+
+    Arguments:
+        angle: (2,) pitch, yaw [rad].
+
+    Returns:
+        (3, 3) rotation whose first column is the face normal.
+    """
+    cp, sp = jnp.cos(angle[0]), jnp.sin(angle[0])
+    cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
+    zero, one = jnp.zeros_like(cp), jnp.ones_like(cp)
+    ry = jnp.array([[cp, zero, sp], [zero, one, zero], [-sp, zero, cp]])
+    rz = jnp.array([[cy, -sy, zero], [sy, cy, zero], [zero, zero, one]])
+    base = jnp.diag(jnp.array([-1.0, -1.0, 1.0], cp.dtype))  # normal -x, tip up
+    return rz @ ry @ base
+
+
+def angular_velocity(angle, rate):
+    """(3,) world angular velocity of :func:`rotation` for angle rates (pitch, yaw) [rad/s]."""
+    cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
+    return rate[0] * jnp.stack([-sy, cy, jnp.zeros_like(cy)]) + rate[1] * jnp.array([0.0, 0.0, 1.0], cy.dtype)
+
+
+def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub):
+    """Constant-acceleration motion of one group of coordinates over a control period.
+
+    Arguments:
+        x, v: (d,) position and velocity; fraction: (d,) commanded acceleration / its limit, in [-1, 1].
+
+    Returns:
+        (positions at the n_sub step starts (n_sub, d), mean velocities over each step (n_sub, d),
+        end position (d,), end velocity (d,), acceleration used / its limit (d,)).
+    """
+    v = jnp.clip(v, -max_speed, max_speed)
+    accel = jnp.clip(fraction * max_accel, (-max_speed - v) / period, (max_speed - v) / period)
+    h = period / n_sub
+    t = jnp.arange(n_sub, dtype=x.dtype)[:, None] * h
+    pos = jnp.clip(x + v * t + 0.5 * accel * t * t, lo, hi)
+    end = x + v * period + 0.5 * accel * period * period
+    nxt = jnp.concatenate([pos[1:], jnp.clip(end, lo, hi)[None]])
+    # a coordinate held at a wall stops there
+    end_v = jnp.where((end < lo) | (end > hi), 0.0, v + accel * period)
+    return pos, (nxt - pos) / h, jnp.clip(end, lo, hi), end_v, accel / max_accel
+
+
+def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int):
+    """Applies one control command to one racket.
+
+    Arguments:
+        limits: :class:`RacketLimits`; state: :class:`RacketState` with (3,) / (2,) fields.
+        action: (5,) in [-1, 1]: acceleration of the face centre as fractions of ``max_accel`` (3),
+            then the angles' accelerations as fractions of ``max_angle_accel`` (2); non-finite
+            entries count as 0, others are clipped to [-1, 1].
+        period: control period [s]; n_sub: physics steps in it (static).
+
+    Returns:
+        (new :class:`RacketState`, :class:`Racket` schedule with (n_sub, 1, ...) fields, effort:
+        mean squared acceleration as a fraction of its limit).
+    """
+    a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0).astype(state.pos.dtype)
+    pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3], limits.max_accel, limits.max_speed,
+                                          limits.lo, limits.hi, period, n_sub)
+    ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5], limits.max_angle_accel,
+                                           limits.max_rate, limits.angle_lo, limits.angle_hi, period, n_sub)
+    rot = jax.vmap(rotation)(ang)
+    omega = jax.vmap(angular_velocity)(ang, rate)
+    face = jnp.broadcast_to(limits.face, (n_sub, 2))
+    schedule = Racket(pos=pos[:, None], rot=rot[:, None], vel=vel[:, None], ang_vel=omega[:, None],
+                      face=face[:, None])
+    effort = jnp.mean(jnp.concatenate([eff_p, eff_a]) ** 2)
+    return RacketState(pos=end_p, vel=end_v, angle=end_a, rate=end_r), schedule, effort

@@ -1,0 +1,433 @@
+"""ReturnBall: the functional environment (gymnax / brax style) of returning an opponent's shot.
+
+The opponent plays from the -x end (a ball from a bank of realistic shots, ``ttsim_jax.shots``);
+the agent's kinematic racket (:mod:`.racket`) defends the +x end. Each control step advances the
+kernel's resumable :func:`~ttsim_jax.kernel.rollout.rollout` by ``substeps`` physics steps with the
+racket schedule of that period, then reads the step's event log to follow the rally:
+
+* the ball must bounce once on the agent's half (x > 0), then meet the racket (a contact before that
+  bounce is a volley, a second bounce or a fall a miss);
+* after the contact, the next table contact must be on the opponent's half (x < 0): a legal return,
+  which ends the episode; the net, the agent's own half, the floor, leaving play or a second
+  contact end it as a fault.
+
+Everything is batched over a leading axis of ``num_envs`` environments (one ball per environment:
+the kernel's batch axis) and pure: ``reset(key, params) -> (obs, state)`` and
+``step(key, state, action, params) -> (obs, state, reward, terminated, truncated, info)``, with the
+automatic reset of finished environments inside (:meth:`ReturnBall.step`; :meth:`ReturnBall.step_env`
+without it). Both jit and vmap (e.g. over keys).
+
+Reward of a step (weights in ``[reward]`` of the task file):
+``contact`` on the first legal racket contact; on a legal return ``legal + target * max(0, 1 - d /
+target_scale)`` with d the landing point's distance to ``target_point``; ``net``, ``out``, ``miss``
+on those faults; minus ``motion`` times the mean squared commanded acceleration (fraction of its
+limit); plus ``approach`` times the reduction of the ball-racket distance before the contact. A
+shot of the opponent that never reaches the agent's half ends the episode with no reward and is
+counted apart (``info["outcome"] == SHOT_FAULT``).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ttsim_jax.env import racket as racket_kin
+from ttsim_jax.env.config import TaskConfig, load_task_config
+from ttsim_jax.env.spaces import OBS_BOUND
+from ttsim_jax.kernel import RallyState, init_state, per_ball_axes, rollout
+from ttsim_jax.params import ConfigError, Model, load_model
+from ttsim_jax.physics import events as ev
+from ttsim_jax.state import Ball
+
+# How an episode ended (``info["outcome"]``); RUNNING while it goes on.
+RUNNING, LEGAL, NET, OUT, MISS, VOLLEY, SHOT_FAULT = range(7)
+OUTCOME_NAMES = ("running", "legal", "net", "out", "miss", "volley", "shot_fault")
+# Slots of the event log of one control step (10 ms hold two or three events at most).
+MAX_EVENTS = 4
+# Cap of the ball-racket distance in the approach term [m].
+APPROACH_CAP = 3.0
+
+
+@struct.dataclass
+class Rally:
+    """Where a rally stands (fields (B,)).
+
+    Attributes:
+        bounced: the ball bounced on the agent's half. hit: the agent's racket met it (legally).
+        outcome: RUNNING, or how it ended. landing: (B, 2) where the return landed (legal returns).
+    """
+
+    bounced: jnp.ndarray
+    hit: jnp.ndarray
+    outcome: jnp.ndarray
+    landing: jnp.ndarray
+
+
+@struct.dataclass
+class EnvState:
+    """State of a batch of environments.
+
+    Attributes:
+        rally: the kernel's :class:`~ttsim_jax.kernel.state.RallyState` (B balls).
+        racket: :class:`~ttsim_jax.env.racket.RacketState` with (B, ...) fields.
+        progress: :class:`Rally`.
+        model_values: (B, P) this episode's randomised model parameters (``[randomisation]`` order).
+        shot: (B,) index of the incoming shot in the bank.
+        t: (B,) control steps taken in the episode.
+        distance: (B,) ball-racket distance after the last step [m].
+    """
+
+    rally: RallyState
+    racket: racket_kin.RacketState
+    progress: Rally
+    model_values: jnp.ndarray
+    shot: jnp.ndarray
+    t: jnp.ndarray
+    distance: jnp.ndarray
+
+
+@struct.dataclass
+class EnvParams:
+    """Everything a reset or a step reads that may change without recompiling.
+
+    Attributes:
+        model: the simulator :class:`~ttsim_jax.params.Model` (randomised leaves are replaced per
+            environment at each step).
+        shots: :class:`Ball` (S, 3) bank of incoming shots; shot_type: (S,) index into ``shot_types``.
+        rand_lo, rand_hi: (P,) ranges of the randomised parameters.
+        limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start, start_jitter: (3,) racket start.
+        noise: (2,) std of the observed ball position [m] and velocity [m/s].
+        reward: dict of reward weights (see the module docstring); target: (2,) target point.
+    """
+
+    model: Model
+    shots: Ball
+    shot_type: jnp.ndarray
+    rand_lo: jnp.ndarray
+    rand_hi: jnp.ndarray
+    limits: racket_kin.RacketLimits
+    start: jnp.ndarray
+    start_jitter: jnp.ndarray
+    noise: jnp.ndarray
+    reward: dict
+    target: jnp.ndarray
+
+
+def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
+    """The incoming shots: ``sample_shots`` of the configured types, redrawing any faster or spinning
+    faster than the configured maxima.
+
+    Aiming thousands of shots through the model takes a minute on a CPU, so an aimed bank is kept in
+    ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache``), named by a hash of the ``[shots]`` settings,
+    the model's parameters and the sampler's source; ``cache=False`` always draws afresh.
+
+    Returns:
+        (:class:`Ball` (S, 3) float32 numpy fields, (S,) int shot type index into ``config.shots.types``).
+    """
+    import hashlib
+    import inspect
+    import os
+    from pathlib import Path
+
+    from ttsim_jax import shots as shots_module
+
+    c = config.shots
+    path = None
+    if cache and c.aim:
+        digest = hashlib.sha256(repr(c).encode())
+        for leaf in jax.tree.leaves(model):
+            digest.update(np.asarray(leaf).tobytes())
+        digest.update(inspect.getsource(shots_module).encode())
+        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ttsim_jax"
+        path = root / f"shots-{digest.hexdigest()[:20]}.npz"
+        if path.is_file():
+            with np.load(path) as f:
+                return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]
+    kept, labels, seed = [], [], c.seed
+    while sum(len(k) for k in kept) < c.bank:
+        ball, lab = shots_module.sample_shots(2 * c.bank, seed=seed, types=list(c.types),
+                                              radius=float(model.ball.radius), model=model if c.aim else None)
+        ok = ((np.linalg.norm(ball.vel, axis=-1) <= c.max_speed) & (np.linalg.norm(ball.spin, axis=-1) <= c.max_spin)
+              & np.isfinite(ball.vel).all(-1))
+        if not ok.any():
+            raise ConfigError(f"{config.source}: [shots] no shot of types {list(c.types)} is within max_speed = "
+                              f"{c.max_speed} and max_spin = {c.max_spin}")
+        kept.append(np.concatenate([ball.pos, ball.vel, ball.spin], -1)[ok])
+        labels.append(lab[ok])
+        seed += 1_000_003
+    arr = np.concatenate(kept)[:c.bank].astype(np.float32)
+    lab = np.concatenate(labels)[:c.bank]
+    index = {name: i for i, name in enumerate(c.types)}
+    bank = Ball(pos=arr[:, 0:3], vel=arr[:, 3:6], spin=arr[:, 6:9])
+    types = np.array([index[s] for s in lab], np.int32)
+    if path is not None:
+        import io
+
+        from ttsim_jax.io_atomic import atomic_write
+
+        buf = io.BytesIO()
+        np.savez(buf, pos=bank.pos, vel=bank.vel, spin=bank.spin, types=types)
+        try:
+            atomic_write(path, buf.getvalue())
+        except OSError:  # a read-only home: no cache, same bank
+            pass
+    return bank, types
+
+
+def _set_leaf(model, path: str, value):
+    """``model`` with the leaf at the dotted ``path`` replaced by ``value``."""
+    head, _, rest = path.partition(".")
+    child = getattr(model, head)
+    return model.replace(**{head: _set_leaf(child, rest, value) if rest else value})
+
+
+class ReturnBall:
+    """The ReturnBall task for ``num_envs`` environments: static settings plus pure functions.
+
+    Arguments:
+        config: a :class:`~ttsim_jax.env.config.TaskConfig`, a task file path or bundled task name
+            (default ``return_ball``).
+        num_envs: environments (balls) stepped together.
+        block_size: the kernel's ``block_size`` (default: its own choice).
+        reference: run the kernel's reference step (exact detection for every ball; same results);
+            default: for batches of up to 64 environments, where it costs little and compiles about
+            a third faster than the lean step.
+
+    Attributes:
+        obs_dim, action_dim: sizes of one environment's observation and action.
+    """
+
+    action_dim = 5
+
+    def __init__(self, config: TaskConfig | str | None = None, num_envs: int = 1, block_size: int | None = None,
+                 reference: bool | None = None):
+        self.config = config if isinstance(config, TaskConfig) else load_task_config(config)
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be positive, got {num_envs}")
+        self.num_envs = int(num_envs)
+        self.block_size = block_size
+        self.reference = self.num_envs <= 64 if reference is None else bool(reference)
+        self.substeps = self.config.substeps
+        self.max_steps = self.config.max_steps
+        self.period = 1.0 / self.config.control.rate_hz
+        self.paths = tuple(p for p, _, _ in self.config.randomisation)
+        self.obs_dim = 25 if self.config.observation.spin else 22
+        self._params = None
+
+    # ------------------------------------------------------------------ parameters
+    def default_params(self) -> EnvParams:
+        """The task file's parameters (the shot bank is drawn, and aimed, on the first call)."""
+        if self._params is None:
+            c = self.config
+            model = load_model(c.model, dtype=jnp.float32)
+            try:
+                per_ball_axes(model, *self.paths)
+            except ValueError as e:
+                raise ConfigError(f"{c.source}: [randomisation] {e}") from None
+            for path in self.paths:
+                leaf = model
+                for name in path.split("."):
+                    leaf = getattr(leaf, name)
+                if not hasattr(leaf, "shape") or jnp.ndim(leaf) != 0:
+                    raise ConfigError(f"{c.source}: [randomisation] {path!r} is not a scalar model parameter")
+            shots, types = shot_bank(model, c)
+            r = c.racket
+            f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+            limits = racket_kin.RacketLimits(
+                lo=f32(r.workspace_lo), hi=f32(r.workspace_hi), max_speed=f32(r.max_speed), max_accel=f32(r.max_accel),
+                angle_lo=f32(r.angle_lo), angle_hi=f32(r.angle_hi), max_rate=f32(r.max_angle_rate),
+                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face))
+            w = c.reward
+            reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
+                                                      "miss", "motion", "approach")}
+            self._params = EnvParams(
+                model=model, shots=jax.tree.map(f32, shots), shot_type=jnp.asarray(types),
+                rand_lo=f32([lo for _, lo, _ in c.randomisation]), rand_hi=f32([hi for _, _, hi in c.randomisation]),
+                limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
+                noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
+                target=f32(w.target_point))
+        return self._params
+
+    def model_for(self, params: EnvParams, values):
+        """(model with the randomised leaves set to ``values`` (B, P), its ``model_axes``)."""
+        model = params.model
+        for i, path in enumerate(self.paths):
+            model = _set_leaf(model, path, values[:, i].astype(jnp.float32))
+        return model, per_ball_axes(params.model, *self.paths)
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, key, params: EnvParams):
+        """Fresh episodes for all environments.
+
+        Arguments:
+            key: PRNG key. params: :class:`EnvParams`.
+
+        Returns:
+            (obs (B, obs_dim) float32, :class:`EnvState`).
+        """
+        b = self.num_envs
+        k_shot, k_pos, k_rand, k_obs = jax.random.split(key, 4)
+        shot = jax.random.randint(k_shot, (b,), 0, params.shots.pos.shape[0])
+        ball = jax.tree.map(lambda a: a[shot], params.shots)
+        pos = params.start + params.start_jitter * jax.random.uniform(k_pos, (b, 3), jnp.float32, -1.0, 1.0)
+        pos = jnp.clip(pos, params.limits.lo, params.limits.hi)
+        zeros2 = jnp.zeros((b, 2), jnp.float32)
+        rk = racket_kin.RacketState(pos=pos, vel=jnp.zeros_like(pos), angle=zeros2, rate=zeros2)
+        u = jax.random.uniform(k_rand, (b, len(self.paths)), jnp.float32)
+        values = params.rand_lo + u * (params.rand_hi - params.rand_lo)
+        progress = Rally(bounced=jnp.zeros(b, bool), hit=jnp.zeros(b, bool), outcome=jnp.zeros(b, jnp.int32),
+                         landing=jnp.zeros((b, 2), jnp.float32))
+        state = EnvState(rally=init_state(ball), racket=rk, progress=progress, model_values=values, shot=shot,
+                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk))
+        return self.observe(k_obs, state, params), state
+
+    @staticmethod
+    def _distance(ball: Ball, rk):
+        return jnp.minimum(jnp.linalg.norm(ball.pos - rk.pos, axis=-1), APPROACH_CAP)
+
+    # ------------------------------------------------------------------ observation
+    def observe(self, key, state: EnvState, params: EnvParams):
+        """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300], racket position,
+        velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced, hit.
+
+        Position and velocity carry the configured Gaussian noise; every entry is finite (a
+        non-finite state reads 0) and within +-1e3."""
+        ball, rk = state.rally.ball, state.racket
+        k_p, k_v = jax.random.split(key)
+        pos = ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32)
+        vel = ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32)
+        parts = [pos, vel / 10.0]
+        if self.config.observation.spin:
+            parts.append(ball.spin / 300.0)
+        parts += [rk.pos, rk.vel / 10.0, rk.angle, rk.rate / 10.0, pos - rk.pos,
+                  (state.t.astype(jnp.float32) * self.period)[:, None],
+                  state.progress.bounced[:, None].astype(jnp.float32), state.progress.hit[:, None].astype(jnp.float32)]
+        obs = jnp.concatenate([p.astype(jnp.float32) for p in parts], axis=-1)
+        return jnp.clip(jnp.nan_to_num(obs, nan=0.0, posinf=OBS_BOUND, neginf=-OBS_BOUND), -OBS_BOUND, OBS_BOUND)
+
+    # ------------------------------------------------------------------ step
+    def step_env(self, key, state: EnvState, action, params: EnvParams):
+        """One control step of every environment, without the automatic reset.
+
+        Arguments:
+            key: PRNG key; state: :class:`EnvState`; action: (B, 5) (see
+            :func:`~ttsim_jax.env.racket.command`); params: :class:`EnvParams`.
+
+        Returns:
+            (obs, state, reward (B,), terminated (B,), truncated (B,), info): info holds
+            ``outcome`` (B,) int (``OUTCOME_NAMES``), ``legal`` (B,), ``landing_error`` (B,) [m]
+            (-1 unless legal), ``contact`` (B,) and ``shot_type`` (B,).
+        """
+        k_phys, k_obs = jax.random.split(key)
+        action = jnp.asarray(action, jnp.float32).reshape(self.num_envs, self.action_dim)
+        rk, schedule, effort = jax.vmap(racket_kin.command, in_axes=(None, 0, 0, None, None))(
+            params.limits, state.racket, action, self.period, self.substeps)
+        model, axes = self.model_for(params, state.model_values)
+        # the clock restarts each control step: the kernel's time stays small and exact
+        rally = state.rally.replace(step=jnp.zeros_like(state.rally.step), t0=jnp.zeros_like(state.rally.t0))
+        rally, out = rollout(model, rally, self.substeps, self.config.control.physics_dt, schedule,
+                             model_axes=axes, max_events=MAX_EVENTS, key=k_phys, remat=False,
+                             block_size=self.block_size, reference=self.reference)
+        before = state.progress
+        progress = before
+        log = out.events
+        for j in range(MAX_EVENTS):
+            progress = _advance(progress, log.kind[:, j], log.pre.pos[:, j], j < log.count)
+        # a ball the kernel stopped with nothing to say (a full log) ends as what it would be
+        stopped = ~rally.alive & (progress.outcome == RUNNING)
+        progress = progress.replace(outcome=jnp.where(
+            stopped, jnp.where(progress.hit, OUT, jnp.where(progress.bounced, MISS, SHOT_FAULT)), progress.outcome))
+        contact = progress.hit & ~before.hit
+        ended = (progress.outcome != RUNNING) & (before.outcome == RUNNING)
+        distance = self._distance(rally.ball, rk)
+        w = params.reward
+        err = jnp.linalg.norm(progress.landing - params.target, axis=-1)
+        legal = progress.outcome == LEGAL
+        outcome_reward = jnp.select(
+            [legal, progress.outcome == NET, progress.outcome == OUT,
+             (progress.outcome == MISS) | (progress.outcome == VOLLEY)],
+            [w["legal"] + w["target"] * jnp.maximum(0.0, 1.0 - err / w["target_scale"]), w["net"], w["out"],
+             w["miss"]], 0.0)
+        approach = jnp.where(before.hit, 0.0, state.distance - jnp.where(contact, state.distance, distance))
+        reward = (w["contact"] * contact + jnp.where(ended, outcome_reward, 0.0) - w["motion"] * effort
+                  + w["approach"] * approach)
+        t = state.t + 1
+        terminated = progress.outcome != RUNNING
+        truncated = ~terminated & (t >= self.max_steps)
+        state = EnvState(rally=rally, racket=rk, progress=progress, model_values=state.model_values,
+                         shot=state.shot, t=t, distance=distance)
+        info = {"outcome": progress.outcome, "legal": legal, "contact": contact,
+                "landing_error": jnp.where(legal, err, -1.0), "shot_type": params.shot_type[state.shot]}
+        reward = jnp.nan_to_num(reward.astype(jnp.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        return self.observe(k_obs, state, params), state, reward, terminated, truncated, info
+
+    def step(self, key, state: EnvState, action, params: EnvParams):
+        """:meth:`step_env`, then finished environments (terminated or truncated) start afresh.
+
+        Returns:
+            As :meth:`step_env`; for a finished environment, obs and state are those of its new
+            episode and ``info["final_obs"]`` holds the last observation of the finished one
+            (``info["final_obs"]`` is the plain observation elsewhere).
+        """
+        k_step, k_reset = jax.random.split(key)
+        obs, nxt, reward, terminated, truncated, info = self.step_env(k_step, state, action, params)
+        obs_r, fresh = self.reset(k_reset, params)
+        done = terminated | truncated
+
+        def pick(a, b):
+            if a.ndim == 0 or a.shape[0] != self.num_envs:  # batch-wide scalars (the kernel's clock)
+                return b
+            return jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+
+        merged = jax.tree.map(pick, fresh, nxt)
+        # a fresh ball resumes the running kernel state (its clock and step length), not a new rally
+        merged = merged.replace(rally=merged.rally.replace(step=nxt.rally.step, t0=nxt.rally.t0, dt=nxt.rally.dt))
+        info = dict(info, final_obs=obs)
+        return jnp.where(done[:, None], obs_r, obs), merged, reward, terminated, truncated, info
+
+
+def _advance(p: Rally, kind, pos, valid) -> Rally:
+    """The rally after one logged event (``kind`` (B,), position ``pos`` (B, 3)); ``valid`` masks unused slots."""
+    run = valid & (p.outcome == RUNNING)
+    own = pos[:, 0] > 0.0
+    table, racket, net = kind == ev.TABLE, kind == ev.RACKET, kind == ev.NET
+    dead = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.REST) | (kind == ev.INVALID)
+    pre, post = run & ~p.hit, run & p.hit
+    outcome = jnp.select(
+        [pre & table & own & p.bounced, pre & racket & ~p.bounced, pre & dead & p.bounced, pre & dead & ~p.bounced,
+         post & table & ~own, post & net, post & ((table & own) | racket | dead)],
+        [MISS, VOLLEY, MISS, SHOT_FAULT, LEGAL, NET, OUT], p.outcome)
+    return Rally(bounced=p.bounced | (pre & table & own), hit=p.hit | (pre & racket & p.bounced),
+                 outcome=outcome.astype(jnp.int32),
+                 landing=jnp.where((post & table & ~own)[:, None], pos[:, :2], p.landing))
+
+
+def _key(key):
+    """A key as the compiled functions expect it (a uint32 pair); actions are cast to float32 alike,
+    so that a float64 or integer action does not compile the step anew."""
+    return jnp.asarray(key, jnp.uint32)
+
+
+_reset = jax.jit(lambda env, key, params: env.reset(key, params), static_argnums=(0,))
+_step = jax.jit(lambda env, key, state, action, params: env.step(key, state, action, params), static_argnums=(0,))
+_step_env = jax.jit(lambda env, key, state, action, params: env.step_env(key, state, action, params),
+                    static_argnums=(0,))
+
+
+def jit_reset(env: ReturnBall, key, params):
+    """Jitted :meth:`ReturnBall.reset` (the env object is static: one compile per env)."""
+    return _reset(env, _key(key), params)
+
+
+def jit_step(env: ReturnBall, key, state, action, params):
+    """Jitted :meth:`ReturnBall.step` (one compile per env)."""
+    return _step(env, _key(key), state, jnp.asarray(action, jnp.float32), params)
+
+
+def jit_step_env(env: ReturnBall, key, state, action, params):
+    """Jitted :meth:`ReturnBall.step_env`."""
+    return _step_env(env, _key(key), state, jnp.asarray(action, jnp.float32), params)

@@ -1,0 +1,64 @@
+"""PPO checkpoints: one msgpack file holding the whole training state, written atomically.
+
+A checkpoint holds the PPO config's text, the :class:`~ttsim_jax.rl.ppo.Runner` (network,
+optimiser, observation statistics, environments, key), the learning history and the training time
+so far, so a run resumes exactly where it stopped and ``ttsim play`` needs nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from flax import serialization
+
+from ttsim_jax.io_atomic import atomic_write
+
+FORMAT = "ttsim-ppo/1"
+
+
+class CheckpointError(ValueError):
+    """A file that is not a readable PPO checkpoint; the message names it."""
+
+
+def save_checkpoint(path, runner, config, history: list, elapsed_s: float) -> Path:
+    """Writes a checkpoint atomically (a crash leaves the previous one).
+
+    Arguments:
+        path: file to write; runner: the :class:`~ttsim_jax.rl.ppo.Runner`; config: the
+        :class:`~ttsim_jax.rl.config.PPOConfig`; history: list of per-chunk metric dicts;
+        elapsed_s: training time so far [s].
+    """
+    import jax
+    import numpy as np
+
+    payload = {"format": FORMAT, "config": config.text, "config_source": config.source,
+               "runner": jax.tree.map(np.asarray, serialization.to_state_dict(runner)),
+               "history": json.dumps(history), "elapsed_s": float(elapsed_s)}
+    atomic_write(path, serialization.msgpack_serialize(payload))
+    return Path(path)
+
+
+def read_checkpoint(path) -> dict:
+    """The checkpoint's contents: ``config`` (text), ``config_source``, ``runner`` (a state dict),
+    ``history`` (list) and ``elapsed_s``; raises :class:`CheckpointError` naming the file."""
+    path = Path(path)
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except (OSError, ValueError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{path}: not a PPO checkpoint ({type(e).__name__}: {e})") from None
+    except Exception as e:  # msgpack's own errors (truncated or foreign data) are not ValueErrors
+        raise CheckpointError(f"{path}: not a PPO checkpoint ({type(e).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a PPO checkpoint (format {payload.get('format') if isinstance(payload, dict) else None!r}, expected {FORMAT!r})")
+    payload["history"] = json.loads(payload["history"])
+    return payload
+
+
+def restore_runner(template, payload: dict, path=""):
+    """The runner stored in ``payload``, in the structure of ``template`` (a fresh runner of the same
+    config); raises :class:`CheckpointError` when they do not match."""
+    try:
+        return serialization.from_state_dict(template, payload["runner"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{path}: the checkpoint does not match its config ({e})") from None

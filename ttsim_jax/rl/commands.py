@@ -1,0 +1,115 @@
+"""``ttsim train ppo`` and ``ttsim play``: thin wrappers over :mod:`ttsim_jax.rl.train`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    """Adds ``train ppo`` (to the ``train`` group) and ``play`` to an argparse subparsers object."""
+    from ttsim_jax.cli import existing_file, positive_float, positive_int, seed, text_file, writable_dir, writable_file
+    from ttsim_jax.fit.commands import _group
+
+    train = _group(subparsers, "train", "fit model components to measured data", "Fit model components to "
+                   "measured data, or train a policy.")
+    p = train.add_parser(
+        "ppo", help="train a racket policy with PPO on the ReturnBall environment",
+        description="Trains a policy with PPO (JAX, jitted) on the batched ReturnBall environment "
+                    "(ttsim/ReturnBall-v0), shows progress, evaluates periodically (legal-return rate, landing "
+                    "error to the target), checkpoints atomically to OUT/checkpoint.msgpack and draws "
+                    "OUT/learning_curve.png.")
+    p.add_argument("--config", type=text_file, default=None, metavar="TOML",
+                   help="PPO config (default: the bundled configs/ppo/return_ball.toml)")
+    p.add_argument("--out", type=writable_dir, default=Path("runs/ppo"), metavar="DIR",
+                   help="run folder (default: %(default)s)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue the run in OUT from its checkpoint")
+    mode.add_argument("--force", action="store_true", help="start afresh even if OUT holds a checkpoint")
+    p.add_argument("--total-env-steps", type=positive_int, default=None, metavar="N",
+                   help="stop after this many environment steps in all (default: the config's)")
+    p.add_argument("--time-limit", type=positive_float, default=None, metavar="S",
+                   help="stop after this many seconds of training, a resumed run's earlier time included "
+                        "(default: the config's)")
+    p.add_argument("--seed", type=seed, default=None, help="seed (default: the config's)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=cmd_train_ppo)
+
+    q = subparsers.add_parser(
+        "play", help="evaluate a PPO checkpoint on ReturnBall",
+        description="Plays one episode in each of N environments with the checkpoint's policy (mean action) and "
+                    "prints the legal-return rate, the landing error to the target and the share of each outcome; "
+                    "optionally draws sample rallies.")
+    q.add_argument("--policy", required=True, type=existing_file, metavar="CKPT",
+                   help="checkpoint written by 'ttsim train ppo' (OUT/checkpoint.msgpack)")
+    q.add_argument("--task", default=None, metavar="TASK",
+                   help="bundled task name (return_ball, return_ball_pro) or task .toml (default: the checkpoint's)")
+    q.add_argument("--episodes", type=positive_int, default=1024, help="episodes (default: %(default)s)")
+    q.add_argument("--seed", type=seed, default=0, help="seed (default: %(default)s)")
+    q.add_argument("--plot", type=writable_file, default=None, metavar="PNG", help="draw sample rallies to this PNG")
+    q.add_argument("--json", action="store_true", help="print the results as JSON")
+    q.set_defaults(func=cmd_play)
+
+
+def cmd_train_ppo(args) -> int:
+    import dataclasses
+
+    from ttsim_jax.cli import UsageError
+    from ttsim_jax.rl.config import load_ppo_config
+    from ttsim_jax.rl.train import CHECKPOINT, train
+
+    config = load_ppo_config(args.config)
+    t = config.train
+    config = dataclasses.replace(config, train=dataclasses.replace(
+        t, total_env_steps=args.total_env_steps or t.total_env_steps, time_limit_s=args.time_limit or t.time_limit_s,
+        seed=t.seed if args.seed is None else args.seed))
+    if args.resume and not (args.out / CHECKPOINT).is_file():
+        raise UsageError(f"--resume: {args.out / CHECKPOINT} does not exist")
+    if not args.resume and not args.force and (args.out / CHECKPOINT).exists():
+        raise UsageError(f"--out {args.out}: holds a checkpoint; continue it with --resume or replace it with --force")
+    last = train(config, args.out, resume=args.resume, progress=None if args.quiet else lambda s: print(s, flush=True))
+    print(f"checkpoint {args.out / CHECKPOINT}; learning curve {args.out / 'learning_curve.png'}")
+    if last:
+        print(f"legal-return rate {last.get('eval_legal_rate', float('nan')):.3f} (evaluation), "
+              f"{last['env_steps']:,} environment steps in {last['time_s']:.0f} s")
+    return 0
+
+
+def cmd_play(args) -> int:
+    import jax
+    import numpy as np
+
+    from ttsim_jax.rl import ppo
+    from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner
+    from ttsim_jax.rl.config import parse_ppo_config
+    from ttsim_jax.rl.train import build
+
+    payload = read_checkpoint(args.policy)
+    config = parse_ppo_config(payload["config"], payload["config_source"])
+    train_env, train_params = build(config, config.ppo.num_envs, args.task)
+    runner = restore_runner(jax.eval_shape(lambda k: ppo.init_runner(train_env, train_params, config, k),
+                                           jax.random.PRNGKey(0)), payload, args.policy)
+    env, params = (train_env, train_params) if args.episodes == train_env.num_envs else build(
+        config, args.episodes, args.task)
+    record = min(args.episodes, 12) if args.plot else 0
+    result = ppo.make_evaluate(env, config, record=record)(runner.params, runner.stats, params,
+                                                          jax.random.PRNGKey(args.seed))
+    s = ppo.summarise(result)
+    s["task"] = env.config.source
+    s["env_steps_trained"] = payload["history"][-1]["env_steps"] if payload["history"] else 0
+    if args.json:
+        print(json.dumps(s, indent=1))
+    else:
+        print(f"task {s['task']}: {s['episodes']} episodes (shots the opponent missed left out)")
+        print(f"legal-return rate {s['legal_rate']:.3f}; landing error to the target {s['landing_error_m']:.3f} m; "
+              f"mean return {s['return_mean']:+.3f}")
+        print("outcomes: " + ", ".join(f"{k} {v:.3f}" for k, v in s["outcomes"].items()))
+    if args.plot:
+        from ttsim_jax.env.return_ball import OUTCOME_NAMES
+        from ttsim_jax.plots import plot_trajectories
+
+        ball = np.swapaxes(np.asarray(result["ball"]), 0, 1)
+        labels = np.array([OUTCOME_NAMES[i] for i in np.asarray(result["outcome"])[:record]])
+        plot_trajectories(ball, args.plot, labels=labels, title=f"sample rallies of {args.policy}")
+        print(f"plot written to {args.plot}")
+    return 0

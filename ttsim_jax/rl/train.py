@@ -1,0 +1,168 @@
+"""A PPO training run: jitted chunks of updates, progress, periodic evaluation, atomic checkpoints,
+resume, and the learning curve (PNG)."""
+
+from __future__ import annotations
+
+import functools
+import io
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ttsim_jax.env.config import load_task_config
+from ttsim_jax.env.return_ball import ReturnBall
+from ttsim_jax.io_atomic import atomic_write
+from ttsim_jax.rl import ppo
+from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner, save_checkpoint
+from ttsim_jax.rl.config import PPOConfig, parse_ppo_config
+
+CHECKPOINT = "checkpoint.msgpack"
+CURVE = "learning_curve.png"
+METRICS = "metrics.json"
+
+
+def task_path(config: PPOConfig):
+    """The task file of a PPO config: a path relative to the config's folder, or a bundled name."""
+    task = Path(config.task)
+    if config.source and task.suffix == ".toml" and not task.is_absolute():
+        near = Path(config.source).parent / task
+        if near.is_file():
+            return near
+    return config.task
+
+
+def build(config: PPOConfig, num_envs: int, task=None):
+    """(environment, its parameters) of a PPO config (or of another ``task``); the same environment
+    object for the same task file and size within a process, so its compiled programs are reused."""
+    task = task or task_path(config)
+    env = _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs))
+    return env, env.default_params()
+
+
+@functools.lru_cache(maxsize=8)
+def _env(task: str, num_envs: int) -> ReturnBall:
+    return ReturnBall(load_task_config(task), num_envs)
+
+
+def _chunk_record(metrics: dict, env_steps: int, elapsed: float) -> dict:
+    m = {k: np.asarray(v) for k, v in metrics.items()}
+    episodes = float(m["episodes"].sum())
+    legal = float(m["legal"].sum())
+    return {"env_steps": env_steps, "time_s": round(elapsed, 2), "episodes": int(episodes),
+            "train_legal_rate": legal / episodes if episodes else None,
+            "train_return": float(m["return_sum"].sum()) / episodes if episodes else None,
+            "train_landing_error_m": float(m["landing_error_sum"].sum()) / legal if legal else None,
+            "entropy": float(m["entropy"].mean()), "value_loss": float(m["value_loss"].mean()),
+            "reward_mean": float(m["reward_mean"].mean())}
+
+
+def plot_curve(history: list, path) -> None:
+    """Writes the learning curve (legal-return rate and return against env steps) as a PNG, atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = np.array([h["env_steps"] for h in history], float)
+    get = lambda k: np.array([np.nan if h.get(k) is None else h[k] for h in history], float)  # noqa: E731
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    ax1.plot(steps, get("train_legal_rate"), label="training episodes (sampled actions)")
+    ev = [h for h in history if "eval_legal_rate" in h]
+    if ev:
+        ax1.plot([h["env_steps"] for h in ev], [h["eval_legal_rate"] for h in ev], "o-", label="evaluation (mean action)")
+    ax1.set(ylabel="legal-return rate", ylim=(0, 1))
+    ax1.grid(alpha=0.3)
+    ax1.legend()
+    ax2.plot(steps, get("train_return"), label="training episode return")
+    ax2.set(xlabel="environment steps", ylabel="return")
+    ax2.grid(alpha=0.3)
+    times = get("time_s")
+    ax1.set_title(f"PPO on ReturnBall ({times[-1]:.0f} s of training)" if len(times) else "PPO on ReturnBall")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write(path, buf.getvalue())
+
+
+def train(config: PPOConfig, out, resume: bool = False, progress=print) -> dict:
+    """Trains PPO on the config's task, checkpointing into ``out``.
+
+    Arguments:
+        config: the :class:`~ttsim_jax.rl.config.PPOConfig` (on resume, the checkpoint's own config
+            is used, with this one's ``total_env_steps`` and ``time_limit_s``).
+        out: run folder (``checkpoint.msgpack``, ``metrics.json``, ``learning_curve.png``).
+        resume: continue from ``out/checkpoint.msgpack``.
+        progress: called with one line of text after each chunk (None: silent).
+
+    Returns:
+        The last history record (with the final evaluation).
+    """
+    out = Path(out)
+    history, elapsed = [], 0.0
+    payload = None
+    if resume:
+        payload = read_checkpoint(out / CHECKPOINT)
+        limits = config.train
+        config = parse_ppo_config(payload["config"], payload["config_source"])
+        import dataclasses
+
+        config = dataclasses.replace(config, train=dataclasses.replace(
+            config.train, total_env_steps=limits.total_env_steps, time_limit_s=limits.time_limit_s))
+        history, elapsed = payload["history"], payload["elapsed_s"]
+    t = config.train
+    env, env_params = build(config, config.ppo.num_envs)
+    eval_env, eval_params = build(config, t.eval_envs) if t.eval_envs else (None, None)
+    runner = jax.jit(lambda k: ppo.init_runner(env, env_params, config, k))(jax.random.PRNGKey(t.seed))
+    if payload is not None:
+        runner = restore_runner(runner, payload, out / CHECKPOINT)
+    chunk = ppo.make_chunk(env, config)
+    evaluate = ppo.make_evaluate(eval_env, config) if eval_env else None
+    per_chunk = config.batch_size * t.updates_per_chunk
+
+    def run_eval(record):
+        key = jax.random.fold_in(jax.random.PRNGKey(t.seed + 1), int(runner.update))
+        s = ppo.summarise(evaluate(runner.params, runner.stats, eval_params, key))
+        record.update(eval_legal_rate=s["legal_rate"], eval_landing_error_m=s["landing_error_m"],
+                      eval_return=s["return_mean"], eval_outcomes=s["outcomes"])
+        return s
+
+    def save():
+        save_checkpoint(out / CHECKPOINT, runner, config, history, elapsed)
+        atomic_write(out / METRICS, json.dumps(history, indent=1).encode())
+        if history:
+            plot_curve(history, out / CURVE)
+
+    n_chunk = 0
+    start = time.perf_counter() - elapsed
+    env_steps = int(runner.update) * config.batch_size
+    while env_steps < t.total_env_steps and elapsed < t.time_limit_s:
+        runner, metrics = chunk(runner, env_params)
+        jax.block_until_ready(metrics)
+        env_steps += per_chunk
+        elapsed = time.perf_counter() - start
+        record = _chunk_record(metrics, env_steps, elapsed)
+        n_chunk += 1
+        if evaluate and t.eval_every_chunks and n_chunk % t.eval_every_chunks == 0:
+            run_eval(record)
+            elapsed = time.perf_counter() - start
+        history.append(record)
+        if progress:
+            rate = record["train_legal_rate"]
+            line = f"steps {env_steps:>11,}  time {elapsed:7.1f} s  "
+            line += f"legal (train) {'-' if rate is None else f'{rate:.3f}'}  return {record['train_return'] or 0:+.3f}"
+            if "eval_legal_rate" in record:
+                line += f"  legal (eval) {record['eval_legal_rate']:.3f}  landing error {record['eval_landing_error_m']:.3f} m"
+            progress(line)
+        if n_chunk % t.checkpoint_every_chunks == 0:
+            save()
+    if evaluate and history and "eval_legal_rate" not in history[-1]:
+        s = run_eval(history[-1])
+        if progress:
+            progress(f"final evaluation: legal-return rate {s['legal_rate']:.3f}, landing error "
+                     f"{s['landing_error_m']:.3f} m, return {s['return_mean']:+.3f} over {s['episodes']} episodes")
+    save()
+    return history[-1] if history else {}
