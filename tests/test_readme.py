@@ -19,3 +19,19 @@ def test_ci_runs_the_readme_test_command():
     text = (REPO / "README.md").read_text()
     command = re.search(r"\*\*Run the tests:\*\*\n\n```bash\n(.*?)\n```", text, re.S).group(1).strip()
     assert command in (REPO / ".ci" / "run").read_text()
+
+
+def test_throughput_tables_are_the_committed_benchmark_json():
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("readme_tables", REPO / "benchmarks" / "readme_tables.py")
+    tables = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tables)
+    expected = tables.render(json.loads(tables.DEFAULT.read_text()), "benchmarks/results/peers_cpu.json")
+    for name in ("README.md", "benchmarks/README.md"):
+        assert tables.block_of((REPO / name).read_text()) == expected, \
+            f"{name}: rerun python benchmarks/readme_tables.py --write README.md benchmarks/README.md"
+    # the check can fail: a changed number is caught
+    assert tables.block_of(tables.replace_block("x\n" + tables.START + "\n" + tables.END, expected.replace("M", "k"),
+                                                "t")) != expected
