@@ -217,7 +217,8 @@ class Jacobian:
 
 
 def _chunks(n: int, chunk: int | None):
-    size = n if not chunk else min(chunk, n)
+    """(compiled size, [(lo, hi), ...]): ``chunk`` rows per call (the last padded), or all at once."""
+    size = chunk or n
     return size, [(lo, min(lo + size, n)) for lo in range(0, n, size)]
 
 
@@ -257,7 +258,7 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
     nominal = flatten_inputs(model, shots, layout)
     rot0, face = _racket_arrays(shots, dtype)
     c = layout.n_columns
-    size, spans = _chunks(len(shots), chunk)
+    size, spans = _chunks(len(shots), min(chunk, len(shots)) if chunk else None)
     jac, vals, valid, seq = [], [], [], []
     bar = spans
     if progress:
