@@ -36,7 +36,7 @@ def shots(model):
     pos = np.array([[-1.6, 0.0, 0.25], [-1.5, 0.2, 0.2]])
     vel_in = np.array([[-6.0, 0.2, 1.0], [-4.0, -0.3, 0.5]])
     spin_in = np.array([[0.0, -100.0, 0.0], [0.0, 80.0, 20.0]])
-    vel_out = np.array([[8.0, 0.3, 1.8], [4.5, -0.2, 1.8]])
+    vel_out = np.array([[8.0, 0.3, 1.8], [4.5, -0.2, 2.2]])
     spin_out = np.array([[0.0, 150.0, 10.0], [0.0, -100.0, 0.0]])
     d = np.array([[0.01, -0.01], [-0.02, 0.005]])
     smooth = shots_from_states(model, pos, vel_in, spin_in, vel_out, spin_out, d, dt=DT,

@@ -12,8 +12,9 @@ def test_shots_hit_the_racket_then_land(jac_all, cfg):
     shots, jac = jac_all
     assert jac.valid.all()
     assert (jac.sequence == [RACKET, TABLE]).all()
-    # the landing of the moved shot is on the side edge: centre beyond the playing surface's side
-    assert jac.values[cfg["edge"], 1] > 0.7625 and abs(jac.values[cfg["edge"], 0] - jac.values[0, 0]) < 1e-2
+    # the moved shot lands on the side edge (centre beyond the playing surface's side), a few cm
+    # further on than the drive it was moved from (it falls below the surface before touching the edge)
+    assert jac.values[cfg["edge"], 1] > 0.7625 and abs(jac.values[cfg["edge"], 0] - jac.values[0, 0]) < 0.05
 
 
 def test_jacobian_matches_central_differences_for_every_input_group(model, jac_all, cfg):

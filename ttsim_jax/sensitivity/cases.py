@@ -1,8 +1,9 @@
 """The shots a sensitivity study differentiates: a ball meeting a racket, then flying to its landing.
 
-A shot is the ball and the racket at the start of the step in which they meet (the ball half a step
-before the impact), so the rally kernel finds the contact, its time of impact and the racket
-response itself, and everything after it, from one racket state. Shots come from two places:
+A shot is the ball a few steps before it meets the racket and the racket's state at the meeting;
+the racket is in play for :data:`WINDOW` steps around it (moving with its velocity), so the rally
+kernel finds the contact, its time of impact and the racket response itself, and a racket moved
+by a few centimetres along its normal still meets the ball inside the window. Shots come from two places:
 
 * :func:`sampled_shots`: realistic returns by shot type (``ttsim_jax.shots``): for each, an incoming
   ball and a contact position on the face are drawn, and the racket pose and velocity that send
@@ -25,6 +26,15 @@ from ttsim_jax.physics.numerics import safe_norm
 from ttsim_jax.state import Ball, Racket
 
 FACE = (0.0775, 0.0755)  # ITTF-sized face semi-axes [m], as Racket.create
+# Steps the racket is in play; the nominal contact is in the middle of the window, so a racket
+# moved along its normal by up to (WINDOW / 2 - 0.5) dt times the relative normal speed (17 mm at
+# 1 ms and 5 m/s) is still met in it.
+WINDOW = 8
+
+
+def contact_time(dt):
+    """Time from a shot's start to its nominal contact: the middle of step WINDOW / 2 - 1."""
+    return (WINDOW // 2 - 0.5) * dt
 
 
 @dataclass
@@ -32,8 +42,8 @@ class ShotSet:
     """Shots with the labels a report groups them by.
 
     Attributes:
-        ball: :class:`Ball` (B, 3) numpy fields at the start of the contact step.
-        racket: :class:`Racket` (B, ...) numpy fields at the start of the contact step.
+        ball: :class:`Ball` (B, 3) numpy fields at the start (:func:`contact_time` before the contact).
+        racket: :class:`Racket` (B, ...) numpy fields at the contact.
         label: (B,) shot type (or dataset session) names.
         speed: (B,) speed of the ball leaving the racket as aimed [m/s].
         spin: (B,) signed topspin of the ball leaving the racket as aimed [rad/s] (negative: backspin).
@@ -129,11 +139,10 @@ def _solve_batch(params, radius, mass, pos, vel_in, spin_in, vel_out, spin_out, 
         params, radius, mass, pos, vel_in, spin_in, vel_out, spin_out, d)
 
 
-def start_of_step(ball_pos, vel_in, spin_in, racket: Racket, dt):
-    """Ball and racket half a step before the impact (straight-line back-off: over half a step,
-    gravity moves the ball by g dt^2 / 8, 0.1 um at 1 ms)."""
-    ball = Ball(pos=ball_pos - 0.5 * dt * vel_in, vel=vel_in, spin=spin_in)
-    return ball, racket.replace(pos=racket.pos - 0.5 * dt * racket.vel)
+def start_state(ball_pos, vel_in, spin_in, dt):
+    """The ball :func:`contact_time` before it is at ``ball_pos``, backed off along a straight line
+    (gravity would move it by g t^2 / 2, 0.06 mm at 1 ms steps: the contact point moves by that)."""
+    return Ball(pos=ball_pos - contact_time(dt) * vel_in, vel=vel_in, spin=spin_in)
 
 
 def sampled_shots(model, n: int, seed: int = 0, types=None, dt: float = 1e-3) -> ShotSet:
@@ -148,7 +157,7 @@ def sampled_shots(model, n: int, seed: int = 0, types=None, dt: float = 1e-3) ->
     Arguments:
         model: the model (its racket parameters and flight aim the shots).
         n: number of shots. seed: numpy seed. types: shot type names (default all).
-        dt: the step the shots will be simulated with (the ball starts half a step before impact).
+        dt: the step the shots will be simulated with (the ball starts :func:`contact_time` before the contact).
 
     Returns:
         A :class:`ShotSet` in the model's float dtype.
@@ -193,7 +202,7 @@ def shots_from_states(model, pos, vel_in, spin_in, vel_out, spin_out, d, *, dt: 
                                  j(spin_out), j(d))
     zero = jnp.zeros_like(normal)
     rk = jax.vmap(contact_racket, in_axes=(0, 0, 0, 0, 0, None))(normal, vel_r, zero, j(pos), j(d), radius)
-    ball, rk = start_of_step(j(pos), j(vel_in), j(spin_in), rk, dt)
+    ball = start_state(j(pos), j(vel_in), j(spin_in), dt)
     if topspin is None:
         v = np.asarray(vel_out, np.float64)
         h = v[:, :2] / np.maximum(np.linalg.norm(v[:, :2], axis=-1, keepdims=True), 1e-9)
@@ -242,7 +251,7 @@ def dataset_shots(model, path, dt: float = 1e-3, limit: int | None = None) -> Sh
                 vel=j(np.asarray(batch.racket_velocity)[idx]), ang_vel=j(np.asarray(batch.racket_ang_vel)[idx]),
                 face=j(np.broadcast_to(FACE, (len(idx), 2))))
     w_in, w_out = arrays.world_in[keep], arrays.world_out[keep]
-    ball, rk = start_of_step(j(np.asarray(batch.ball_position)[idx]), j(w_in[:, :3]), j(w_in[:, 3:]), rk, dt)
+    ball = start_state(j(np.asarray(batch.ball_position)[idx]), j(w_in[:, :3]), j(w_in[:, 3:]), dt)
     vel_out, spin_out = w_out[:, :3], w_out[:, 3:]
     heading = vel_out[:, :2] / np.maximum(np.linalg.norm(vel_out[:, :2], axis=-1, keepdims=True), 1e-9)
     across = np.concatenate([-heading[:, 1:2], heading[:, 0:1], np.zeros((len(idx), 1))], -1)

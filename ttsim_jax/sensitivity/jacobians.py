@@ -1,7 +1,7 @@
 """Jacobians of a shot's target with respect to every input, through the rally kernel.
 
 Every input of a shot is one column of a flat (B, C) array (:class:`Layout`): the ball's state at
-the start of the contact step (position, velocity, spin), the racket's (position, a small rotation
+the start, a few steps before the contact (position, velocity, spin), the racket's at the contact (position, a small rotation
 vector applied to its orientation in the world frame, velocity, angular velocity) and every float
 parameter of the model, each shot with its own copy (the kernel's per-ball parameters), so one
 reverse-mode pass gives every shot its own gradient. Columns carry a group name

@@ -1,7 +1,7 @@
 """What a sensitivity study differentiates: a shot's outcome, read from the rally kernel's event log.
 
-A shot (:mod:`ttsim_jax.sensitivity.cases`) runs as two rollouts of the kernel: one step with the
-racket (the contact, its time of impact, the racket model and the residual network, as in any
+A shot (:mod:`ttsim_jax.sensitivity.cases`) runs as two rollouts of the kernel: ``WINDOW`` steps with
+the racket (the contact, its time of impact, the racket model and the residual network, as in any
 rally), then the flight without racket until the horizon. The landing is the first event of the
 flight and must be a table contact; its point and time are the kernel's (refined time of impact),
 so they are differentiable in every input.
@@ -23,6 +23,7 @@ from flax import struct
 from ttsim_jax.kernel.rollout import rollout
 from ttsim_jax.kernel.state import init_state
 from ttsim_jax.physics import events as ev
+from ttsim_jax.sensitivity.cases import WINDOW, contact_time
 from ttsim_jax.state import Ball, Racket
 
 TARGETS = {
@@ -40,8 +41,8 @@ class Outcome:
 
     Attributes:
         values: (B, k) the target's components (:data:`TARGETS`), 0 where not ``valid``.
-        sequence: (B, 2) int32: the event kind of the contact step and the first event of the
-            flight (``physics.events``): (RACKET, TABLE) for a shot that lands.
+        sequence: (B, 2) int32: the first event kind of the racket window and the first event of
+            the flight (``physics.events``): (RACKET, TABLE) for a shot that lands.
         valid: (B,) the shot hit the racket, then landed on the table within the horizon (and,
             for ``net_clearance``, crossed the net plane before landing).
     """
@@ -90,20 +91,23 @@ def shot_outcome(model, ball: Ball, racket: Racket, dt, *, target: str, n_steps:
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` with a leading (B,) axis on every leaf (per shot,
             so that a reverse-mode Jacobian gives each shot its own parameter gradient).
-        ball: :class:`Ball` (B, 3) at the start of the contact step.
-        racket: :class:`Racket` (B, ...) at the start of the contact step (it moves with its
-            velocity within the step).
+        ball: :class:`Ball` (B, 3) at the start, ``cases.contact_time(dt)`` before the contact.
+        racket: :class:`Racket` (B, ...) at the contact; in play for ``cases.WINDOW`` steps,
+            moving with its velocity (its orientation held).
         dt: step [s].
         target: a key of :data:`TARGETS` (static).
-        n_steps: steps of the flight after the contact step (static): the horizon.
+        n_steps: steps of the flight after the racket window (static): the horizon.
 
     Returns:
         An :class:`Outcome`.
     """
     check_target(target)
     dtype = ball.pos.dtype
-    schedule = jax.tree.map(lambda a: a[:, None, None], racket)  # (B, T=1, R=1, ...)
-    state, hit = rollout(model, init_state(ball), 1, dt, schedule, model_axes=0, max_events=2)
+    k = jnp.arange(WINDOW, dtype=dtype) * dt - contact_time(dt)  # each window step's start, from the contact
+    schedule = jax.tree.map(lambda a: jnp.broadcast_to(a[:, None], (a.shape[0], WINDOW) + a.shape[1:]), racket)
+    schedule = schedule.replace(pos=racket.pos[:, None] + k[None, :, None] * racket.vel[:, None])
+    schedule = jax.tree.map(lambda a: a[:, :, None], schedule)  # (B, T, R=1, ...)
+    state, hit = rollout(model, init_state(ball), WINDOW, dt, schedule, model_axes=0, max_events=2)
     start = state.ball
     record = 1 if target == "net_clearance" else 0
     state, out = rollout(model, state, n_steps, dt, None, model_axes=0, max_events=2, record_every=record)
