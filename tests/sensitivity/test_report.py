@@ -78,3 +78,14 @@ def test_command_refuses_bad_options_before_the_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(bad) in err and "unknown parameter 'table.nope'" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_parameter_scales_follow_each_value_not_the_group():
+    """A group mixing magnitudes (C_D ~ 0.5 beside Reynolds numbers ~ 1e5) scales each parameter by
+    its own value; only zeros take a share of the group's size."""
+    jac, _ = known_study(2)
+    jac.columns = jac.columns[:-1] + ["aero.drag.cd[0]", "aero.drag.re_ref[0]", "aero.drag.cd[1]"]
+    jac.groups = np.concatenate([jac.groups[:-1], np.array(["aero.drag"] * 3, dtype=object)])
+    jac.nominal = np.concatenate([jac.nominal[:, :-1], np.tile([0.5, 1e5, 0.0], (2, 1))], 1)
+    scale = report.column_scales(jac)
+    np.testing.assert_allclose(scale[-3:], [0.005, 1e3, 0.01 * 0.1 * np.sqrt((0.25 + 1e10) / 2)])

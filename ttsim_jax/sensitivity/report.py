@@ -31,7 +31,7 @@ PARAM_STEP = 0.01  # relative change of a model parameter
 
 def column_scales(jac: Jacobian) -> np.ndarray:
     """(C,) the typical change of each input (see the module docstring); a parameter whose value is
-    0 takes 1 % of a tenth of its group's RMS value (or 1e-6 if the whole group is 0)."""
+    0 takes 1 % of a tenth of the RMS of its group's nonzero values (1e-6 if they are all 0)."""
     nominal = np.abs(jac.nominal[0])
     scale = np.zeros(len(jac.columns))
     for g in dict.fromkeys(jac.groups):
@@ -39,8 +39,10 @@ def column_scales(jac: Jacobian) -> np.ndarray:
         if g in STATE_SCALES:
             scale[mask] = STATE_SCALES[g]
             continue
-        rms = float(np.sqrt(np.mean(nominal[mask] ** 2)))
-        scale[mask] = PARAM_STEP * np.maximum(nominal[mask], max(0.1 * rms, 1e-4 if rms == 0 else 0.0))
+        vals = nominal[mask]
+        nonzero = vals[vals > 0]
+        floor = 0.1 * float(np.sqrt(np.mean(nonzero**2))) if len(nonzero) else 1e-4
+        scale[mask] = PARAM_STEP * np.where(vals > 0, vals, floor)
     return scale
 
 
