@@ -9,6 +9,7 @@ from ttsim_jax.sensitivity import budgets
 from ttsim_jax.sensitivity.jacobians import Jacobian
 
 
+@pytest.mark.slow
 def test_linear_budget_matches_monte_carlo_on_smooth_shots(model, jac_all, cfg):
     shots, jac = jac_all
     smooth = shots.take(np.array(cfg["smooth"]))

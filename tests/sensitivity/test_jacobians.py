@@ -2,10 +2,14 @@
 and the flags on gradients that hold only locally."""
 
 import numpy as np
+import pytest
 
 from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, finite_differences, group_directions, local_flags
 from ttsim_jax.sensitivity.report import column_scales
+
+# the module's fixture compiles the reverse pass through the kernel (minutes on 2 cores)
+pytestmark = pytest.mark.slow
 
 
 def test_shots_hit_the_racket_then_land(jac_all, cfg):
