@@ -1,0 +1,94 @@
+"""Speed of sensitivity Jacobians: the full Jacobian of the landing point of N shots against every
+input (all model parameters, ball and racket state) by reverse mode through the rally kernel, and
+its ratio to central finite differences over the same inputs (two forward runs of the N shots per
+input).
+
+    python benchmarks/sensitivity.py --shots 4096 --out benchmarks/results/sensitivity_cpu.json
+
+Finite differences are timed on ``--fd-columns`` inputs (each a batched forward run of all shots
+at +h and -h) and scaled to all inputs: the cost of a forward run does not depend on which input
+moved. The first call of each (compilation) is timed apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from ttsim_jax import load_model  # noqa: E402
+from ttsim_jax.sensitivity.cases import sampled_shots  # noqa: E402
+from ttsim_jax.sensitivity.jacobians import flatten_inputs, jacobian, layout_of, outcomes  # noqa: E402
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--shots", type=int, default=4096)
+    p.add_argument("--horizon", type=float, default=1.2, help="flight after the contact [s]")
+    p.add_argument("--dt", type=float, default=1e-3)
+    p.add_argument("--fd-columns", type=int, default=4)
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+
+    model = load_model("conti2026")
+    n_steps = int(round(args.horizon / args.dt))
+    t0 = time.perf_counter()
+    # the closed-form aim (no aiming through the model): the shots' construction is not what is timed
+    shots = sampled_shots(model, args.shots, seed=0, dt=args.dt, aim=False)
+    t_shots = time.perf_counter() - t0
+    layout = layout_of(model)
+    print(f"{args.shots} shots sampled and rackets solved in {t_shots:.1f} s; {layout.n_columns} inputs", flush=True)
+
+    timings = {}
+    for run in ("first", "second"):
+        t0 = time.perf_counter()
+        jac = jacobian(model, shots, target="landing", dt=args.dt, n_steps=n_steps, mode="rev")
+        timings[f"jacobian_{run}_s"] = time.perf_counter() - t0
+        print(f"reverse-mode Jacobian ({run} call): {timings[f'jacobian_{run}_s']:.1f} s", flush=True)
+
+    nominal = flatten_inputs(model, shots, layout)
+    h = 1e-3 * np.maximum(np.abs(nominal).mean(0), 1e-3)
+    t0 = time.perf_counter()
+    outcomes(model, shots, nominal, target="landing", dt=args.dt, n_steps=n_steps)
+    timings["forward_first_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fd = []
+    for c in range(args.fd_columns):
+        step = np.zeros_like(nominal)
+        step[:, c] = h[c]
+        plus = outcomes(model, shots, nominal + step, target="landing", dt=args.dt, n_steps=n_steps).values
+        minus = outcomes(model, shots, nominal - step, target="landing", dt=args.dt, n_steps=n_steps).values
+        fd.append((plus - minus) / (2 * h[c]))
+    t_fd = time.perf_counter() - t0
+    per_column = t_fd / args.fd_columns
+    fd_all = per_column * layout.n_columns
+    ok = jac.valid
+    fd = np.stack(fd, -1)[ok]
+    ad = jac.jac[ok][:, :, :args.fd_columns]
+    rel = np.abs(ad - fd) / (np.abs(fd).max((0, 1), keepdims=True) + 1e-9)
+    result = dict(
+        shots=args.shots, landed=int(ok.sum()), inputs=layout.n_columns, n_steps=n_steps, dt=args.dt,
+        dtype=str(model.ball.radius.dtype), backend=jax.default_backend(), cpus=os.cpu_count(),
+        load_average=os.getloadavg()[0], machine=platform.machine(), jax=jax.__version__,
+        sampling_s=t_shots, **timings, fd_seconds_per_input=per_column, fd_all_inputs_s=fd_all,
+        fd_over_jacobian=fd_all / timings["jacobian_second_s"],
+        fd_columns_checked=args.fd_columns, fd_vs_jacobian_median_rel_gap=float(np.median(rel)),
+    )
+    print(json.dumps(result, indent=1))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()

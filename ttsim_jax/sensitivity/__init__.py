@@ -1,0 +1,7 @@
+"""Sensitivity studies: Jacobians of a shot's landing (and other targets) against every model
+parameter and input state through the rally kernel, error budgets and their reports.
+
+Modules: ``cases`` (the shots), ``targets`` (what is differentiated), ``jacobians`` (reverse and
+forward mode, finite differences, local-gradient flags), ``budgets`` (linear and Monte Carlo error
+budgets), ``report`` (tables, figures, JSON), ``study`` (a whole study, as ``ttsim sensitivity``).
+"""
