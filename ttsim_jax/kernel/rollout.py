@@ -318,7 +318,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         max_events: slots of each ball's event log (0: no log).
         record_every: record the ball every that many steps (0: no recording); must divide n_steps.
         contact_capacity: balls per step handled in the gathered event buffer (default B/32, at
-            least 8); a step with more is still exact, at full-batch cost.
+            least 8); a step with more runs the buffer several times, with the same result.
         sample_residual: sample the residual network's correction from its predicted std; the draw
             depends on ``key``, the step and the ball's id only.
         key: PRNG key for sampling (default ``PRNGKey(0)``).
