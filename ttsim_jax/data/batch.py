@@ -257,6 +257,24 @@ def event_batch(ds: Dataset, *, kinds=None, pad_to: int | None = None, dtype=np.
     )
 
 
+def segments_around(ds: Dataset, event_ids) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the segments table that end and that start at each event.
+
+    Arguments:
+        ds: dataset.
+        event_ids: (E,) event ids.
+
+    Returns:
+        (in_rows (E,), out_rows (E,)) int64, -1 where no segment ends (starts) at the event.
+    """
+    seg = ds.segments
+    ends = {int(e): i for i, e in enumerate(seg["end_event_id"]) if e >= 0}
+    starts = {int(e): i for i, e in enumerate(seg["start_event_id"]) if e >= 0}
+    ids = [int(e) for e in np.asarray(event_ids).reshape(-1)]
+    return (np.array([ends.get(e, -1) for e in ids], np.int64).reshape(-1),
+            np.array([starts.get(e, -1) for e in ids], np.int64).reshape(-1))
+
+
 def racket_contact_batch(ds: Dataset, *, pad_to: int | None = None, dtype=np.float32, validate: bool = True) -> RacketContactBatch:
     """All racket contacts, joined with their events and neighbouring segments.
 
@@ -270,15 +288,14 @@ def racket_contact_batch(ds: Dataset, *, pad_to: int | None = None, dtype=np.flo
         :class:`RacketContactBatch`.
     """
     ds = _checked(ds, validate)
-    rk, ev, seg = ds.rackets, ds.events, ds.segments
+    rk, ev = ds.rackets, ds.events
     n = len(rk["event_id"])
     R = n if pad_to is None else int(pad_to)
     if R < n:
         raise ValueError(f"pad_to={pad_to} is smaller than the {n} racket contacts")
     ev_row = {int(e): i for i, e in enumerate(ev["event_id"])}
     rows = np.array([ev_row[int(e)] for e in rk["event_id"]], np.int64)
-    ends = {int(e): i for i, e in enumerate(seg["end_event_id"]) if e >= 0}
-    starts = {int(e): i for i, e in enumerate(seg["start_event_id"]) if e >= 0}
+    in_rows, out_rows = segments_around(ds, rk["event_id"])
 
     def stack(table, names, index=None):
         a = np.stack([np.asarray(table[k], np.float64) for k in names], -1)
@@ -300,8 +317,8 @@ def racket_contact_batch(ds: Dataset, *, pad_to: int | None = None, dtype=np.flo
         racket_velocity=padded(stack(rk, ("vx", "vy", "vz")) if n else np.zeros((0, 3)), 0.0, dtype),
         racket_ang_vel=padded(stack(rk, ("wx", "wy", "wz")) if n else np.zeros((0, 3)), 0.0, dtype),
         contact_point=padded(stack(rk, ("d_y", "d_z")) if n else np.zeros((0, 2)), 0.0, dtype),
-        in_segment=padded(np.array([ends.get(int(e), -1) for e in rk["event_id"]], np.int32), -1, np.int32),
-        out_segment=padded(np.array([starts.get(int(e), -1) for e in rk["event_id"]], np.int32), -1, np.int32),
+        in_segment=padded(in_rows.astype(np.int32), -1, np.int32),
+        out_segment=padded(out_rows.astype(np.int32), -1, np.int32),
         event_id=padded(np.asarray(rk["event_id"]), -1, np.int32),
         mask=padded(np.ones(n, bool), False, bool),
     )

@@ -228,6 +228,107 @@ def fit_contact_state(t, pos, t_contact, degree: int = 2):
     return coef[0], coef[1] / scale, rmse
 
 
+class ObservationIndex:
+    """A dataset's observations grouped by flight segment, to look up the samples of a segment
+    next to a contact.
+
+    Attributes:
+        segments: the dataset's segments table; segment_ids: (S,) its ids.
+        t: (N,) observation times [s] (float64); pos: (N, 3) positions [m].
+    """
+
+    def __init__(self, ds):
+        obs = ds.observations
+        self.segments = ds.segments
+        self.segment_ids = np.asarray(self.segments["segment_id"], np.int64)
+        self._order = np.argsort(obs["segment_id"], kind="stable")  # keeps time order within a segment
+        self._sorted = np.asarray(obs["segment_id"])[self._order]
+        self.t = np.asarray(obs["t"], np.float64)
+        self.pos = ds.positions
+
+    def rows(self, seg_row: int) -> np.ndarray:
+        """Observation rows of the segment in row ``seg_row`` of the segments table, in time order."""
+        sid = int(self.segment_ids[seg_row])
+        lo, hi = np.searchsorted(self._sorted, [sid, sid + 1])
+        return self._order[lo:hi]
+
+    def near(self, seg_row: int, t_contact: float, before: bool, fit: ContactFit):
+        """(times (n,), positions (n, 3)): the ``fit.n_samples`` samples of a segment nearest to a
+        contact, within ``fit.max_span`` of it, on one side (``before`` or after)."""
+        idx = self.rows(seg_row)
+        t = self.t[idx]
+        tc = float(t_contact)
+        keep = (t < tc) & (t >= tc - fit.max_span) if before else (t > tc) & (t <= tc + fit.max_span)
+        idx = idx[keep]
+        idx = idx[-fit.n_samples:] if before else idx[:fit.n_samples]
+        return self.t[idx], self.pos[idx]
+
+    def spin(self, seg_row: int) -> tuple[np.ndarray, float]:
+        """(spin (3,) [rad/s], confidence) of the segment in row ``seg_row``."""
+        seg = self.segments
+        return (np.array([seg[k][seg_row] for k in ("spin_x", "spin_y", "spin_z")], np.float64),
+                float(seg["spin_conf"][seg_row]))
+
+
+@dataclasses.dataclass
+class ContactEstimate:
+    """The ball's estimated state just before and just after a contact (world frame).
+
+    Attributes:
+        vel_in, vel_out: (3,) velocity at the contact time [m/s], from the incoming / outgoing fit.
+        spin_in, spin_out: (3,) the incoming / outgoing segment's spin [rad/s].
+        spin_known: both spins have a confidence of at least ``min_spin_conf``.
+        rmse: (2,) RMS position residual of the incoming / outgoing fit [m].
+    """
+
+    vel_in: np.ndarray
+    vel_out: np.ndarray
+    spin_in: np.ndarray
+    spin_out: np.ndarray
+    spin_known: bool
+    rmse: np.ndarray
+
+
+def estimate_contact(index: ObservationIndex, in_row: int, out_row: int, t_contact: float, fit: ContactFit,
+                     need_spin: bool = True) -> tuple[str | None, ContactEstimate | None]:
+    """Estimates the ball's state on both sides of a contact (see the module docstring).
+
+    Arguments:
+        index: the dataset's :class:`ObservationIndex`.
+        in_row, out_row: rows of the incoming and outgoing segments in the segments table (-1: none).
+        t_contact: the contact time [s].
+        fit: how states are estimated (:class:`ContactFit`).
+        need_spin: skip a contact whose segments' spin confidence is below ``fit.min_spin_conf``;
+            False keeps it with ``spin_known`` False.
+
+    Returns:
+        (reason, estimate): a key of :data:`SKIP_REASONS` and None for a contact that cannot be
+        used, else None and the :class:`ContactEstimate`.
+    """
+    if in_row < 0:
+        return "no_incoming_segment", None
+    if out_row < 0:
+        return "no_outgoing_segment", None
+    ti, pi = index.near(in_row, t_contact, True, fit)
+    if len(ti) < fit.min_samples:
+        return "few_incoming_samples", None
+    to, po = index.near(out_row, t_contact, False, fit)
+    if len(to) < fit.min_samples:
+        return "few_outgoing_samples", None
+    spin_in, conf_in = index.spin(in_row)
+    spin_out, conf_out = index.spin(out_row)
+    if need_spin and conf_in < fit.min_spin_conf:
+        return "low_spin_conf_in", None
+    if need_spin and conf_out < fit.min_spin_conf:
+        return "low_spin_conf_out", None
+    _, v_in, r_in = fit_contact_state(ti, pi, t_contact, fit.degree)
+    _, v_out, r_out = fit_contact_state(to, po, t_contact, fit.degree)
+    if max(r_in, r_out) > fit.max_fit_rmse:
+        return "bad_fit", None
+    return None, ContactEstimate(vel_in=v_in, vel_out=v_out, spin_in=spin_in, spin_out=spin_out,
+                                 spin_known=min(conf_in, conf_out) >= fit.min_spin_conf, rmse=np.array([r_in, r_out]))
+
+
 def _racket_model(model):
     """(Model, name) from a bundled model name, a TOML path or a Model."""
     from ttsim_jax.params import Model, load_model
@@ -320,57 +421,17 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     stateless = np.setdiff1d(np.asarray(ev["event_id"], np.int64)[kinds == "racket"], event_ids)
     skipped["no_racket_state"] = [int(e) for e in stateless]
 
-    seg = ds.segments
-    obs = ds.observations
-    order = np.argsort(obs["segment_id"], kind="stable")  # keeps time order within a segment
-    sorted_ids = np.asarray(obs["segment_id"])[order]
-    t_obs = np.asarray(obs["t"], np.float64)
-    pos_obs = ds.positions
-
-    def samples(seg_row, tc, before):
-        sid = int(seg["segment_id"][seg_row])
-        lo, hi = np.searchsorted(sorted_ids, [sid, sid + 1])
-        idx = order[lo:hi]
-        t = t_obs[idx]
-        keep = (t < tc) & (t >= tc - fit.max_span) if before else (t > tc) & (t <= tc + fit.max_span)
-        idx = idx[keep]
-        idx = idx[-fit.n_samples:] if before else idx[:fit.n_samples]
-        return t_obs[idx], pos_obs[idx]
-
+    index = ObservationIndex(ds)
+    seg_ids = index.segment_ids
     good = []
     vin, win, vout, wout, rmse = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)),
                                   np.zeros((n, 2)))
-    seg_ids = np.asarray(seg["segment_id"], np.int64)
     for i in range(n):
-        e = int(event_ids[i])
-        if in_row[i] < 0:
-            skipped["no_incoming_segment"].append(e)
+        reason, est = estimate_contact(index, in_row[i], out_row[i], t_c[i], fit)
+        if reason is not None:
+            skipped[reason].append(int(event_ids[i]))
             continue
-        if out_row[i] < 0:
-            skipped["no_outgoing_segment"].append(e)
-            continue
-        ti, pi = samples(in_row[i], t_c[i], True)
-        if len(ti) < fit.min_samples:
-            skipped["few_incoming_samples"].append(e)
-            continue
-        to, po = samples(out_row[i], t_c[i], False)
-        if len(to) < fit.min_samples:
-            skipped["few_outgoing_samples"].append(e)
-            continue
-        if float(seg["spin_conf"][in_row[i]]) < fit.min_spin_conf:
-            skipped["low_spin_conf_in"].append(e)
-            continue
-        if float(seg["spin_conf"][out_row[i]]) < fit.min_spin_conf:
-            skipped["low_spin_conf_out"].append(e)
-            continue
-        _, vin[i], r_in = fit_contact_state(ti, pi, t_c[i], fit.degree)
-        _, vout[i], r_out = fit_contact_state(to, po, t_c[i], fit.degree)
-        rmse[i] = (r_in, r_out)
-        if max(r_in, r_out) > fit.max_fit_rmse:
-            skipped["bad_fit"].append(e)
-            continue
-        win[i] = [seg[k][in_row[i]] for k in ("spin_x", "spin_y", "spin_z")]
-        wout[i] = [seg[k][out_row[i]] for k in ("spin_x", "spin_y", "spin_z")]
+        vin[i], win[i], vout[i], wout[i], rmse[i] = est.vel_in, est.spin_in, est.vel_out, est.spin_out, est.rmse
         good.append(i)
 
     good = np.asarray(good, np.int64)

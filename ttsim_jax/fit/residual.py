@@ -666,7 +666,7 @@ def train_residual(x, y_base, y_obs, config: ResidualConfig, tcfg: TrainConfig =
     return model, report
 
 
-def _predict(model: ResidualModel, x, y_base):
+def predict(model: ResidualModel, x, y_base):
     """(prediction (M, 6), sigma (M, 6)) in float64: base + attenuated residual, predicted sigmas."""
     out = jax.jit(R.residual_outputs)(model, jnp.asarray(x, jnp.float32))
     corr = np.concatenate([np.asarray(out["dv"]), np.asarray(out["dw"])], 1).astype(np.float64)
@@ -697,7 +697,7 @@ def calibrate_sigma(model: ResidualModel, x, y_base, y_obs, mode: str = "compone
     if mode not in CALIBRATION_MODES:
         raise ValueError(f"calibrate_sigma: mode = {mode!r}, must be one of {list(CALIBRATION_MODES)}")
     model = model.replace(sigma_scale=jnp.ones((6,), jnp.float32))
-    pred, sigma, _ = _predict(model, x, y_base)
+    pred, sigma, _ = predict(model, x, y_base)
     err = np.abs(pred - np.asarray(y_obs, np.float64))
     groups = CALIBRATION_MODES[mode]
     factors = np.ones(6) if groups is None else R.calibration_scale(err, sigma, groups, target)
@@ -727,7 +727,7 @@ def evaluate_residual(model: ResidualModel, x, y_base, y_obs) -> dict:
         with the uncalibrated sigmas (``sigma_scale`` removed); beta statistics.
     """
     y_base, y_obs = np.asarray(y_base, np.float64), np.asarray(y_obs, np.float64)
-    pred, sigma, beta = _predict(model, x, y_base)
+    pred, sigma, beta = predict(model, x, y_base)
     err_b, err_c = y_base - y_obs, pred - y_obs
     names = list(COMPONENTS)
     med = lambda a: float(np.median(a))  # noqa: E731
@@ -785,28 +785,50 @@ def evaluate_by_band(model: ResidualModel, x, y_base, y_obs, distance, edges=DIS
     distance = np.asarray(distance, np.float64)
     if distance.shape != (len(y_obs),):
         raise ValueError(f"evaluate_by_band: distance has shape {distance.shape}, expected ({len(y_obs)},)")
-    pred, sigma, _ = _predict(model, x, y_base) if len(y_obs) else (y_base, y_base, None)
-
-    def errors(y):
-        e = np.abs(y - y_obs)
-        mags = [np.abs(np.linalg.norm(y[:, sl], axis=1) - np.linalg.norm(y_obs[:, sl], axis=1))
-                for sl in (slice(0, 3), slice(3, 6))]
-        return np.concatenate([e, np.stack(mags, 1)], 1)
-
-    names = list(COMPONENTS) + ["|v|", "|w|"]
-    e_base, e_res = errors(y_base), errors(pred)
-    bounds = [0.0, *edges, math.inf]
+    pred, sigma, _ = predict(model, x, y_base) if len(y_obs) else (y_base, y_base, None)
+    e_base, e_res = np.abs(contact_errors(y_base, y_obs)), np.abs(contact_errors(pred, y_obs))
     out = []
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        sel = (distance >= lo) & (distance < hi)
-        row = dict(band=band_label(lo, hi), lo=lo, hi=hi, n=int(sel.sum()))
+    for label, lo, hi, sel in distance_bands(distance, edges):
+        row = dict(band=label, lo=lo, hi=hi, n=int(sel.sum()))
         for key, e in (("base", e_base), ("residual", e_res)):
-            med = np.median(e[sel], 0) if sel.any() else np.full(len(names), math.nan)
-            row[key] = dict(zip(names, med.tolist()))
+            med = np.median(e[sel], 0) if sel.any() else np.full(len(ERROR_NAMES), math.nan)
+            row[key] = dict(zip(ERROR_NAMES, med.tolist()))
         inside = np.abs(pred[sel] - y_obs[sel]) <= sigma[sel]
         row["within_one_sigma"] = float(np.mean(inside)) if sel.any() else math.nan
         out.append(row)
     return out
+
+
+#: Columns of :func:`contact_errors`: the six components and the speed and spin magnitudes.
+ERROR_NAMES = COMPONENTS + ("|v|", "|w|")
+
+
+def contact_errors(y, y_obs) -> np.ndarray:
+    """Signed errors of predicted post-contact states, as the paper plots them.
+
+    Arguments:
+        y, y_obs: (M, 6) predicted and observed (v, w).
+
+    Returns:
+        (M, 8) float64: y - y_obs per component, then |v| - |v_obs| and |w| - |w_obs|
+        (:data:`ERROR_NAMES`).
+    """
+    y, y_obs = np.asarray(y, np.float64), np.asarray(y_obs, np.float64)
+    mags = [np.linalg.norm(y[:, sl], axis=1) - np.linalg.norm(y_obs[:, sl], axis=1)
+            for sl in (slice(0, 3), slice(3, 6))]
+    return np.concatenate([y - y_obs, np.stack(mags, 1)], 1)
+
+
+def distance_bands(distance, edges=DISTANCE_BANDS):
+    """The contact-distance bands: a list of (label, lo, hi, mask (M,)) from 0 to infinity.
+
+    Arguments:
+        distance: (M,) contact distances from the face centre [m].
+        edges: inner band edges [m] (the paper's 5 and 8 cm by default).
+    """
+    distance = np.asarray(distance, np.float64)
+    bounds = [0.0, *edges, math.inf]
+    return [(band_label(lo, hi), lo, hi, (distance >= lo) & (distance < hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
 
 
 def recovery_experiment(n_contacts: int = 20000, seed: int = 0, config: ResidualConfig | None = None,
