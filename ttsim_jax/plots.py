@@ -31,11 +31,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
     Returns:
         The path written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     positions = np.asarray(positions)[:max_balls]
     fig, (ax_top, ax_side) = plt.subplots(2, 1, figsize=(10, 8), gridspec_kw={"height_ratios": [1.1, 1]})
     _table(ax_top, ax_side)
@@ -62,9 +58,122 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
     if names is not None:
         ax_top.legend(loc="upper left", fontsize=7, ncol=4)
     ax_side.grid(alpha=0.3)
-    fig.tight_layout()
+    return _save(fig, path)
+
+
+#: Colours of the paper's figures per model family (others: the tab10 cycle).
+MODEL_COLOURS = {"nakashima2011": "#1f77b4", "durr2026": "#ff7f0e", "conti2026": "#c51b8a"}
+
+
+def model_colours(names) -> dict:
+    """A colour per model name: the paper's for its three models, the tab10 cycle for the others."""
+    import matplotlib.pyplot as plt
+
+    cmap = plt.get_cmap("tab10")
+    others = [n for n in names if n not in MODEL_COLOURS]
+    return {n: MODEL_COLOURS.get(n) or cmap((2 + others.index(n)) % 10) for n in names}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _pyplot().close(fig)
     return path
+
+
+def plot_violins(groups: dict, path, ylabel: str = "", title: str = "", panels=None) -> Path:
+    """Violin plots of several models' values side by side, per category.
+
+    Arguments:
+        groups: {category: {model: (n,) values}}; NaN values are left out, a model without values
+            in a category leaves a gap. Medians are marked.
+        path: PNG file to write.
+        ylabel, title: labels.
+        panels: optional sequence of category lists, one subplot (row) each (default: one panel).
+
+    Returns:
+        The path written.
+    """
+    plt = _pyplot()
+    cats = list(groups)
+    panels = [cats] if panels is None else [list(p) for p in panels]
+    names = list(dict.fromkeys(n for g in groups.values() for n in g))
+    colours = model_colours(names)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(6.0, 1.2 * len(names) * max(map(len, panels))), 3.6 * len(panels)),
+                             squeeze=False)
+    width = 0.8 / max(len(names), 1)
+    for ax, panel in zip(axes[:, 0], panels):
+        for i, cat in enumerate(panel):
+            for j, name in enumerate(names):
+                v = np.asarray(groups[cat].get(name, []), np.float64)
+                v = v[np.isfinite(v)]
+                x = i + (j - (len(names) - 1) / 2) * width
+                if len(v) > 1 and np.ptp(v) > 0:
+                    body = ax.violinplot(v, positions=[x], widths=0.9 * width, showextrema=False)["bodies"][0]
+                    body.set_facecolor(colours[name])
+                    body.set_alpha(0.6)
+                if len(v):
+                    ax.scatter([x], [np.median(v)], color="k", s=12, zorder=3)
+        ax.set_xticks(range(len(panel)), [str(c) for c in panel])
+        ax.axhline(0.0, color="grey", lw=0.6)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3, axis="y")
+    for name in names:
+        axes[0, 0].plot([], [], color=colours[name], lw=6, alpha=0.6, label=name)
+    axes[0, 0].legend(fontsize=8, ncol=min(len(names), 4))
+    axes[0, 0].set_title(title + " (dots: medians)")
+    return _save(fig, path)
+
+
+def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_points: int = 2000) -> tuple:
+    """The landing-error figures: a histogram of the error distance per model, and the
+    predicted and measured landing points over the table (one panel per model).
+
+    Arguments:
+        errors: {model: (N,) landing error [m]} (NaN: no simulated landing).
+        landing: {model: (N, 2) simulated landing points}; measured: (N, 2) measured ones.
+        hist_path, xy_path: PNG files to write.
+        max_points: at most this many points per panel of the XY figure.
+
+    Returns:
+        (histogram path, XY path).
+    """
+    plt = _pyplot()
+    names = list(errors)
+    colours = model_colours(names)
+    finite = [np.asarray(e)[np.isfinite(e)] for e in errors.values()]
+    top = max([float(np.percentile(e, 99)) for e in finite if len(e)] + [0.05])
+    bins = np.linspace(0.0, top, 40)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, e in zip(names, finite):
+        label = f"{name} (median {np.median(e):.3f} m)" if len(e) else name
+        ax.hist(np.clip(e, 0.0, top), bins=bins, histtype="step", lw=1.6, color=colours[name], label=label)
+    ax.set(xlabel="landing-position error [m]", ylabel="contacts", title="landing-position error (last bin: and above)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    hist_path = _save(fig, hist_path)
+
+    measured = np.asarray(measured)[:max_points]
+    fig, axes = plt.subplots(1, len(names), figsize=(5.2 * len(names), 4.2), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        side = plt.figure().add_subplot()  # _table draws a top and a side view; only the top is kept
+        _table(ax, side)
+        plt.close(side.figure)
+        p = np.asarray(landing[name])[:max_points]
+        ax.scatter(measured[:, 0], measured[:, 1], s=6, color="k", alpha=0.5, label="measured")
+        ax.scatter(p[:, 0], p[:, 1], s=6, color=colours[name], alpha=0.6, label=f"{name}")
+        ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal", xlim=(-2.0, 2.0), ylim=(-1.2, 1.2))
+        ax.set_title(f"landing points: {name}")
+        ax.legend(fontsize=7, loc="upper left")
+    return hist_path, _save(fig, xy_path)

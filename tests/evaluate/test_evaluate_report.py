@@ -1,0 +1,131 @@
+"""``ttsim evaluate`` (ttsim_jax.evaluate.report) on a small dataset of the reality generator whose
+truth is a bundled model with no effects and no noise: the truth scores ~0 in every stage, a model
+with lowered restitution coefficients scores the closed-form errors, and the files are complete.
+
+The dataset (tests/evaluate/data/clean) was made by the command in tests/evaluate/data/README.md;
+generating it here would cost minutes of compilation.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ttsim_jax import load_model
+from ttsim_jax.cli import main
+from ttsim_jax.data import load
+from ttsim_jax.evaluate.report import FIGURES, STAGES, evaluate_models, reference_name
+from ttsim_jax.params import config_dir
+
+DATA = Path(__file__).parent / "data" / "clean"
+TRUTH = "durr2026"  # the generator's truth model for DATA
+DE0 = 0.05  # the perturbed model's table and racket e0 are lowered by this
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """One ``ttsim evaluate`` of the truth and a perturbed copy (one compilation per stage)."""
+    tmp = tmp_path_factory.mktemp("evaluate")
+    text = (config_dir() / "models" / f"{TRUTH}.toml").read_text()
+    truth = load_model(TRUTH)
+    table_e0, racket_e0 = float(truth.table.e0), float(truth.racket.e0)
+    lines, section = [], ""
+    for line in text.splitlines():
+        if line.startswith("["):
+            section = line.split("]")[0] + "]"
+        if line.replace(" ", "").startswith("e0="):
+            value = table_e0 if section == "[table]" else racket_e0 if section == "[racket]" else None
+            assert value is not None, f"e0 outside [table] and [racket] in {TRUTH}.toml: {line}"
+            line = line.replace(f"{value:g}", f"{value - DE0:g}", 1)
+        lines.append(line)
+    perturbed = tmp / "perturbed.toml"
+    perturbed.write_text("\n".join(lines) + "\n")
+    m = load_model(perturbed)
+    assert np.isclose(float(m.table.e0), table_e0 - DE0) and np.isclose(float(m.racket.e0), racket_e0 - DE0)
+    out = tmp / "out"
+    assert main(["evaluate", "--data", str(DATA), "--models", f"{TRUTH},{perturbed}", "--out", str(out), "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    samples = dict(np.load(out / "samples.npz"))
+    return dict(out=out, metrics=metrics, samples=samples)
+
+
+def test_files_and_json_keys_are_complete(run):
+    out, m = run["out"], run["metrics"]
+    for name in list(FIGURES.values()) + ["report.md", "metrics.json", "samples.npz"]:
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    report = (out / "report.md").read_text()
+    for fig in FIGURES.values():
+        assert f"]({fig})" in report
+    assert m["models"] == [TRUTH, "perturbed"] and m["reference"] == TRUTH
+    for stage in STAGES:
+        assert "skipped" not in m[stage], m[stage]
+        assert set(m[stage]["models"]) == {TRUTH, "perturbed"}
+    for model in m["flight"]["models"].values():
+        assert {"n", "median", "p75", "mean", "reduction_median_pct", "reduction_p75_pct"} <= set(model)
+    for model in m["table"]["models"].values():
+        assert set(model) == {"v_x", "v_y", "v_z", "w_x", "w_y", "w_z"}
+        assert all({"median", "p75", "bias", "reduction_median_pct"} <= set(c) for c in model.values())
+    assert m["racket"]["bands"] == ["0-5 cm", "5-8 cm", "> 8 cm", "all"]
+    for model in m["racket"]["models"].values():
+        assert set(model) == set(m["racket"]["bands"])
+        assert {"|v|", "|w|", "v_x", "w_z"} <= set(model["all"])
+    for model in m["landing"]["models"].values():
+        assert {"median", "p75", "not_hit", "no_landing", "reduction_median_pct"} <= set(model)
+    # the reductions are those of the numbers beside them
+    f = m["flight"]["models"]
+    assert np.isclose(f["perturbed"]["reduction_median_pct"],
+                      100 * (f[TRUTH]["median"] - f["perturbed"]["median"]) / f[TRUTH]["median"])
+
+
+def test_the_truth_scores_about_zero_in_every_stage(run):
+    m, s = run["metrics"], run["samples"]
+    assert m["flight"]["n_segments"] >= 20 and m["flight"]["models"][TRUTH]["p75"] < 5e-4
+    t = m["table"]["models"][TRUTH]
+    assert m["table"]["n_used"] >= 10
+    assert max(t[c]["p75"] for c in ("v_x", "v_y", "v_z")) < 0.02  # m/s: the polynomial fits' bias
+    assert max(t[c]["p75"] for c in ("w_x", "w_y", "w_z")) < 1.0  # rad/s
+    r = m["racket"]["models"][TRUTH]["all"]
+    assert m["racket"]["n_used"] >= 5 and r["|v|"]["p75"] < 0.03 and r["|w|"]["p75"] < 2.0
+    g = m["landing"]["models"][TRUTH]
+    assert g["n"] >= 5 and g["not_hit"] == 0 and g["p75"] < 0.01
+    assert np.all(np.isfinite(s[f"landing/error/{TRUTH}"]))
+
+
+def test_lowered_restitution_gives_the_closed_form_errors(run):
+    m, s = run["metrics"], run["samples"]
+    # Table: v_z+ = e_n |v_z-|, so lowering e0 lowers v_z+ by DE0 |v_z-| on every bounce.
+    d_vz = s["table/error/perturbed"][:, 2] - s[f"table/error/{TRUTH}"][:, 2]
+    np.testing.assert_allclose(d_vz, -DE0 * np.abs(s["table/pre"][:, 2]), atol=1e-6)
+    # Racket (racket frame, x = face normal): v~+_x = -e_n v~_x, so it drops by DE0 |v~_x|; the
+    # tangential velocity and the spin do not depend on e_n.
+    e_t, e_p = s[f"racket/error/{TRUTH}"], s["racket/error/perturbed"]
+    np.testing.assert_allclose(e_p[:, 0] - e_t[:, 0], -DE0 * np.abs(s["racket/x"][:, 0]), atol=1e-6)
+    np.testing.assert_allclose(e_p[:, 1:6], e_t[:, 1:6], atol=1e-6)
+    # Flight is the same model: the same RMSE, 0 % reduction.
+    np.testing.assert_allclose(s["flight/rmse/perturbed"], s[f"flight/rmse/{TRUTH}"])
+    assert m["flight"]["models"]["perturbed"]["reduction_median_pct"] == 0.0
+    # Slower returns land elsewhere: a clearly larger landing error than the truth's.
+    g = m["landing"]["models"]
+    assert g["perturbed"]["median"] > 5 * g[TRUTH]["median"] + 0.01
+
+
+def test_stages_without_data_are_skipped_with_the_reason():
+    from ttsim_jax.data.schema import empty_table
+
+    ds = load(DATA)
+    ds = ds.replace(rackets=empty_table("rackets"))
+    result = evaluate_models(ds, [TRUTH], stages=("racket", "landing"))
+    assert "racket states" in result["racket"]["skipped"] and "racket states" in result["landing"]["skipped"]
+    assert reference_name(["conti2026", "nakashima2011"]) == "nakashima2011"
+    assert reference_name(["conti2026", "fitted"]) == "conti2026"
+
+
+def test_a_missing_dataset_or_an_unknown_model_is_named(tmp_path, capsys):
+    assert main(["evaluate", "--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert "--data" in capsys.readouterr().err
+    assert main(["evaluate", "--data", str(DATA), "--models", "durr2026,nakashima2012", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "--models" in err and "nakashima2012" in err
+    assert main(["evaluate", "--models", "durr2026"]) == 2
+    assert "--data and --out required" in capsys.readouterr().err
