@@ -81,7 +81,8 @@ class EvaluateSettings:
         dt: integration step of the landing rollouts [s].
         horizon: longest landing rollout [s]; a ball not reaching the table plane by then has no
             landing point.
-        chunk: racket contacts per compiled landing rollout (the last chunk is padded).
+        chunk: most racket contacts per compiled landing rollout (fewer contacts: the power of two
+            above their number; the last chunk is padded).
         sessions: evaluate only these session ids (None: all).
     """
 
@@ -89,7 +90,7 @@ class EvaluateSettings:
     min_samples: int = 5
     dt: float = 1e-3
     horizon: float = 1.5
-    chunk: int = 64
+    chunk: int = 256
     sessions: tuple | None = None
 
     def keep(self, session_ids) -> np.ndarray:
@@ -149,8 +150,12 @@ def _stats(x) -> dict:
 def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
     """Flight-segment 3-D position RMSE per model (see the module docstring).
 
+    Segments with a measured spin (confidence >= ``fit.min_spin_conf``) are used when the data has
+    any; otherwise every segment is, flown with spin 0.
+
     Returns:
-        dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_known`` (S,) bool and
+        dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_measured`` (whether the
+        segments have a measured spin), ``n_without_spin`` (segments left out for want of one) and
         ``rmse`` {name: (S,) [m]}.
     """
     from ttsim_jax.evaluate.flight import flight_rmse
@@ -159,17 +164,22 @@ def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     ids, times, positions, spins, conf = A.dataset_segments(ds, settings.min_samples)
     session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
     keep = settings.keep([session_of[i] for i in ids.tolist()]) if len(ids) else np.zeros(0, bool)
-    if not keep.any():
+    n_keep = int(keep.sum())
+    if not n_keep:
         for _ in models:
             tick()
         return dict(skipped=f"no flight segment with at least {settings.min_samples} observations")
+    spin_known = conf >= settings.fit.min_spin_conf
+    with_spin = bool((keep & spin_known).any())
+    if with_spin:  # a flight flown with spin 0 for want of a measurement says little about a model
+        keep &= spin_known
     times = [t for t, k in zip(times, keep) if k]
     positions = [p for p, k in zip(positions, keep) if k]
     rmse = {}
     for name, model in models:
         rmse[name] = flight_rmse(model, times, positions, spins[keep])
         tick()
-    return dict(segment_id=ids[keep], spin_known=conf[keep] >= settings.fit.min_spin_conf, rmse=rmse)
+    return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse)
 
 
 # ---------------------------------------------------------------------------------------------- table
@@ -190,9 +200,10 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
     """Table-contact errors per model (see the module docstring).
 
     Returns:
-        dict: ``skipped`` (a reason) or ``event_id`` (N,), ``spin_known`` (N,) bool, ``pre``,
-        ``post`` (N, 6) estimated world-frame (v, w) before / after, ``error`` {name: (N, 6)
-        predicted minus measured, NaN spin where unknown}, ``skip_counts`` {reason: n}.
+        dict: ``skipped`` (a reason) or ``event_id`` (N,), ``spin_known`` (N, 2) bool (before,
+        after), ``pre``, ``post`` (N, 6) estimated world-frame (v, w) before / after (the pre-bounce
+        spin 0 where not measured), ``error`` {name: (N, 6) predicted minus measured, NaN spin
+        unless both spins are measured}, ``skip_counts`` {reason: n}.
     """
     from ttsim_jax.data.batch import segments_around
 
@@ -219,7 +230,7 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
             counts[reason] += 1
             continue
         good.append(i)
-        pre.append(np.concatenate([est.vel_in, est.spin_in if est.spin_known else np.zeros(3)]))
+        pre.append(np.concatenate([est.vel_in, est.spin_in if est.spin_known[0] else np.zeros(3)]))
         post.append(np.concatenate([est.vel_out, est.spin_out]))
         spin_known.append(est.spin_known)
     skip_counts = {k: v for k, v in counts.items() if v}
@@ -235,7 +246,7 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
         vel, spin = _table_response(model.replace(name=""), jnp.asarray(p_c[good], dtype), jnp.asarray(pre[:, :3], dtype),
                                     jnp.asarray(pre[:, 3:], dtype))
         e = np.concatenate([np.asarray(vel, np.float64), np.asarray(spin, np.float64)], 1) - post
-        e[~spin_known, 3:] = np.nan
+        e[~spin_known.all(1), 3:] = np.nan
         error[name] = e
         tick()
     return dict(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, error=error, skip_counts=skip_counts,
@@ -433,7 +444,7 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
     radius = float(ball_properties(model)[0])
     n_steps = int(math.ceil(settings.horizon / settings.dt))
     landing, hit = np.full((n, 2), np.nan), np.zeros(n, bool)
-    b = settings.chunk
+    b = min(settings.chunk, max(8, 1 << (n - 1).bit_length()))
     for lo in range(0, n, b):
         idx = np.minimum(np.arange(lo, lo + b), n - 1)  # the last chunk repeats its last case
         sub = {k: v[idx] for k, v in cases.items() if isinstance(v, np.ndarray)}
@@ -551,8 +562,8 @@ def summarise(result: dict) -> dict:
             for n in names:
                 per[n]["reduction_median_pct"] = reduction(per[ref]["median"], per[n]["median"])
                 per[n]["reduction_p75_pct"] = reduction(per[ref]["p75"], per[n]["p75"])
-            out["flight"] = dict(n_segments=len(f["segment_id"]), n_with_spin=int(np.sum(f["spin_known"])),
-                                 unit="m", models=per)
+            out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
+                                 n_without_spin=f["n_without_spin"], unit="m", models=per)
     if "table" in result:
         t = result["table"]
         if "skipped" in t:
@@ -566,7 +577,8 @@ def summarise(result: dict) -> dict:
                 for c in COMPONENTS:
                     per[n][c]["reduction_median_pct"] = reduction(per[ref][c]["median"], per[n][c]["median"])
             out["table"] = dict(n_bounces=t["n_bounces"], n_used=len(t["event_id"]),
-                                n_with_spin=int(np.sum(t["spin_known"])), skip_counts=t["skip_counts"],
+                                n_with_spin_in=int(np.sum(t["spin_known"][:, 0])),
+                                n_with_spin=int(np.sum(t["spin_known"].all(1))), skip_counts=t["skip_counts"],
                                 units=dict(velocity="m/s", spin="rad/s"), models=per)
     if "racket" in result:
         r = result["racket"]
@@ -631,8 +643,10 @@ def _flight_md(f: dict, names: list, figures: dict) -> list:
     mm = lambda v: _num(None if v is None else 1e3 * v, ".1f")  # noqa: E731
     rows = [[n, str(m["n"]), mm(m["median"]), mm(m["p75"]), _num(m["reduction_median_pct"], ".0f"),
              _num(m["reduction_p75_pct"], ".0f")] for n, m in f["models"].items()]
-    return ([f"{f['n_segments']} segments ({f['n_with_spin']} with a measured spin; the others are flown with the "
-             "segment's spin as recorded, zero when unknown); initial velocity fitted per segment.", ""]
+    spin = (f"with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
+            "none with a measured spin: every model flies with spin 0")
+    return ([f"{f['n_segments']} segments {spin}; initial position the first observation, initial velocity fitted "
+             "per segment.", ""]
             + _table_md(["model", "n", "median [mm]", "75th pct [mm]", "median reduction [%]", "75th pct reduction [%]"],
                         rows)
             + ["", f"![flight RMSE]({figures['flight']})", ""])
@@ -643,8 +657,10 @@ def _table_contacts_md(t: dict, names: list, figures: dict) -> list:
     rows = [[n] + [_cell(per[c], c[0] == "v") for c in COMPONENTS] for n, per in t["models"].items()]
     reductions = [[n] + [_num(per[c]["reduction_median_pct"], ".0f") for c in COMPONENTS]
                   for n, per in t["models"].items()]
-    return ([f"{t['n_used']} of {t['n_bounces']} bounces used ({t['n_with_spin']} with measured spins on both sides; "
-             f"spin errors only for those). Skipped: {_counts_text(t['skip_counts'], TABLE_SKIP_REASONS)}.",
+    return ([f"{t['n_used']} of {t['n_bounces']} bounces used; {t['n_with_spin_in']} with a measured pre-bounce spin "
+             "(the others enter the models with spin 0), spin errors for the "
+             f"{t['n_with_spin']} with measured spins on both sides. Skipped: "
+             f"{_counts_text(t['skip_counts'], TABLE_SKIP_REASONS)}.",
              "Median |error| (bias: median signed error), velocity in m/s, spin in rad/s; world frame.", ""]
             + _table_md(head, rows) + ["", "Reduction of the median |error| [%]:", ""] + _table_md(head, reductions)
             + ["", f"![table contact errors]({figures['table']})", ""])

@@ -277,7 +277,8 @@ class ContactEstimate:
     Attributes:
         vel_in, vel_out: (3,) velocity at the contact time [m/s], from the incoming / outgoing fit.
         spin_in, spin_out: (3,) the incoming / outgoing segment's spin [rad/s].
-        spin_known: both spins have a confidence of at least ``min_spin_conf``.
+        spin_known: (2,) bool, the incoming / outgoing spin has a confidence of at least
+            ``min_spin_conf``.
         rmse: (2,) RMS position residual of the incoming / outgoing fit [m].
     """
 
@@ -285,7 +286,7 @@ class ContactEstimate:
     vel_out: np.ndarray
     spin_in: np.ndarray
     spin_out: np.ndarray
-    spin_known: bool
+    spin_known: np.ndarray
     rmse: np.ndarray
 
 
@@ -299,7 +300,7 @@ def estimate_contact(index: ObservationIndex, in_row: int, out_row: int, t_conta
         t_contact: the contact time [s].
         fit: how states are estimated (:class:`ContactFit`).
         need_spin: skip a contact whose segments' spin confidence is below ``fit.min_spin_conf``;
-            False keeps it with ``spin_known`` False.
+            False keeps it, with ``spin_known`` saying which spin is measured.
 
     Returns:
         (reason, estimate): a key of :data:`SKIP_REASONS` and None for a contact that cannot be
@@ -326,7 +327,8 @@ def estimate_contact(index: ObservationIndex, in_row: int, out_row: int, t_conta
     if max(r_in, r_out) > fit.max_fit_rmse:
         return "bad_fit", None
     return None, ContactEstimate(vel_in=v_in, vel_out=v_out, spin_in=spin_in, spin_out=spin_out,
-                                 spin_known=min(conf_in, conf_out) >= fit.min_spin_conf, rmse=np.array([r_in, r_out]))
+                                 spin_known=np.array([conf_in, conf_out]) >= fit.min_spin_conf,
+                                 rmse=np.array([r_in, r_out]))
 
 
 def _racket_model(model):
