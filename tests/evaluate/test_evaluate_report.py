@@ -96,12 +96,12 @@ def test_lowered_restitution_gives_the_closed_form_errors(run):
     m, s = run["metrics"], run["samples"]
     # Table: v_z+ = e_n |v_z-|, so lowering e0 lowers v_z+ by DE0 |v_z-| on every bounce.
     d_vz = s["table/error/perturbed"][:, 2] - s[f"table/error/{TRUTH}"][:, 2]
-    np.testing.assert_allclose(d_vz, -DE0 * np.abs(s["table/pre"][:, 2]), atol=1e-6)
+    np.testing.assert_allclose(d_vz, -DE0 * np.abs(s["table/pre"][:, 2]), atol=1e-5)  # float32 simulation
     # Racket (racket frame, x = face normal): v~+_x = -e_n v~_x, so it drops by DE0 |v~_x|; the
     # tangential velocity and the spin do not depend on e_n.
     e_t, e_p = s[f"racket/error/{TRUTH}"], s["racket/error/perturbed"]
-    np.testing.assert_allclose(e_p[:, 0] - e_t[:, 0], -DE0 * np.abs(s["racket/x"][:, 0]), atol=1e-6)
-    np.testing.assert_allclose(e_p[:, 1:6], e_t[:, 1:6], atol=1e-6)
+    np.testing.assert_allclose(e_p[:, 0] - e_t[:, 0], -DE0 * np.abs(s["racket/x"][:, 0]), atol=1e-5)
+    np.testing.assert_allclose(e_p[:, 1:6], e_t[:, 1:6], rtol=1e-5, atol=1e-5)
     # Flight is the same model: the same RMSE, 0 % reduction.
     np.testing.assert_allclose(s["flight/rmse/perturbed"], s[f"flight/rmse/{TRUTH}"])
     assert m["flight"]["models"]["perturbed"]["reduction_median_pct"] == 0.0

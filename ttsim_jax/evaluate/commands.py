@@ -2,7 +2,7 @@
 
     ttsim evaluate --data DATA --models nakashima2011,durr2026,conti2026[,MODEL.toml] --out DIR
                    [--split all|test] [--test-fraction F] [--seed S] [--stages flight,table,racket,landing]
-                   [--horizon S] [--quiet]
+                   [--horizon S] [--float64] [--quiet]
 
 The work is in :mod:`ttsim_jax.evaluate.report`. ``ttsim evaluate residual`` (the residual
 network on its own, :mod:`ttsim_jax.fit.commands`) stays a subcommand of the same group.
@@ -70,6 +70,7 @@ def register(subparsers) -> None:
                         help="comma-separated subset of flight,table,racket,landing (default: all)")
     parser.add_argument("--horizon", type=positive_float, default=1.5, metavar="S",
                         help="longest landing rollout [s] (default: %(default)s)")
+    parser.add_argument("--float64", action="store_true", help="simulate in float64 (default: float32)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=cmd_evaluate)
 
@@ -91,7 +92,7 @@ def cmd_evaluate(args) -> int:
         if not sessions:
             raise UsageError(f"--split test: --test-fraction {args.test_fraction:g} of the "
                              f"sessions of {args.data} holds out none")
-    settings = EvaluateSettings(horizon=args.horizon, sessions=sessions)
+    settings = EvaluateSettings(horizon=args.horizon, sessions=sessions, float64=args.float64)
     models = args.models or DEFAULT_MODELS.split(",")
     result = evaluate_models(ds, models, settings, stages=args.stages or STAGES, progress=not args.quiet)
     paths = write_report(result, args.out, data=str(args.data))

@@ -84,6 +84,8 @@ class EvaluateSettings:
         chunk: most racket contacts per compiled landing rollout (fewer contacts: the power of two
             above their number; the last chunk is padded).
         sessions: evaluate only these session ids (None: all).
+        float64: load the models (names and TOML files) in float64; by default float32, the
+            simulator's usual type, whatever JAX's default float is.
     """
 
     fit: ContactFit = ContactFit()
@@ -92,6 +94,7 @@ class EvaluateSettings:
     horizon: float = 1.5
     chunk: int = 256
     sessions: tuple | None = None
+    float64: bool = False
 
     def keep(self, session_ids) -> np.ndarray:
         """(N,) bool: rows whose session is evaluated."""
@@ -99,11 +102,12 @@ class EvaluateSettings:
         return np.ones(s.shape, bool) if self.sessions is None else np.isin(s, np.asarray(self.sessions))
 
 
-def resolve_models(models: Sequence) -> list:
+def resolve_models(models: Sequence, dtype=None) -> list:
     """[(name, Model)] from bundled names, TOML paths or :class:`~ttsim_jax.params.Model` objects.
 
     A bundled model is named as given, a TOML file by its stem (``runs/fitted.toml``: ``fitted``),
-    a Model object by its ``name``.
+    a Model object by its ``name``. Names and files are loaded with float type ``dtype`` (default:
+    JAX's default float); Model objects are used as they are.
 
     Raises:
         ConfigError: an unknown name, an unreadable file, or two models of the same name (the
@@ -117,7 +121,7 @@ def resolve_models(models: Sequence) -> list:
             name, model = spec.name, spec
         else:
             path = resolve_model_path(spec)
-            model = load_model(path)
+            model = load_model(path, dtype=dtype)
             name = str(spec) if path != Path(str(spec)) else path.stem
         if any(name == n for n, _ in out):
             raise ConfigError(f"models: two models are named {name!r} ({spec!r}); rename the .toml file")
@@ -338,7 +342,7 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
     Returns:
         dict with ``event_id`` (N,), ``t0`` (N,) time of the last observation before the contact,
         ``ball`` (N, 9) fitted (position, velocity) there and the incoming spin, ``t_contact``
-        (N,), ``racket`` (N, 18) (pos, quaternion-free rotation (9), vel, ang_vel), ``measured``
+        (N,), ``racket`` (N, 18) (position, rotation matrix (9), velocity, angular velocity), ``measured``
         (N, 2) landing point, ``skip_counts``, ``n_contacts``.
     """
     from ttsim_jax.data.batch import segments_around
@@ -526,7 +530,7 @@ def evaluate_models(ds, models: Sequence, settings: EvaluateSettings = EvaluateS
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise ValueError(f"stages: unknown {sorted(unknown)}; known: {list(STAGES)}")
-    resolved = resolve_models(models)
+    resolved = resolve_models(models, jnp.float64 if settings.float64 else jnp.float32)
     names = [n for n, _ in resolved]
     result = dict(models=names, reference=reference_name(names),
                   settings=dict(dataclasses.asdict(settings), fit=dataclasses.asdict(settings.fit)))
@@ -643,10 +647,10 @@ def _flight_md(f: dict, names: list, figures: dict) -> list:
     mm = lambda v: _num(None if v is None else 1e3 * v, ".1f")  # noqa: E731
     rows = [[n, str(m["n"]), mm(m["median"]), mm(m["p75"]), _num(m["reduction_median_pct"], ".0f"),
              _num(m["reduction_p75_pct"], ".0f")] for n, m in f["models"].items()]
-    spin = (f"with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
-            "none with a measured spin: every model flies with spin 0")
-    return ([f"{f['n_segments']} segments {spin}; initial position the first observation, initial velocity fitted "
-             "per segment.", ""]
+    spin = (f"segments with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
+            "segments, none with a measured spin: every model flies with spin 0")
+    return ([f"{f['n_segments']} {spin}; initial position the first observation, initial velocity fitted per "
+             "segment.", ""]
             + _table_md(["model", "n", "median [mm]", "75th pct [mm]", "median reduction [%]", "75th pct reduction [%]"],
                         rows)
             + ["", f"![flight RMSE]({figures['flight']})", ""])
