@@ -15,7 +15,7 @@ import pytest
 from ttsim_jax import load_model
 from ttsim_jax.cli import main
 from ttsim_jax.data import load
-from ttsim_jax.evaluate.report import FIGURES, STAGES, evaluate_models, reference_name
+from ttsim_jax.evaluate.report import FIGURES, STAGES, evaluate_models, markdown, reference_name, summarise
 from ttsim_jax.params import config_dir
 
 DATA = Path(__file__).parent / "data" / "clean"
@@ -117,6 +117,8 @@ def test_stages_without_data_are_skipped_with_the_reason():
     ds = ds.replace(rackets=empty_table("rackets"))
     result = evaluate_models(ds, [TRUTH], stages=("racket", "landing"))
     assert "racket states" in result["racket"]["skipped"] and "racket states" in result["landing"]["skipped"]
+    report = markdown(summarise(result), FIGURES)
+    assert report.count("Skipped: no racket states") == 2 and "](racket_errors.png)" not in report
     assert reference_name(["conti2026", "nakashima2011"]) == "nakashima2011"
     assert reference_name(["conti2026", "fitted"]) == "conti2026"
 
