@@ -62,7 +62,8 @@ def test_files_and_json_keys_are_complete(run):
         assert "skipped" not in m[stage], m[stage]
         assert set(m[stage]["models"]) == {TRUTH, "perturbed"}
     for model in m["flight"]["models"].values():
-        assert {"n", "median", "p75", "mean", "reduction_median_pct", "reduction_p75_pct"} <= set(model)
+        assert {"n", "median", "p75", "mean", "reduction_median_pct", "reduction_p75_pct", "reduction_median_ci95",
+                "reduction_p75_ci95"} <= set(model)
     for model in m["table"]["models"].values():
         assert set(model) == {"v_x", "v_y", "v_z", "w_x", "w_y", "w_z"}
         assert all({"median", "p75", "bias", "reduction_median_pct"} <= set(c) for c in model.values())
@@ -105,9 +106,12 @@ def test_lowered_restitution_gives_the_closed_form_errors(run):
     # Flight is the same model: the same RMSE, 0 % reduction.
     np.testing.assert_allclose(s["flight/rmse/perturbed"], s[f"flight/rmse/{TRUTH}"])
     assert m["flight"]["models"]["perturbed"]["reduction_median_pct"] == 0.0
-    # Slower returns land elsewhere: a clearly larger landing error than the truth's.
+    assert m["flight"]["models"]["perturbed"]["reduction_median_ci95"] == [0.0, 0.0]
+    # Slower returns land elsewhere: a clearly larger landing error than the truth's, beyond the
+    # bootstrap interval.
     g = m["landing"]["models"]
     assert g["perturbed"]["median"] > 5 * g[TRUTH]["median"] + 0.01
+    assert g["perturbed"]["reduction_median_ci95"][1] < 0.0
 
 
 def test_stages_without_data_are_skipped_with_the_reason():
@@ -131,3 +135,14 @@ def test_a_missing_dataset_or_an_unknown_model_is_named(tmp_path, capsys):
     assert "--models" in err and "nakashima2012" in err
     assert main(["evaluate", "--models", "durr2026"]) == 2
     assert "--data and --out required" in capsys.readouterr().err
+
+
+def test_bootstrap_interval_of_a_reduction():
+    from ttsim_jax.evaluate.report import reduction, reduction_ci
+
+    rng = np.random.default_rng(0)
+    ref = rng.lognormal(0.0, 0.5, 400)
+    assert reduction_ci(ref, 0.5 * ref, 50) == pytest.approx([50.0, 50.0])  # a halving is one in every draw
+    other = rng.lognormal(-0.2, 0.5, 400)
+    lo, hi = reduction_ci(ref, other, 50)
+    assert lo < reduction(np.median(ref), np.median(other)) < hi and 5.0 < hi - lo < 40.0

@@ -141,6 +141,43 @@ def reduction(ref: float, value: float) -> float:
     return float(100.0 * (ref - value) / ref) if ref and math.isfinite(ref) and math.isfinite(value) else math.nan
 
 
+BOOTSTRAP = 1000
+
+
+def reduction_ci(ref_values, values, q: float, n_boot: int = BOOTSTRAP, seed: int = 0) -> list:
+    """95 % interval of the reduction [%] of the ``q``-th percentile of ``values`` against that of
+    ``ref_values``: a paired bootstrap over the items (those finite in both), ``n_boot`` draws.
+
+    Returns:
+        [low, high] (NaN with fewer than two items).
+    """
+    x, y = np.asarray(ref_values, np.float64), np.asarray(values, np.float64)
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if len(x) < 2:
+        return [math.nan, math.nan]
+    rng = np.random.default_rng(seed)
+    draws = []
+    for lo in range(0, n_boot, 100):  # 100 resamples at a time bounds the memory
+        idx = rng.integers(0, len(x), (min(100, n_boot - lo), len(x)))
+        a, b = np.percentile(x[idx], q, axis=1), np.percentile(y[idx], q, axis=1)
+        draws.append(100.0 * (a - b) / np.where(a > 0, a, np.nan))
+    r = np.concatenate(draws)
+    r = r[np.isfinite(r)]
+    return [float(np.percentile(r, 2.5)), float(np.percentile(r, 97.5))] if len(r) else [math.nan, math.nan]
+
+
+def _headline(values: dict, names: list, ref: str) -> dict:
+    """Per model: :func:`_stats` of its values and the reductions of the median and the 75th
+    percentile against the reference, with their bootstrap intervals."""
+    per = {n: _stats(values[n]) for n in names}
+    for n in names:
+        for key, q in (("median", 50), ("p75", 75)):
+            per[n][f"reduction_{key}_pct"] = reduction(per[ref][key], per[n][key])
+            per[n][f"reduction_{key}_ci95"] = reduction_ci(values[ref], values[n], q)
+    return per
+
+
 def _stats(x) -> dict:
     """n, median, 75th percentile, mean of the finite values of ``x``."""
     x = np.asarray(x, np.float64)
@@ -562,10 +599,7 @@ def summarise(result: dict) -> dict:
         if "skipped" in f:
             out["flight"] = dict(skipped=f["skipped"])
         else:
-            per = {n: _stats(f["rmse"][n]) for n in names}
-            for n in names:
-                per[n]["reduction_median_pct"] = reduction(per[ref]["median"], per[n]["median"])
-                per[n]["reduction_p75_pct"] = reduction(per[ref]["p75"], per[n]["p75"])
+            per = _headline(f["rmse"], names, ref)
             out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
                                  n_without_spin=f["n_without_spin"], unit="m", models=per)
     if "table" in result:
@@ -610,11 +644,10 @@ def summarise(result: dict) -> dict:
         if "skipped" in g:
             out["landing"] = dict(skipped=g["skipped"])
         else:
-            per = {n: dict(_stats(g["error"][n]), not_hit=int(np.sum(~g["hit"][n])),
-                           no_landing=int(np.sum(g["hit"][n] & ~np.isfinite(g["error"][n])))) for n in names}
+            per = _headline(g["error"], names, ref)
             for n in names:
-                per[n]["reduction_median_pct"] = reduction(per[ref]["median"], per[n]["median"])
-                per[n]["reduction_p75_pct"] = reduction(per[ref]["p75"], per[n]["p75"])
+                per[n].update(not_hit=int(np.sum(~g["hit"][n])),
+                              no_landing=int(np.sum(g["hit"][n] & ~np.isfinite(g["error"][n]))))
             out["landing"] = dict(n_contacts=g["n_contacts"], n_used=len(g["event_id"]), skip_counts=g["skip_counts"],
                                   unit="m", models=per)
     return tidy(out)
@@ -635,6 +668,12 @@ def _cell(stat: dict, velocity: bool) -> str:
     return f"{_num(stat['median'], fmt)} ({_num(stat['bias'], '+' + fmt)})"
 
 
+def _reduction(m: dict, key: str) -> str:
+    """'26 [18, 33]': a reduction [%] and its bootstrap interval."""
+    lo, hi = m[f"reduction_{key}_ci95"]
+    return f"{_num(m[f'reduction_{key}_pct'], '.0f')} [{_num(lo, '.0f')}, {_num(hi, '.0f')}]"
+
+
 def _table_md(head: list, rows: list) -> list:
     return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
 
@@ -645,14 +684,14 @@ SECTIONS = dict(flight="Flight segments: 3-D position RMSE", table="Table contac
 
 def _flight_md(f: dict, names: list, figures: dict) -> list:
     mm = lambda v: _num(None if v is None else 1e3 * v, ".1f")  # noqa: E731
-    rows = [[n, str(m["n"]), mm(m["median"]), mm(m["p75"]), _num(m["reduction_median_pct"], ".0f"),
-             _num(m["reduction_p75_pct"], ".0f")] for n, m in f["models"].items()]
+    rows = [[n, str(m["n"]), mm(m["median"]), mm(m["p75"]), _reduction(m, "median"), _reduction(m, "p75")]
+            for n, m in f["models"].items()]
     spin = (f"segments with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
             "segments, none with a measured spin: every model flies with spin 0")
     return ([f"{f['n_segments']} {spin}; initial position the first observation, initial velocity fitted per "
              "segment.", ""]
-            + _table_md(["model", "n", "median [mm]", "75th pct [mm]", "median reduction [%]", "75th pct reduction [%]"],
-                        rows)
+            + _table_md(["model", "n", "median [mm]", "75th pct [mm]", "median reduction [%] [95 % CI]",
+                         "75th pct reduction [%] [95 % CI]"], rows)
             + ["", f"![flight RMSE]({figures['flight']})", ""])
 
 
@@ -686,14 +725,13 @@ def _racket_md(r: dict, names: list, figures: dict) -> list:
 
 
 def _landing_md(g: dict, names: list, figures: dict) -> list:
-    rows = [[n, str(m["n"]), _num(m["median"], ".3f"), _num(m["p75"], ".3f"), _num(m["reduction_median_pct"], ".0f"),
-             _num(m["reduction_p75_pct"], ".0f"), str(m["not_hit"]), str(m["no_landing"])]
-            for n, m in g["models"].items()]
+    rows = [[n, str(m["n"]), _num(m["median"], ".3f"), _num(m["p75"], ".3f"), _reduction(m, "median"),
+             _reduction(m, "p75"), str(m["not_hit"]), str(m["no_landing"])] for n, m in g["models"].items()]
     return ([f"{g['n_used']} of {g['n_contacts']} racket contacts used. Skipped: "
              f"{_counts_text(g['skip_counts'], LANDING_SKIP_REASONS)}. Simulated from the last observation before the "
              "contact with the measured racket state until the table plane.", ""]
-            + _table_md(["model", "n", "median [m]", "75th pct [m]", "median reduction [%]", "75th pct reduction [%]",
-                         "racket missed", "no landing"], rows)
+            + _table_md(["model", "n", "median [m]", "75th pct [m]", "median reduction [%] [95 % CI]",
+                         "75th pct reduction [%] [95 % CI]", "racket missed", "no landing"], rows)
             + ["", f"![landing error histogram]({figures['landing_hist']})",
                f"![landing points]({figures['landing_xy']})", ""])
 
@@ -703,7 +741,8 @@ def markdown(summary: dict, figures: dict, data: str = "") -> str:
     (a skipped stage: its reason)."""
     names, ref = summary["models"], summary["reference"]
     lines = [f"# Model evaluation{f' on {data}' if data else ''}", "",
-             f"Models: {', '.join(names)}. Reductions are relative to **{ref}** (positive: smaller error).", ""]
+             f"Models: {', '.join(names)}. Reductions are relative to **{ref}** (positive: smaller error); "
+             f"95 % intervals from a paired bootstrap over the items ({BOOTSTRAP} draws).", ""]
     body = dict(flight=_flight_md, table=_table_contacts_md, racket=_racket_md, landing=_landing_md)
     for stage in STAGES:
         if stage not in summary:
