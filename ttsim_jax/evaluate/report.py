@@ -4,16 +4,18 @@
 section on a :class:`~ttsim_jax.data.Dataset`; :func:`write_report` writes the figures (PNG), a
 Markdown report and every number (``metrics.json``; per-item values in ``samples.npz``).
 
-1. *flight*: per flight segment, the 3-D position RMSE of the model's flight with the initial
-   velocity fitted (:func:`ttsim_jax.evaluate.flight.flight_rmse`); median, 75th percentile and
-   their reductions in % against the reference model (nakashima2011 when compared, else the
-   first model).
+1. *flight*: per flight segment (those with a measured spin, when the data has any), the 3-D
+   position RMSE of the model's flight with the initial velocity fitted
+   (:func:`ttsim_jax.evaluate.flight.flight_rmse`); median, 75th percentile and their reductions
+   in % against the reference model (nakashima2011 when compared, else the first model), with
+   paired bootstrap intervals.
 2. *table*: per table bounce, the model's table contact (the rally kernel's
    :func:`~ttsim_jax.kernel.step.respond`) applied to the measured pre-bounce state, minus the
    measured post-bounce state, per component (v_x, v_y, v_z, w_x, w_y, w_z; spin components only
-   where both segments have a measured spin). States are estimated as for the racket residual's
-   training data (:func:`ttsim_jax.fit.contacts.estimate_contact`: polynomial fits next to the
-   contact, the segments' spins).
+   where both segments have a measured spin; an unmeasured pre-bounce spin enters as 0). States
+   are estimated as for the racket residual's training data
+   (:func:`ttsim_jax.fit.contacts.estimate_contact`: polynomial fits next to the contact, the
+   segments' spins).
 3. *racket*: per racket contact with a racket state, the model's racket contact (base model plus
    its residual network, if it carries one) minus the observation, in the racket frame
    (:func:`ttsim_jax.fit.contacts.contact_arrays`), grouped by contact distance (0-5, 5-8,
