@@ -135,6 +135,8 @@ def test_a_missing_dataset_or_an_unknown_model_is_named(tmp_path, capsys):
     assert "--models" in err and "nakashima2012" in err
     assert main(["evaluate", "--models", "durr2026"]) == 2
     assert "--data and --out required" in capsys.readouterr().err
+    assert main(["evaluate", "--data", str(DATA), "--out", str(tmp_path / "o"), "--split", "test"]) == 2
+    assert "--split test: give --test-fraction" in capsys.readouterr().err
 
 
 def test_bootstrap_interval_of_a_reduction():

@@ -63,8 +63,9 @@ def register(subparsers) -> None:
     parser.add_argument("--split", choices=("all", "test"), default="all",
                         help="evaluate every session (default) or only the held-out sessions of "
                         "'ttsim fit --test-fraction F --seed S' (same F and S)")
-    parser.add_argument("--test-fraction", type=_fraction, default=0.2, metavar="F",
-                        help="with --split test: fraction of sessions held out (default: %(default)s)")
+    parser.add_argument("--test-fraction", type=_fraction, default=None, metavar="F",
+                        help="with --split test (required there): the fraction of sessions held out, as given to "
+                        "'ttsim fit'")
     parser.add_argument("--seed", type=seed, default=0, help="with --split test: seed of the draw (default: %(default)s)")
     parser.add_argument("--stages", type=stage_list, default=None, metavar="STAGES",
                         help="comma-separated subset of flight,table,racket,landing (default: all)")
@@ -88,6 +89,9 @@ def cmd_evaluate(args) -> int:
     ds = load(args.data)
     sessions = None
     if args.split == "test":
+        if args.test_fraction is None:
+            raise UsageError("--split test: give --test-fraction F (and --seed S) as given to 'ttsim fit', so that the "
+                             "same sessions are held out")
         sessions = tuple(int(s) for s in split_sessions(ds.segments["session_id"], args.test_fraction, args.seed))
         if not sessions:
             raise UsageError(f"--split test: --test-fraction {args.test_fraction:g} of the "
