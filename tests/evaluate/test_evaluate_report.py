@@ -1,6 +1,7 @@
-"""``ttsim evaluate`` (ttsim_jax.evaluate.report) on a small dataset of the reality generator whose
-truth is a bundled model with no effects and no noise: the truth scores ~0 in every stage, a model
-with lowered restitution coefficients scores the closed-form errors, and the files are complete.
+"""``ttsim evaluate`` (ttsim_jax.evaluate.stages and .report) on a small dataset of the reality
+generator whose truth is a bundled model with no effects and no noise: the truth scores ~0 in every
+stage, a model with lowered restitution coefficients scores the closed-form errors, and the files
+are complete.
 
 The dataset (tests/evaluate/data/clean) was made by the command in tests/evaluate/data/README.md;
 generating it here would cost minutes of compilation.
@@ -15,7 +16,8 @@ import pytest
 from ttsim_jax import load_model
 from ttsim_jax.cli import main
 from ttsim_jax.data import load
-from ttsim_jax.evaluate.report import FIGURES, STAGES, evaluate_models, markdown, reference_name, summarise
+from ttsim_jax.evaluate.report import FIGURES, markdown, summarise
+from ttsim_jax.evaluate.stages import STAGES, evaluate_models, reference_name
 from ttsim_jax.params import config_dir
 
 DATA = Path(__file__).parent / "data" / "clean"

@@ -4,7 +4,7 @@
                    [--split all|test] [--test-fraction F] [--seed S] [--stages flight,table,racket,landing]
                    [--horizon S] [--float64] [--quiet]
 
-The work is in :mod:`ttsim_jax.evaluate.report`. ``ttsim evaluate residual`` (the residual
+The work is in :mod:`ttsim_jax.evaluate.stages` and :mod:`ttsim_jax.evaluate.report`. ``ttsim evaluate residual`` (the residual
 network on its own, :mod:`ttsim_jax.fit.commands`) stays a subcommand of the same group.
 """
 
@@ -35,7 +35,7 @@ def model_list(text: str) -> list[str]:
 
 def stage_list(text: str) -> list[str]:
     """Comma-separated stages of :data:`ttsim_jax.evaluate.report.STAGES`."""
-    from ttsim_jax.evaluate.report import STAGES
+    from ttsim_jax.evaluate.stages import STAGES
 
     items = [t.strip() for t in text.split(",")]
     unknown = [t for t in items if t not in STAGES]
@@ -79,7 +79,8 @@ def register(subparsers) -> None:
 def cmd_evaluate(args) -> int:
     """``evaluate``: every stage for every model -> report, figures and numbers in --out."""
     from ttsim_jax.data import load
-    from ttsim_jax.evaluate.report import STAGES, EvaluateSettings, evaluate_models, write_report
+    from ttsim_jax.evaluate.report import write_report
+    from ttsim_jax.evaluate.stages import STAGES, EvaluateSettings, evaluate_models
     from ttsim_jax.fit.identify import split_sessions
 
     missing = [opt for opt, v in (("--data", args.data), ("--out", args.out)) if v is None]
