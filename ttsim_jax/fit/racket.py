@@ -54,10 +54,8 @@ def _solve(theta0, base, x, y, radius, mass, spin_scale):
 
     solver = LevenbergMarquardt(residual_fun=_residuals, maxiter=100, tol=1e-10, xtol=1e-10, gtol=1e-10,
                                 solver="cholesky", materialize_jac=True, implicit_diff=False)
-    theta = solver.run(theta0, base, x, y, radius, mass, spin_scale).params
-    r = _residuals(theta, base, x, y, radius, mass, spin_scale)
-    jac = jax.jacfwd(_residuals)(theta, base, x, y, radius, mass, spin_scale)
-    return theta, r, jac
+    theta, state = solver.run(theta0, base, x, y, radius, mass, spin_scale)
+    return theta, state.residual, state.jac  # of the last accepted step: the solution
 
 
 @dataclasses.dataclass
