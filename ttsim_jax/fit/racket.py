@@ -37,10 +37,15 @@ def updated_params(base: racket_stage.RacketParams, theta) -> racket_stage.Racke
                                      kappa=base.kappa, e_max=base.e_max, kind="updated")
 
 
+@jax.jit
+def predict(params: racket_stage.RacketParams, x, radius, mass):
+    """Base-model post-contact (v+ (N, 3), w+ (N, 3)) for racket-frame inputs x (N, 8)."""
+    return jax.vmap(lambda xi: racket_stage.base_response(params, xi[:3], xi[3:6], xi[6:8], radius, mass))(x)
+
+
 def _predict(theta, base, x, radius, mass):
     params = updated_params(base, theta)
-    v, w = jax.vmap(lambda xi: racket_stage.base_response(params, xi[:3], xi[3:6], xi[6:8], radius, mass))(x)
-    return v, w
+    return jax.vmap(lambda xi: racket_stage.base_response(params, xi[:3], xi[3:6], xi[6:8], radius, mass))(x)
 
 
 def _residuals(theta, base, x, y, radius, mass, spin_scale):
@@ -132,12 +137,8 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     se = np.sqrt(np.maximum(np.diag(cov), 0.0))
     result = RacketFit(values={k: float(v) for k, v in zip(PARAMETERS, theta)},
                        stderr={k: float(v) for k, v in zip(PARAMETERS, se)}, n_used=len(x), errors={})
-    fitted = _predict(jnp.asarray(theta, jnp.float32), start, jx, radius, mass)
-
-    def base_prediction():
-        return jax.vmap(lambda xi: racket_stage.base_response(base, xi[:3], xi[3:6], xi[6:8], radius, mass))(jx)
-
-    result.errors = dict(base=_median_errors(*base_prediction(), y), fitted=_median_errors(*fitted, y))
+    fitted = predict(updated_params(base, theta), jx, radius, mass)
+    result.errors = dict(base=_median_errors(*predict(base, jx, radius, mass), y), fitted=_median_errors(*fitted, y))
     return result
 
 
@@ -163,8 +164,7 @@ def synthetic_arrays(params: racket_stage.RacketParams, radius: float, mass: flo
 
     v, w, d = draw_contact_states(np.random.default_rng(seed), n, max_speed, max_spin)
     x = np.concatenate([v, w, d], 1)
-    vp, wp = jax.vmap(lambda xi: racket_stage.base_response(params, xi[:3], xi[3:6], xi[6:8], radius, mass))(
-        jnp.asarray(x, jnp.float32))
+    vp, wp = predict(params, jnp.asarray(x, jnp.float32), jnp.float32(radius), jnp.float32(mass))
     y = np.concatenate([np.asarray(vp), np.asarray(wp)], 1).astype(np.float64)
     rng = np.random.default_rng(seed + 1)
     noise = np.concatenate([np.full(3, noise_vel), np.full(3, noise_spin)])
