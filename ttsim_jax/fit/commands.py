@@ -296,7 +296,7 @@ def cmd_fit(args) -> int:
             config = dataclasses.replace(config, n_clusters=min(config.n_clusters, n_train))
             net, report = F.train_residual(x, yb, yo, config, tcfg, progress=not args.quiet)
             info = {k: v for k, v in report.items() if k != "history"}
-            info.update(model=out.stem, data=os.fspath(args.data), train_config=tcfg.to_dict(),
+            info.update(model=str(out), data=os.fspath(args.data), train_config=tcfg.to_dict(),
                         contacts=dict(used=len(x), total=arrays.n_contacts, skipped=arrays.counts()))
             save_residual(network_path, net, metadata=info)
         print(f"residual: trained {report['epochs']} epochs on {len(x)} contacts (best validation loss "
