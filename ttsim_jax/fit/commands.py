@@ -203,6 +203,8 @@ def cmd_fit(args) -> int:
     if out.exists() and not args.force:
         raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
     stages = args.stages
+    if "residual" in stages and network_path.exists() and not args.force:
+        raise UsageError(f"--out {out}: the network checkpoint {network_path} already exists; pass --force")
     ds = load(args.data)
     print(f"loaded {args.data}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations, "
           f"{len(ds.events['event_id'])} events; stages {','.join(stages)}")
@@ -236,7 +238,7 @@ def cmd_fit(args) -> int:
         with _Stage("table", args.quiet, seconds) as st:
             bounces = T.table_bounces(ds, model, fit=contact_fit, validate=False, progress=st.progress)
             session = dict(zip(np.asarray(ds.events["event_id"]).tolist(), np.asarray(ds.events["session_id"]).tolist()))
-            kept = np.array([session[int(e)] not in set(test_sessions.tolist()) for e in bounces.event_id], bool)
+            kept = ~np.isin([session[int(e)] for e in bounces.event_id], test_sessions)
             settings = T.LassoSettings(folds=args.folds, rule=args.lambda_rule, seed=args.seed)
             counts = _counts(bounces.n_bounces, int(kept.sum()), bounces.skipped, int((~kept).sum()))
             if kept.sum() < 2 * args.folds:
@@ -280,8 +282,6 @@ def cmd_fit(args) -> int:
         from ttsim_jax.fit import residual as F
         from ttsim_jax.physics.residual import save_residual
 
-        if network_path.exists() and not args.force:
-            raise UsageError(f"--out {out}: the network checkpoint {network_path} already exists; pass --force")
         with _Stage("residual", args.quiet, seconds):
             arrays = arrays_of(model)  # y_base of the fitted racket parameters
             rows = ~np.isin(arrays.session_id, test_sessions)

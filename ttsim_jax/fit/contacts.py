@@ -309,7 +309,7 @@ def contact_states(ds, event_ids, t_c, in_row, out_row, fit: ContactFit, skipped
     return vin, win, vout, wout, rmse, np.asarray(good, np.int64)
 
 
-def _racket_model(model):
+def model_and_name(model):
     """(Model, name) from a bundled model name, a TOML path or a Model."""
     from ttsim_jax.params import Model, load_model
 
@@ -321,7 +321,7 @@ def _racket_model(model):
 def default_inputs(model) -> int:
     """Residual inputs for a model: 8 (conti2026), 6 (durr2026); otherwise 6 for the
     "nakashima" racket kind, 8 for the others, unless the model carries a residual network."""
-    return _default_inputs(*_racket_model(model))
+    return _default_inputs(*model_and_name(model))
 
 
 def _default_inputs(m, name) -> int:
@@ -371,7 +371,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     from ttsim_jax.data.batch import racket_contact_batch
     from ttsim_jax.kernel.step import ball_properties
 
-    m, name = _racket_model(model)
+    m, name = model_and_name(model)
     n_inputs = _default_inputs(m, name) if n_inputs is None else int(n_inputs)
     if n_inputs not in (6, 8):
         raise ValueError(f"contact_arrays: n_inputs = {n_inputs!r}, must be 8 or 6")
@@ -522,7 +522,7 @@ def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual
     from ttsim_jax.data import Dataset, Metadata
     from ttsim_jax.kernel.step import ball_properties
 
-    m, name = _racket_model(model)
+    m, name = model_and_name(model)
     radius, mass = (float(v) for v in ball_properties(m))
     rng = np.random.default_rng(seed)
     base_rot = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])  # normal along -x

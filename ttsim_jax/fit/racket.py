@@ -111,10 +111,10 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     Returns:
         :class:`RacketFit`.
     """
-    from ttsim_jax.fit.contacts import _racket_model
+    from ttsim_jax.fit.contacts import model_and_name
     from ttsim_jax.kernel.step import ball_properties
 
-    m, _ = _racket_model(model)
+    m, _ = model_and_name(model)
     radius, mass = ball_properties(m)
     x = np.asarray(x, np.float64)
     y = np.asarray(y_obs, np.float64)

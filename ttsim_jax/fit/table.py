@@ -143,10 +143,11 @@ def table_bounces(ds, model="conti2026", fit: contacts.ContactFit = contacts.Con
     Returns:
         :class:`Bounces` (only those that passed every check).
     """
-    from ttsim_jax.data.batch import _checked
+    from ttsim_jax.data import validate as check
 
-    m, _ = contacts._racket_model(model)
-    ds = _checked(ds, validate)
+    m, _ = contacts.model_and_name(model)
+    if validate:
+        check(ds)
     ev, seg = ds.events, ds.segments
     rows = np.flatnonzero(np.asarray(ev["kind"]).astype(str) == "table")
     event_ids = np.asarray(ev["event_id"], np.int64)[rows]
@@ -385,7 +386,7 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     """
     from ttsim_jax.kernel.step import ball_properties
 
-    m, _ = contacts._racket_model(model)
+    m, _ = contacts.model_and_name(model)
     radius = ball_properties(m)[0]
     vin, win, vout, wout = (np.asarray(a, np.float64) for a in (vel_in, spin_in, vel_out, spin_out))
     n = len(vin)
