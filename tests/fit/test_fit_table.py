@@ -66,7 +66,7 @@ def test_restitution_within_0_01(truth, noisy_fit):
 def test_sparsity_pattern_recovered(truth, noisy_fit):
     _, _, res = truth
     fit, _ = noisy_fit
-    assert 8 <= int((res != 0).sum()) < 35  # the truth is sparse, and not trivially so
+    assert 8 <= int((res != 0).sum()) < 29  # sparse among the 29 identifiable entries, not trivially so
     np.testing.assert_array_equal(fit.pattern, res != 0)
     # Non-zero entries near their true values (relative to the largest entry of their matrix).
     for k in range(4):

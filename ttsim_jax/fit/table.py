@@ -299,7 +299,8 @@ class TableFit:
         lines = [f"e0 = {self.e0:.4f} +- {self.stderr_e0:.4f}, e1 = {self.e1:.4f} +- {self.stderr_e1:.4f} s/m "
                  f"({self.n_used} bounces; {self.n_bounded} dropped by the residual bound)",
                  f"lasso: lambda {self.lambdas[self.lambda_index]:.3g} ({self.settings['rule']}; least CV error at "
-                 f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of 35 entries non-zero (x; - not identifiable):"]
+                 f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of the 29 identifiable entries "
+                 "non-zero (x; - not identifiable):"]
         lines += ["  " + t for t in self.pattern_text()]
         comps = list(self.errors["fitted"])
         lines.append("median |error| base -> fitted: " + ", ".join(
@@ -410,7 +411,7 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
         z, u = x / sx, y / sy
         train = [weights * (folds != f) for f in range(settings.folds)] + [weights]
         grams, crosses = zip(*(_grams(z, u, w) for w in train))
-        lam_max = float(np.max(np.abs(crosses[-1].T) * penalty))
+        lam_max = float(np.max(np.abs(crosses[-1].T) * penalty * mask))
         lambdas = lam_max * np.geomspace(1.0, settings.lambda_ratio, settings.n_lambdas)
         coef = np.asarray(_lasso_path(jnp.asarray(np.stack(grams), jnp.float32),
                                       jnp.asarray(np.stack(crosses), jnp.float32), jnp.asarray(lambdas, jnp.float32),
