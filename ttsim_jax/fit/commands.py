@@ -237,7 +237,8 @@ def cmd_fit(args) -> int:
 
         with _Stage("table", args.quiet, seconds) as st:
             bounces = T.table_bounces(ds, model, fit=contact_fit, validate=False, progress=st.progress)
-            session = dict(zip(np.asarray(ds.events["event_id"]).tolist(), np.asarray(ds.events["session_id"]).tolist()))
+            session = dict(zip(np.asarray(ds.events["event_id"]).tolist(),
+                               np.asarray(ds.events["session_id"]).tolist()))
             kept = ~np.isin([session[int(e)] for e in bounces.event_id], test_sessions)
             settings = T.LassoSettings(folds=args.folds, rule=args.lambda_rule, seed=args.seed)
             counts = _counts(bounces.n_bounces, int(kept.sum()), bounces.skipped, int((~kept).sum()))

@@ -148,7 +148,8 @@ def racket_section(base: racket_stage.RacketParams, result: RacketFit) -> dict:
     lines = ["[racket]                                        # fitted: updated base model (ttsim fit)",
              'kind = "updated"']
     lines += [f'{k} = {{ value = {f(result.values[k])}, unit = "{UNITS[k]}" }}' for k in PARAMETERS]
-    lines += [f'kappa = {{ value = {f(base.kappa)}, unit = "1" }}', f'e_max = {{ value = {f(base.e_max)}, unit = "1" }}']
+    lines += [f'kappa = {{ value = {f(base.kappa)}, unit = "1" }}',
+              f'e_max = {{ value = {f(base.e_max)}, unit = "1" }}']
     return {"racket": "\n".join(lines) + "\n"}
 
 

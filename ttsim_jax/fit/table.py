@@ -299,8 +299,8 @@ class TableFit:
         lines = [f"e0 = {self.e0:.4f} +- {self.stderr_e0:.4f}, e1 = {self.e1:.4f} +- {self.stderr_e1:.4f} s/m "
                  f"({self.n_used} bounces; {self.n_bounded} dropped by the residual bound)",
                  f"lasso: lambda {self.lambdas[self.lambda_index]:.3g} ({self.settings['rule']}; least CV error at "
-                 f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of the 29 identifiable entries "
-                 "non-zero (x; - not identifiable):"]
+                 f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of the 29 identifiable "
+                 "entries non-zero (x; - not identifiable):"]
         lines += ["  " + t for t in self.pattern_text()]
         comps = list(self.errors["fitted"])
         lines.append("median |error| base -> fitted: " + ", ".join(
