@@ -66,16 +66,17 @@ def test_fit_contact_stages_write_their_values_and_counts(fitted):
 
 
 def test_fit_table_stage_without_bounces_names_the_option_and_data(tmp_path, capsys):
-    from ttsim_jax.data import save
-    from ttsim_jax.fit.contacts import synthetic_contact_dataset
+    from ttsim_jax.data import Dataset, save
 
-    ds, _ = synthetic_contact_dataset(4, seed=0)
+    t = np.arange(20) / 200.0  # one flight, no events
     data = tmp_path / "no_bounces"
-    save(ds, data)
-    assert main(["fit", "--data", str(data), "--out", str(tmp_path / "x"), "--stages", "racket,table",
-                 "--quiet"]) == 2
+    save(Dataset.from_arrays(np.zeros(20, int), t, np.stack([5 * t - 1, 0 * t, 0.3 + 2 * t - 4.9 * t * t], 1)), data)
+    assert main(["fit", "--data", str(data), "--out", str(tmp_path / "x"), "--stages", "table", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--stages table" in err and str(data) in err and "no table bounces" in err
+    assert main(["fit", "--data", str(data), "--out", str(tmp_path / "x"), "--stages", "racket", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--stages racket" in err and str(data) in err and "no racket contacts" in err
     assert not (tmp_path / "x.toml").exists()
     assert main(["fit", "--data", str(data), "--out", str(tmp_path / "x"), "--stages", "aero,wind"]) == 2
     assert "aero, table, racket, residual" in capsys.readouterr().err

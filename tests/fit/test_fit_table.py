@@ -29,9 +29,12 @@ def truth():
     res[0, :, 1] = res[2, :, 1] = 0.0
     table = model.table.replace(residual=jnp.asarray(res, jnp.float32))
     clean = T.synthetic_bounces(table, 0.02, N, seed=3)
-    x, _ = T._regression(table, jnp.float32(0.02), *(jnp.asarray(clean["true_" + k], jnp.float32)
-                                                      for k in ("vel_in", "spin_in", "vel_out", "spin_out")))
-    rms = np.sqrt(np.mean(np.asarray(x, np.float64) ** 2, axis=0))[:6]
+    v, w = clean["true_vel_in"], clean["true_spin_in"]
+    heading = v[:, :2] / np.linalg.norm(v[:, :2], axis=1, keepdims=True)
+    local = [np.linalg.norm(v[:, :2], axis=1), 0.0 * v[:, 0], v[:, 2],  # R v, R w: the residual's features
+             heading[:, 0] * w[:, 0] + heading[:, 1] * w[:, 1], heading[:, 0] * w[:, 1] - heading[:, 1] * w[:, 0],
+             w[:, 2]]
+    rms = np.sqrt(np.mean(np.stack(local, 1) ** 2, axis=0))
     full = np.zeros((6, 6))
     full[:3, :3], full[:3, 3:], full[3:, :3], full[3:, 3:] = res
     effect = np.abs(full) * rms[None, :]

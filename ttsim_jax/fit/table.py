@@ -371,6 +371,22 @@ def _refit(x, y, rows, support):
     return b, se
 
 
+# Bounces are padded (with weight 0) to a multiple of this, so that datasets of different sizes
+# share the compiled per-bounce functions.
+PAD = 2048
+
+
+def padded_size(n: int) -> int:
+    """``n`` rounded up to a multiple of :data:`PAD`."""
+    return max(-(-n // PAD), 1) * PAD
+
+
+def _pad(a, size: int):
+    """``a`` with its first row repeated up to ``size`` rows (finite values for the padding)."""
+    a = np.asarray(a)
+    return np.concatenate([a, np.repeat(a[:1], size - len(a), axis=0)]) if size > len(a) else a
+
+
 def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: LassoSettings = LassoSettings(),
               progress: Callable | None = None) -> TableFit:
     """Fits e0, e1 and the residual matrices to bounces (surface-frame states).
@@ -394,9 +410,11 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     if n < 2 * settings.folds:
         raise ValueError(f"fit_table: {n} bounces; at least {2 * settings.folds} are needed for "
                          f"{settings.folds}-fold cross-validation")
+    real = np.arange(padded_size(n)) < n
+    vin, win, vout, wout = (_pad(a, len(real)) for a in (vin, win, vout, wout))
     jv, jw, jvo, jwo = (jnp.asarray(a, jnp.float32) for a in (vin, win, vout, wout))
-    weights = np.ones(n)
-    folds = np.random.default_rng(settings.seed).permutation(n) % settings.folds
+    weights = real.astype(np.float64)
+    folds = _pad(np.random.default_rng(settings.seed).permutation(n) % settings.folds, len(real))
     penalty, mask = _masks()
     e0, e1 = _restitution_ols(vin[:, 2], vout[:, 2], weights)
     passes = settings.outer + 1
@@ -443,8 +461,8 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
             fitted = table.replace(e0=jnp.asarray(e0, table.e0.dtype), e1=jnp.asarray(e1, table.e1.dtype),
                                    residual=jnp.asarray(residual, table.residual.dtype))
             bounded = np.asarray(_contact(fitted, radius, jv, jw)[2]) < 0.999
-            n_bounded = int(bounded.sum())
-            weights = np.where(bounded, 0.0, 1.0)
+            n_bounded = int((bounded & real).sum())
+            weights = np.where(bounded | ~real, 0.0, 1.0)
     act = weights > 0
     stderr = np.stack([se[:3, :3], se[:3, 3:6], se[3:, :3], se[3:, 3:6]])
     stderr_e0, stderr_e1 = float(se[2, 2]), float(se[2, 6])
@@ -454,7 +472,7 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     result = TableFit(e0=float(e0), e1=float(e1), stderr_e0=stderr_e0, stderr_e1=stderr_e1, residual=residual,
                       stderr=stderr, pattern=pattern, lambdas=lambdas, cv_mean=cv_mean, cv_se=cv_se,
                       lambda_index=chosen, lambda_min_index=best, n_used=int(act.sum()), n_bounded=n_bounded,
-                      used=act, errors={}, settings=dataclasses.asdict(settings))
+                      used=act[:n], errors={}, settings=dataclasses.asdict(settings))
     result.errors = dict(base=_errors(m.table, radius, jv, jw, vout, wout, act),
                          fitted=_errors(result.params(m.table), radius, jv, jw, vout, wout, act))
     return result
@@ -500,9 +518,10 @@ def synthetic_bounces(table, radius: float, n: int, *, seed: int = 0, noise_vel:
     vel = np.stack([vh * c, vh * s, rng.uniform(-7.0, -2.5, n)], 1)
     w_loc = np.stack([rng.uniform(-150, 150, n), rng.uniform(-500, 500, n), rng.uniform(-300, 300, n)], 1)
     spin = np.stack([w_loc[:, 0] * c - w_loc[:, 1] * s, w_loc[:, 0] * s + w_loc[:, 1] * c, w_loc[:, 2]], 1)
-    vp, wp, lam = (np.asarray(a, np.float64) for a in _contact(table, jnp.asarray(radius, jnp.float32),
-                                                                jnp.asarray(vel, jnp.float32),
-                                                                jnp.asarray(spin, jnp.float32)))
+    size = padded_size(n)
+    vp, wp, lam = (np.asarray(a, np.float64)[:n] for a in _contact(table, jnp.asarray(radius, jnp.float32),
+                                                                    jnp.asarray(_pad(vel, size), jnp.float32),
+                                                                    jnp.asarray(_pad(spin, size), jnp.float32)))
     out = dict(true_vel_in=vel, true_spin_in=spin, true_vel_out=vp, true_spin_out=wp, weight=lam)
     for k in ("vel_in", "vel_out"):
         out[k] = out["true_" + k] + rng.normal(0.0, noise_vel, (n, 3))
