@@ -39,6 +39,10 @@ def test_noiseless_contacts_give_the_exact_parameters(model):
         assert fit.values[k] == pytest.approx(float(getattr(model.racket, k)), rel=1e-4, abs=1e-6)
 
 
-def test_bad_shapes_are_refused(model):
+def test_bad_input_is_refused(model):
     with pytest.raises(ValueError, match=r"\(N, 8\)"):
         R.fit_racket(np.zeros((20, 6)), np.zeros((20, 6)), model)
+    y = np.zeros((20, 6))
+    y[7, 2] = np.nan
+    with pytest.raises(ValueError, match=r"rows \[7\]"):
+        R.fit_racket(np.zeros((20, 8)), y, model)

@@ -104,3 +104,14 @@ def test_sections_round_trip_through_a_config(truth, noisy_fit, tmp_path):
     np.testing.assert_allclose(float(loaded.table.e0), fit.e0, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(loaded.table.residual), fit.residual, rtol=1e-5, atol=1e-12)
     assert float(loaded.table.mu) == pytest.approx(float(model.table.mu))
+
+
+def test_bad_input_is_refused(truth):
+    model = truth[0]
+    v = np.ones((20, 3))
+    bad = v.copy()
+    bad[3, 1] = np.inf
+    with pytest.raises(ValueError, match=r"spin_out .*rows \[3\]"):
+        T.fit_table(v, v, v, bad, model)
+    with pytest.raises(ValueError, match="at least 10"):
+        T.fit_table(v[:6], v[:6], v[:6], v[:6], model)

@@ -123,6 +123,9 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     y = np.asarray(y_obs, np.float64)
     if x.ndim != 2 or x.shape[1] != 8 or y.shape != (len(x), 6):
         raise ValueError(f"fit_racket: x must be (N, 8) and y_obs (N, 6); got {x.shape} and {y.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        bad = np.flatnonzero(~(np.isfinite(x).all(1) & np.isfinite(y).all(1)))
+        raise ValueError(f"fit_racket: non-finite values in rows {bad[:5].tolist()} of x / y_obs")
     if len(x) < 2 * len(PARAMETERS):
         raise ValueError(f"fit_racket: {len(x)} contacts; at least {2 * len(PARAMETERS)} are needed")
     base = m.racket

@@ -407,6 +407,11 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     radius = ball_properties(m)[0]
     vin, win, vout, wout = (np.asarray(a, np.float64) for a in (vel_in, spin_in, vel_out, spin_out))
     n = len(vin)
+    for name, a in zip(("vel_in", "spin_in", "vel_out", "spin_out"), (vin, win, vout, wout)):
+        if a.shape != (n, 3) or not np.all(np.isfinite(a)):
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=-1)) if a.shape == (n, 3) else []
+            raise ValueError(f"fit_table: {name} must be a finite ({n}, 3) array; shape {a.shape}, non-finite rows "
+                             f"{np.asarray(bad[:5]).tolist()}")
     if n < 2 * settings.folds:
         raise ValueError(f"fit_table: {n} bounces; at least {2 * settings.folds} are needed for "
                          f"{settings.folds}-fold cross-validation")
