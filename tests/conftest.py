@@ -1,7 +1,16 @@
 """Shared fixtures. Float64 is enabled so finite-difference checks are meaningful; tests that
-exercise the float32 path ask for it explicitly (``dtype`` fixture)."""
+exercise the float32 path ask for it explicitly (``dtype`` fixture).
+
+The suite's time is XLA compilation, and the xdist workers (and the command-line tests' child
+processes) compile many of the same programs. They share one persistent compilation cache, a
+temporary folder made for the run and removed after it; set ``TTSIM_TEST_JAX_CACHE`` to a folder
+of your own to keep the compiled programs between runs (safe: JAX keys every entry on the program,
+the compile options and its own version).
+"""
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -9,6 +18,22 @@ import jax.numpy as jnp
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+
+if "TTSIM_TEST_JAX_CACHE" not in os.environ:  # the controller makes it; workers inherit the variable
+    os.environ["TTSIM_TEST_JAX_CACHE"] = tempfile.mkdtemp(prefix="ttsim-jax-cache-")
+    os.environ["TTSIM_TEST_JAX_CACHE_OWNED"] = os.environ["TTSIM_TEST_JAX_CACHE"]
+# environment variables as well as the config, so subprocesses started by tests use the cache too
+for _name, _value in (("jax_compilation_cache_dir", os.environ["TTSIM_TEST_JAX_CACHE"]),
+                      ("jax_persistent_cache_min_compile_time_secs", 0.5),
+                      ("jax_persistent_cache_min_entry_size_bytes", 0)):
+    os.environ[_name.upper()] = str(_value)
+    jax.config.update(_name, _value)
+
+
+def pytest_unconfigure(config):
+    owned = os.environ.get("TTSIM_TEST_JAX_CACHE_OWNED")
+    if owned and not os.environ.get("PYTEST_XDIST_WORKER"):
+        shutil.rmtree(owned, ignore_errors=True)
 
 REPO = Path(__file__).resolve().parents[1]
 

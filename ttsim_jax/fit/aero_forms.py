@@ -29,7 +29,8 @@ support (the summed interpolation weight of the segments that inform it) so that
 exists" is explicit. Segment weights are 1 / (stderr^2 + floor^2).
 
 :func:`export_config` writes a model TOML: the base model's file with its ``[aero.drag]`` and
-``[aero.magnus]`` sections replaced; ``load_model`` reads it.
+``[aero.magnus]`` sections replaced (by :func:`write_config`, which the contact stages use too);
+``load_model`` reads it.
 """
 
 from __future__ import annotations
@@ -262,11 +263,11 @@ def fit_magnus_table(base: aero_stage.MagnusTable, cm, stderr, samples, spin_rat
 
 
 # --------------------------------------------------------------------------- config export
-def _toml_array(a) -> str:
+def toml_array(a) -> str:
     a = np.asarray(a, np.float64)
     if a.ndim == 1:
         return "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
-    return "[\n" + "".join(f"    {_toml_array(row)},\n" for row in a) + "]"
+    return "[\n" + "".join(f"    {toml_array(row)},\n" for row in a) + "]"
 
 
 def drag_section(base: aero_stage.DragTable, cd) -> str:
@@ -274,9 +275,9 @@ def drag_section(base: aero_stage.DragTable, cd) -> str:
     cd_min = min(float(base.cd_min), float(np.min(cd)))
     return ("[aero.drag]                                     # fitted: C_D(Re, Sp) breakpoint table\n"
             'kind = "table"\n'
-            f're_ref = {{ value = {_toml_array(base.re_ref)}, unit = "1" }}\n'
-            f'sp = {{ value = {_toml_array(base.sp)}, unit = "1" }}\n'
-            f'cd = {{ value = {_toml_array(cd)}, unit = "1" }}\n'
+            f're_ref = {{ value = {toml_array(base.re_ref)}, unit = "1" }}\n'
+            f'sp = {{ value = {toml_array(base.sp)}, unit = "1" }}\n'
+            f'cd = {{ value = {toml_array(cd)}, unit = "1" }}\n'
             f're_cap = {{ value = {float(base.re_cap):.6g}, unit = "1" }}\n'
             f'cd_min = {{ value = {cd_min:.6g}, unit = "1" }}\n')
 
@@ -286,9 +287,9 @@ def magnus_section(base: aero_stage.MagnusTable, values: dict) -> str:
     units = {"m1": "s/rad", "s": "1", "a": "s^2/rad^2", "b": "s/rad", "c": "1"}
     lines = ["[aero.magnus]                                   # fitted: C_M(v, w) per reference speed",
              'kind = "table"',
-             f'v_ref = {{ value = {_toml_array(base.v_ref)}, unit = "m/s" }}',
-             f'w_b = {{ value = {_toml_array(base.w_b)}, unit = "rad/s" }}']
-    lines += [f'{k} = {{ value = {_toml_array(values[k])}, unit = "{units[k]}" }}' for k in MAGNUS_FITTED]
+             f'v_ref = {{ value = {toml_array(base.v_ref)}, unit = "m/s" }}',
+             f'w_b = {{ value = {toml_array(base.w_b)}, unit = "rad/s" }}']
+    lines += [f'{k} = {{ value = {toml_array(values[k])}, unit = "{units[k]}" }}' for k in MAGNUS_FITTED]
     return "\n".join(lines) + "\n"
 
 
@@ -320,14 +321,35 @@ def export_config(base_path, out_path, drag_cd, magnus_values: dict, *, name: st
     Returns:
         The written path (checked by loading it with :func:`ttsim_jax.params.load_model`).
     """
+    return write_config(base_path, out_path, aero_sections(base_path, drag_cd, magnus_values), name=name,
+                        source=source)
+
+
+def aero_sections(base_path, drag_cd, magnus_values: dict) -> dict:
+    """{section name: TOML text} of fitted ``[aero.drag]`` and ``[aero.magnus]`` over a base model."""
+    from ttsim_jax.params import load_model
+
+    base = load_model(Path(base_path))
+    return {"aero.drag": drag_section(base.aero.drag, drag_cd),
+            "aero.magnus": magnus_section(base.aero.magnus, magnus_values)}
+
+
+def write_config(base_path, out_path, sections: dict, *, name: str, source: str) -> Path:
+    """Writes a model TOML: ``base_path``'s file with some sections replaced.
+
+    Arguments:
+        base_path: the base model's TOML.
+        out_path: file to write.
+        sections: section name (e.g. ``"table.residual"``) -> its new TOML text (header included).
+        name, source: the new model's ``name`` and ``source`` strings.
+
+    Returns:
+        The written path (checked by loading it with :func:`ttsim_jax.params.load_model`).
+    """
     from ttsim_jax.io_atomic import atomic_write
     from ttsim_jax.params import load_model
 
-    base_path = Path(base_path)
-    base = load_model(base_path)
-    text = base_path.read_text(encoding="utf-8")
-    text = replace_sections(text, {"aero.drag": drag_section(base.aero.drag, drag_cd),
-                                   "aero.magnus": magnus_section(base.aero.magnus, magnus_values)})
+    text = replace_sections(Path(base_path).read_text(encoding="utf-8"), sections)
     text = re.sub(r'^name = .*$', f"name = {_toml_string(name)}", text, count=1, flags=re.M)
     text = re.sub(r'^source = .*$', f"source = {_toml_string(source)}", text, count=1, flags=re.M)
     out_path = Path(out_path)

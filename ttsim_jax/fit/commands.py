@@ -1,14 +1,15 @@
 """The ``ttsim fit``, ``ttsim train residual`` and ``ttsim evaluate residual`` commands. Thin:
-parsing and printing; the work is in :mod:`ttsim_jax.fit.identify`, :mod:`ttsim_jax.fit.contacts`
-and :mod:`ttsim_jax.fit.residual`.
+parsing and printing; the work is in :mod:`ttsim_jax.fit.identify`, :mod:`ttsim_jax.fit.table`,
+:mod:`ttsim_jax.fit.racket`, :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
 
 ``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
 ``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user
 errors are raised (the library's errors, :class:`ttsim_jax.cli.UsageError`) and reported by
 :func:`ttsim_jax.cli.main` with status 2.
 
-    ttsim fit --data DATA --out MODEL.toml [--base conti2026] [--association averaged|v_eff] [--forms drag,magnus]
-              [--min-spin-conf C] [--max-rmse-mm R] [--test-fraction F] [--seed S] [--force] [--quiet]
+    ttsim fit --data DATA --out MODEL.toml [--stages aero,table,racket[,residual]] [--base conti2026]
+              [--association averaged|v_eff] [--forms drag,magnus] [--min-spin-conf C] [--max-rmse-mm R]
+              [--folds K] [--lambda-rule 1se|min] [--epochs N] [--test-fraction F] [--seed S] [--force] [--quiet]
     ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
                          [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
                          [--clusters K] [--resume | --force]
@@ -24,6 +25,7 @@ import json
 import math
 import os
 import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -69,87 +71,259 @@ def _fraction(text: str) -> float:
     return value
 
 
+STAGES = ("aero", "table", "racket", "residual")
+
+
+def _stages(text: str) -> tuple:
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    bad = [x for x in names if x not in STAGES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(STAGES)}; got {text!r}")
+    return tuple(x for x in STAGES if x in names)  # run in pipeline order
+
+
 def _register_fit(subparsers) -> None:
     from ttsim_jax.fit.aero_forms import ASSOCIATIONS
 
     p = subparsers.add_parser(
         "fit",
-        help="identify a model's aerodynamics (C_D table, C_M form) from a dataset's flight segments",
-        description="Fit C_D, C_M and the initial state to every flight segment of DATA that has a measured spin "
-        "(one compiled, batched Levenberg-Marquardt solver), drop segments whose fit RMSE exceeds --max-rmse-mm, "
-        "regress the coefficients into the paper's forms (the C_D breakpoint table over Re and Sp, C_M linear/"
-        "quadratic in the spin rate per reference speed; breakpoints and entries without data from --base) and "
-        "write the model config OUT (loadable with load_model / --model OUT) and a summary OUT.fit.json. "
-        "Table and racket contact parameters are copied from --base; the racket residual network is trained by "
-        "'ttsim train residual'.",
+        help="identify a model (aerodynamics, table and racket contacts, optionally the racket residual network) "
+        "from a dataset",
+        description="Identify a model from DATA, stage by stage (--stages), into ONE model config OUT (loadable with "
+        "load_model / --model OUT) and a summary OUT.fit.json (per stage: counts used and skipped by reason, fitted "
+        "values with standard errors, wall and CPU time). "
+        "aero: C_D, C_M and the initial state per flight segment with a measured spin (one compiled, batched "
+        "Levenberg-Marquardt solver), segments above --max-rmse-mm dropped, the coefficients regressed into the "
+        "paper's forms (the C_D breakpoint table over Re and Sp, C_M linear/quadratic in the spin rate per reference "
+        "speed). table: states before and after each table bounce, e0 and e1 of the restitution law and the four "
+        "local residual matrices by L1-regularised least squares (penalty by cross-validation; the sparsity "
+        "pattern is reported). racket: the updated base model's e0, e1, et0, et1, e_s by least squares on the "
+        "racket contacts' racket-frame states. residual: the racket residual network on what the fitted base model "
+        "leaves (as 'ttsim train residual'), written to OUT's stem + .ttres. Parameters of stages not run, and "
+        "entries without data, come from --base.",
     )
     p.add_argument("--data", required=True, metavar="DATA", type=existing_dir,
                    help="dataset directory (see docs/data_format.md; 'ttsim data import' converts the public datasets)")
     p.add_argument("--out", required=True, metavar="OUT", type=writable_file,
                    help="model config to write, e.g. runs/fitted.toml ('.toml' is added if missing); the model's "
                    "name is the file's stem")
+    p.add_argument("--stages", type=_stages, default=("aero", "table", "racket"), metavar="LIST",
+                   help="comma-separated stages to run, of aero, table, racket, residual (default: aero,table,racket; "
+                   "residual trains the network, minutes)")
     p.add_argument("--base", default="conti2026", metavar="MODEL", type=model_name_or_file,
                    help="base model: ball, air, the forms' breakpoints, the values where data is missing, and every "
-                   "non-aerodynamic parameter (default: %(default)s)")
+                   "parameter no stage fits (default: %(default)s)")
     p.add_argument("--association", choices=ASSOCIATIONS, default="averaged",
-                   help="how a segment's coefficient enters the forms: 'averaged', the force-weighted mean of the form "
-                   "along the segment (default), or 'v_eff', the form at the paper's effective speed")
+                   help="aero: how a segment's coefficient enters the forms: 'averaged', the force-weighted mean of "
+                   "the form along the segment (default), or 'v_eff', the form at the paper's effective speed")
     p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default="drag,magnus",
-                   help="which forms to fit; the other keeps the base model's values (default: %(default)s)")
+                   help="aero: which forms to fit; the other keeps the base model's values (default: %(default)s)")
     p.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C",
-                   help="segments with a lower spin confidence are not used (default: %(default)s)")
+                   help="segments (aero) and contacts (table, racket: before and after) with a lower spin confidence "
+                   "are not used (default: %(default)s)")
     p.add_argument("--max-rmse-mm", type=positive_float, default=20.0, metavar="R",
-                   help="segments whose constant-coefficient fit has a larger 3-D RMSE are dropped (default: %(default)s)")
-    p.add_argument("--test-fraction", type=_fraction, default=0.0, metavar="F",
-                   help="fraction of sessions held out of the fit, listed in OUT.fit.json for evaluation "
+                   help="aero: segments whose constant-coefficient fit has a larger 3-D RMSE are dropped "
                    "(default: %(default)s)")
-    p.add_argument("--seed", type=seed, default=0, help="seed of the held-out draw (default: %(default)s)")
-    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--folds", type=positive_int, default=5, metavar="K",
+                   help="table: K of the cross-validation choosing the L1 penalty (default: %(default)s)")
+    p.add_argument("--lambda-rule", choices=("1se", "min"), default="1se",
+                   help="table: the penalty with the least CV error ('min') or the largest within one standard error "
+                   "of it ('1se', sparser; default)")
+    p.add_argument("--epochs", type=positive_int, metavar="N",
+                   help="residual: maximum number of epochs (default: the bundled conti2026 residual config's)")
+    p.add_argument("--test-fraction", type=_fraction, default=0.0, metavar="F",
+                   help="fraction of sessions held out of every stage, listed in OUT.fit.json for evaluation "
+                   "(default: %(default)s)")
+    p.add_argument("--seed", type=seed, default=0,
+                   help="seed of the held-out draw and of the cross-validation folds (default: %(default)s)")
+    p.add_argument("--force", action="store_true", help="overwrite OUT (and its network checkpoint) if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_fit)
 
 
+class _Stage:
+    """Progress bar, wall and CPU time of one stage."""
+
+    def __init__(self, name: str, quiet: bool, seconds: dict):
+        self.name, self.quiet, self.seconds = name, quiet, seconds
+
+    def __enter__(self):
+        from tqdm import tqdm
+
+        self.bar = None if self.quiet else tqdm(total=0, desc=f"fit {self.name}", file=sys.stderr)
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def progress(self, done, total):
+        if self.bar is not None:
+            self.bar.total = total
+            self.bar.update(done - self.bar.n)
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
+        self.seconds[self.name] = dict(wall=time.perf_counter() - self.wall, cpu=time.process_time() - self.cpu)
+        return False
+
+
+def _check_events(ds, stages, data) -> None:
+    """Refuses, before any work, a stage whose contacts the dataset does not have."""
+    import numpy as np
+
+    kinds = np.asarray(ds.events["kind"]).astype(str)
+    if "table" in stages and not np.any(kinds == "table"):
+        raise UsageError(f"--stages table: --data {data} has no table bounces (no event of kind 'table'); "
+                         "leave 'table' out of --stages")
+    for stage in ("racket", "residual"):
+        if stage in stages and len(ds.rackets["event_id"]) == 0:
+            raise UsageError(f"--stages {stage}: --data {data} has no racket contacts with a racket state (the "
+                             f"rackets table is empty); leave '{stage}' out of --stages")
+
+
+def _counts(total: int, used: int, skipped: dict, held_out: int) -> dict:
+    return dict(total=total, used=used, held_out=held_out, skipped={k: len(v) for k, v in skipped.items() if v})
+
+
 def cmd_fit(args) -> int:
-    """``fit``: aerodynamic identification of a dataset -> model config + JSON summary."""
-    from tqdm import tqdm
+    """``fit``: identification of a dataset, stage by stage -> model config (+ checkpoint) + JSON summary."""
+    import numpy as np
 
     from ttsim_jax.data import load
-    from ttsim_jax.fit.identify import identify_aero, write_model
+    from ttsim_jax.fit.aero_forms import aero_sections, write_config
+    from ttsim_jax.fit.contacts import ContactFit
+    from ttsim_jax.fit.identify import split_sessions
     from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.params import load_model, resolve_model_path
 
     out = Path(args.out)
     if out.suffix != ".toml":
         out = out.with_name(out.name + ".toml")
     summary_path = out.with_suffix(".fit.json")
+    network_path = out.with_suffix(".ttres")
     if out.exists() and not args.force:
         raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
+    stages = args.stages
+    if "residual" in stages and network_path.exists() and not args.force:
+        raise UsageError(f"--out {out}: the network checkpoint {network_path} already exists; pass --force")
     ds = load(args.data)
-    print(f"loaded {args.data}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations")
-    bar = None if args.quiet else tqdm(total=0, desc="fit segments", unit="seg", file=sys.stderr)
+    print(f"loaded {args.data}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations, "
+          f"{len(ds.events['event_id'])} events; stages {','.join(stages)}")
+    _check_events(ds, stages, args.data)
+    base_path = resolve_model_path(args.base)
+    model = load_model(base_path)
+    test_sessions = split_sessions(ds.segments["session_id"], args.test_fraction, args.seed)
+    contact_fit = ContactFit(min_spin_conf=args.min_spin_conf)
+    sections, seconds = {}, {}
+    meta = dict(data=os.fspath(args.data), model=str(out), base=str(base_path), stages=list(stages),
+                test_sessions=[int(x) for x in test_sessions], seconds=seconds)
 
-    def progress(done, total):
-        if bar is not None:
-            bar.total = total
-            bar.update(done - bar.n)
+    if "aero" in stages:
+        from ttsim_jax.fit.identify import identify_aero
 
-    try:
-        result = identify_aero(ds, args.base, association=args.association, min_spin_conf=args.min_spin_conf,
-                               max_rmse=args.max_rmse_mm / 1000.0, test_fraction=args.test_fraction, seed=args.seed,
-                               forms=tuple(args.forms.split(",")), progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
-    print(result.summary())
-    if result.drag is None:
-        raise UsageError(f"--data {args.data}: no segment with a measured spin (confidence >= {args.min_spin_conf}) "
-                         f"fits within {args.max_rmse_mm} mm; nothing to write")
-    write_model(result, out, source=f"aerodynamics fitted by ttsim fit on {os.fspath(args.data)} "
-                f"({result.counts['used']} segments, {result.association} association) over {result.base.name}")
-    meta = result.to_dict()
-    meta.update(data=os.fspath(args.data), model=str(out))
-    atomic_write(summary_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
-    print(f"wrote {out} (load_model({str(out)!r}) or --model {out}) and {summary_path}")
+        with _Stage("aero", args.quiet, seconds) as st:
+            result = identify_aero(ds, base_path, association=args.association, min_spin_conf=args.min_spin_conf,
+                                   max_rmse=args.max_rmse_mm / 1000.0, test_fraction=args.test_fraction,
+                                   seed=args.seed, forms=tuple(args.forms.split(",")), progress=st.progress)
+        print(result.summary())
+        if result.drag is None:
+            raise UsageError(f"--data {args.data}: no segment with a measured spin (confidence >= "
+                             f"{args.min_spin_conf}) fits within {args.max_rmse_mm} mm; nothing to write (leave "
+                             "'aero' out of --stages to fit the other stages)")
+        sections.update(aero_sections(base_path, result.drag.values["cd"], result.magnus.values))
+        meta["aero"] = result.to_dict()
+
+    if "table" in stages:
+        from ttsim_jax.fit import table as T
+
+        with _Stage("table", args.quiet, seconds) as st:
+            bounces = T.table_bounces(ds, model, fit=contact_fit, validate=False, progress=st.progress)
+            session = dict(zip(np.asarray(ds.events["event_id"]).tolist(),
+                               np.asarray(ds.events["session_id"]).tolist()))
+            kept = ~np.isin([session[int(e)] for e in bounces.event_id], test_sessions)
+            settings = T.LassoSettings(folds=args.folds, rule=args.lambda_rule, seed=args.seed)
+            counts = _counts(bounces.n_bounces, int(kept.sum()), bounces.skipped, int((~kept).sum()))
+            if kept.sum() < 2 * args.folds:
+                raise UsageError(f"--stages table: --data {args.data} has {int(kept.sum())} usable table bounces "
+                                 f"({bounces.n_bounces} table events; skipped: {counts['skipped']}); at least "
+                                 f"{2 * args.folds} are needed for --folds {args.folds}")
+            fit = T.fit_table(bounces.vel_in[kept], bounces.spin_in[kept], bounces.vel_out[kept],
+                              bounces.spin_out[kept], model, settings)
+        counts["bounded"] = fit.n_bounded
+        print(f"table: {counts['used']} of {counts['total']} bounces used; skipped {counts['skipped']}, "
+              f"{counts['held_out']} held out\n" + fit.summary())
+        sections.update(T.table_sections(model.table, fit))
+        meta["table"] = dict(counts=counts, fit=fit.to_dict())
+        model = model.replace(table=fit.params(model.table))
+
+    arrays = None
+    if "racket" in stages or "residual" in stages:
+        from ttsim_jax.fit.contacts import contact_arrays
+
+        arrays_of = lambda m: contact_arrays(ds, m, n_inputs=8, fit=contact_fit, validate=False)  # noqa: E731
+    if "racket" in stages:
+        from ttsim_jax.fit import racket as RF
+
+        with _Stage("racket", args.quiet, seconds) as st:
+            arrays = arrays_of(model)
+            kept = ~np.isin(arrays.session_id, test_sessions)
+            counts = _counts(arrays.n_contacts, int(kept.sum()), arrays.skipped, int((~kept).sum()))
+            if kept.sum() < 2 * len(RF.PARAMETERS):
+                raise UsageError(f"--stages racket: --data {args.data} has {int(kept.sum())} usable racket contacts "
+                                 f"({arrays.n_contacts} racket events; skipped: {counts['skipped']}); at least "
+                                 f"{2 * len(RF.PARAMETERS)} are needed")
+            fit = RF.fit_racket(arrays.x[kept], arrays.y_obs[kept], model)
+            st.progress(1, 1)
+        print(f"racket: {counts['used']} of {counts['total']} contacts used; skipped {counts['skipped']}, "
+              f"{counts['held_out']} held out\n" + fit.summary())
+        sections.update(RF.racket_section(model.racket, fit))
+        meta["racket"] = dict(counts=counts, fit=fit.to_dict())
+        model = model.replace(racket=fit.params(model.racket))
+
+    if "residual" in stages:
+        from ttsim_jax.fit import residual as F
+        from ttsim_jax.physics.residual import save_residual
+
+        with _Stage("residual", args.quiet, seconds):
+            arrays = arrays_of(model)  # y_base of the fitted racket parameters
+            rows = ~np.isin(arrays.session_id, test_sessions)
+            config, tcfg = F.load_train_config(bundled_config("conti2026"))
+            if args.epochs is not None:
+                tcfg = dataclasses.replace(tcfg, max_epochs=args.epochs)
+            x, yb, yo = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows]
+            if len(x) < 3:
+                raise UsageError(f"--stages residual: --data {args.data} has {len(x)} usable racket contacts; at "
+                                 "least 3 are needed (train / validation / test)")
+            n_train = len(F.split_by_contact(len(x), tcfg.split, tcfg.seed)[0])
+            config = dataclasses.replace(config, n_clusters=min(config.n_clusters, n_train))
+            net, report = F.train_residual(x, yb, yo, config, tcfg, progress=not args.quiet)
+            info = {k: v for k, v in report.items() if k != "history"}
+            info.update(model=str(out), data=os.fspath(args.data), train_config=tcfg.to_dict(),
+                        contacts=dict(used=len(x), total=arrays.n_contacts, skipped=arrays.counts()))
+            save_residual(network_path, net, metadata=info)
+        print(f"residual: trained {report['epochs']} epochs on {len(x)} contacts (best validation loss "
+              f"{report['best_val_loss']:.4g}); wrote {network_path}")
+        meta["residual"] = dict(checkpoint=str(network_path), epochs=report["epochs"],
+                                best_val_loss=report["best_val_loss"], contacts=info["contacts"])
+
+    write_config(base_path, out, sections, name=out.stem,
+                 source=f"fitted by ttsim fit on {os.fspath(args.data)} (stages {','.join(stages)}) over "
+                 f"{base_path.name}")
+    atomic_write(summary_path, (json.dumps(meta, indent=1, default=_json_default) + "\n").encode("utf-8"))
+    for name, t in seconds.items():
+        print(f"{name}: {t['wall']:.1f} s wall, {t['cpu']:.1f} s CPU")
+    extra = f" with --residual {network_path}" if "residual" in stages else ""
+    print(f"wrote {out} (load_model({str(out)!r}) or --model {out}){extra} and {summary_path}")
     return 0
+
+
+def _json_default(value):
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def register(subparsers) -> None:

@@ -331,7 +331,46 @@ def estimate_contact(index: ObservationIndex, in_row: int, out_row: int, t_conta
                                  rmse=np.array([r_in, r_out]))
 
 
-def _racket_model(model):
+def contact_states(ds, event_ids, t_c, in_row, out_row, fit: ContactFit, skipped: dict,
+                   progress: Callable | None = None):
+    """The ball's world-frame (velocity, spin) just before and just after each contact.
+
+    Shared by the racket (:func:`contact_arrays`) and table (:mod:`ttsim_jax.fit.table`)
+    contacts: :func:`estimate_contact` for every contact (see the module docstring).
+
+    Arguments:
+        ds: the dataset.
+        event_ids, t_c: (n,) the contacts' event ids and times [s] (float64).
+        in_row, out_row: (n,) rows in ``ds.segments`` of the incoming / outgoing segment (-1: none).
+        fit: how the states are estimated.
+        skipped: reason -> list of event ids; contacts lacking what is needed are appended here
+            (reasons ``no_incoming_segment`` ... ``bad_fit`` of :data:`SKIP_REASONS`).
+        progress: optional ``progress(done, total)``, called every 100 contacts and at the end.
+
+    Returns:
+        (vel_in, spin_in, vel_out, spin_out (n, 3), rmse (n, 2), good) with ``good`` the int64
+        indices of the contacts whose states were estimated (other rows are zero).
+    """
+    n = len(event_ids)
+    index = ObservationIndex(ds)
+    good = []
+    vin, win, vout, wout, rmse = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)),
+                                  np.zeros((n, 2)))
+    for i in range(n):
+        if progress is not None and (i % 100 == 0):
+            progress(i, n)
+        reason, est = estimate_contact(index, int(in_row[i]), int(out_row[i]), float(t_c[i]), fit)
+        if reason is not None:
+            skipped[reason].append(int(event_ids[i]))
+            continue
+        vin[i], win[i], vout[i], wout[i], rmse[i] = est.vel_in, est.spin_in, est.vel_out, est.spin_out, est.rmse
+        good.append(i)
+    if progress is not None:
+        progress(n, n)
+    return vin, win, vout, wout, rmse, np.asarray(good, np.int64)
+
+
+def model_and_name(model):
     """(Model, name) from a bundled model name, a TOML path or a Model."""
     from ttsim_jax.params import Model, load_model
 
@@ -343,7 +382,7 @@ def _racket_model(model):
 def default_inputs(model) -> int:
     """Residual inputs for a model: 8 (conti2026), 6 (durr2026); otherwise 6 for the
     "nakashima" racket kind, 8 for the others, unless the model carries a residual network."""
-    return _default_inputs(*_racket_model(model))
+    return _default_inputs(*model_and_name(model))
 
 
 def _default_inputs(m, name) -> int:
@@ -393,7 +432,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     from ttsim_jax.data.batch import racket_contact_batch
     from ttsim_jax.kernel.step import ball_properties
 
-    m, name = _racket_model(model)
+    m, name = model_and_name(model)
     n_inputs = _default_inputs(m, name) if n_inputs is None else int(n_inputs)
     if n_inputs not in (6, 8):
         raise ValueError(f"contact_arrays: n_inputs = {n_inputs!r}, must be 8 or 6")
@@ -423,20 +462,8 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     stateless = np.setdiff1d(np.asarray(ev["event_id"], np.int64)[kinds == "racket"], event_ids)
     skipped["no_racket_state"] = [int(e) for e in stateless]
 
-    index = ObservationIndex(ds)
-    seg_ids = index.segment_ids
-    good = []
-    vin, win, vout, wout, rmse = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)),
-                                  np.zeros((n, 2)))
-    for i in range(n):
-        reason, est = estimate_contact(index, in_row[i], out_row[i], t_c[i], fit)
-        if reason is not None:
-            skipped[reason].append(int(event_ids[i]))
-            continue
-        vin[i], win[i], vout[i], wout[i], rmse[i] = est.vel_in, est.spin_in, est.vel_out, est.spin_out, est.rmse
-        good.append(i)
-
-    good = np.asarray(good, np.int64)
+    vin, win, vout, wout, rmse, good = contact_states(ds, event_ids, t_c, in_row, out_row, fit, skipped)
+    seg_ids = np.asarray(ds.segments["segment_id"], np.int64)
     if len(good):
         j = lambda a: jnp.asarray(a[good])  # noqa: E731
         x8, y_base, y_obs, gap = (np.asarray(a, np.float64) for a in _frames(
@@ -505,6 +532,26 @@ def _small_rotations(rng, n, max_angle):
     return np.eye(3) + s * k + (1 - c) * (k @ k)
 
 
+def draw_contact_states(rng: np.random.Generator, n: int, max_speed: float = 15.0, max_spin: float = 600.0):
+    """Random racket-frame pre-contact states: (v~ (n, 3), w~ (n, 3), d (n, 2)).
+
+    Speed 1..max_speed m/s within 60 degrees of the face normal (v~_x < 0), spin up to ``max_spin``
+    rad/s in a uniform direction, d uniform over a 7.5 cm disc.
+    """
+    rad = 0.075 * np.sqrt(rng.uniform(0.0, 1.0, n))
+    phi = rng.uniform(0.0, 2 * math.pi, n)
+    d = np.stack([rad * np.cos(phi), rad * np.sin(phi)], 1)
+    speed = rng.uniform(1.0, max_speed, n)
+    cos_t = rng.uniform(0.5, 1.0, n)
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    psi = rng.uniform(0.0, 2 * math.pi, n)
+    v_t = speed[:, None] * np.stack([-cos_t, sin_t * np.cos(psi), sin_t * np.sin(psi)], 1)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    w_t = rng.uniform(0.0, max_spin, n)[:, None] * direction
+    return v_t, w_t, d
+
+
 def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual_fn: Callable | None = None,
                               rate: float = 200.0, span: float = 0.06, noise: float = 0.0, max_speed: float = 15.0,
                               max_spin: float = 600.0, kd: float = 0.11, km: float = 1e-3):
@@ -536,7 +583,7 @@ def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual
     from ttsim_jax.data import Dataset, Metadata
     from ttsim_jax.kernel.step import ball_properties
 
-    m, name = _racket_model(model)
+    m, name = model_and_name(model)
     radius, mass = (float(v) for v in ball_properties(m))
     rng = np.random.default_rng(seed)
     base_rot = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])  # normal along -x
@@ -546,17 +593,7 @@ def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual
     r_pos = np.stack([rng.uniform(1.3, 1.5, n), rng.uniform(-0.3, 0.3, n), rng.uniform(0.1, 0.9, n)], 1)
     r_vel = np.stack([rng.uniform(-6.0, 0.0, n), rng.uniform(-1.0, 1.0, n), rng.uniform(0.0, 3.0, n)], 1)
     r_ang = rng.uniform(-10.0, 10.0, (n, 3))
-    rad = 0.075 * np.sqrt(rng.uniform(0.0, 1.0, n))
-    phi = rng.uniform(0.0, 2 * math.pi, n)
-    d = np.stack([rad * np.cos(phi), rad * np.sin(phi)], 1)
-    speed = rng.uniform(1.0, max_speed, n)
-    cos_t = rng.uniform(0.5, 1.0, n)
-    sin_t = np.sqrt(1.0 - cos_t**2)
-    psi = rng.uniform(0.0, 2 * math.pi, n)
-    v_t = speed[:, None] * np.stack([-cos_t, sin_t * np.cos(psi), sin_t * np.sin(psi)], 1)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    w_t = rng.uniform(0.0, max_spin, n)[:, None] * direction
+    v_t, w_t, d = draw_contact_states(rng, n, max_speed, max_spin)
 
     # ball centre at the contact: one radius in front of the face at d
     local = np.concatenate([np.full((n, 1), radius), d], 1)

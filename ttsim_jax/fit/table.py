@@ -1,0 +1,535 @@
+"""Table contact identification: restitution (e0, e1) and the local residual matrices.
+
+The model (:func:`ttsim_jax.physics.table.local_contact`, surface frame, normal = z):
+
+    v+ = base_v(e0, e1) - R^T (dA_vv R v + dA_vw R w),   w+ = base_w(e0, e1) - R^T (dA_wv R v + dA_ww R w)
+
+with R the residual frame of the incoming velocity (:func:`~ttsim_jax.physics.table.residual_frame`)
+and the base the Nakashima point contact with e_n = e0 + e1 v_z (mu, kappa, alpha_roll are the base
+model's). In the local frame the residual is linear in (R v, R w), so with the base computed for
+the current (e0, e1) each bounce gives six linear equations
+
+    R (base - observed) = dA (R v, R w) + de0 v_z + de1 v_z^2   (the last two in the v_z row only).
+
+The de0 / de1 columns correct e0, e1 (a first estimate comes from ordinary least squares on
+v_z+ = -(e0 + e1 v_z) v_z); the residual entry dA_vv[2, 2] multiplies the same column as de0 and
+cannot be told apart from it, so it is fixed at zero (e0 takes it); and (R v)_y = 0 by the
+frame's construction, so dA_vv[:, 1] and dA_wv[:, 1] act on nothing and stay zero. Features and targets are
+standardised, the residual entries L1-penalised (e0, e1 not), and the problem solved on a
+geometric path of penalties with ``jaxopt.ProximalGradient`` and ``prox_lasso`` (FISTA on the
+Gram matrices, one jitted call vmapped over folds and penalties). K-fold cross-validation picks
+the penalty (``rule="1se"``: the largest within one standard error of the best, which favours the
+sparse pattern; ``"min"``: the best). The base depends on e_n through the sliding grip, so the
+fit is repeated ``outer`` times with the updated (e0, e1). The lasso selects the entries; their
+values are then refitted by ordinary least squares on that selection (the relaxed lasso: the
+penalty's shrinkage would otherwise leak into e0, e1 through the uncentred features), and
+entries below ``min_t`` standard errors in that refit are dropped.
+
+The simulator fades the residual below ``RESIDUAL_FADE_SPEED`` of horizontal speed and scales it
+down where it would create energy or normal speed (:func:`~ttsim_jax.physics.table.residual_bound`);
+the fit uses only bounces where both are 1: slower bounces are skipped (``slow_horizontal``), and
+bounces where the fitted matrices would be bounded are dropped and the fit repeated once
+(``residual_bounded``).
+
+Standard errors are those of the least-squares refit (conditional on the selection).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ttsim_jax.fit import contacts
+from ttsim_jax.physics import table as table_stage
+
+MATRICES = ("dA_vv", "dA_vw", "dA_wv", "dA_ww")
+UNITS = {"dA_vv": "1", "dA_vw": "m", "dA_wv": "1/m", "dA_ww": "1"}
+
+SKIP_REASONS = {k: v for k, v in contacts.SKIP_REASONS.items()
+                if k in ("no_incoming_segment", "no_outgoing_segment", "few_incoming_samples",
+                         "few_outgoing_samples", "low_spin_conf_in", "low_spin_conf_out", "bad_fit", "non_finite")}
+SKIP_REASONS.update(
+    off_surface="bounce position outside the playing surface (an edge or side contact)",
+    not_approaching="ball not moving down before the bounce (v_z- >= 0)",
+    not_leaving="ball leaves with less normal speed than the rest threshold (sustained contact)",
+    slow_horizontal="horizontal speed below min_horizontal_speed: the residual is faded there",
+    residual_bounded="the fitted residual would be scaled down by the energy / normal-speed bound",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class LassoSettings:
+    """Penalty path and cross-validation of the residual fit.
+
+    Attributes:
+        n_lambdas: penalties on the path (geometric, from the one that zeroes every entry).
+        lambda_ratio: smallest / largest penalty.
+        folds: K of the K-fold cross-validation.
+        rule: ``"1se"`` or ``"min"`` (see the module docstring).
+        seed: seed of the fold assignment.
+        maxiter, tol: proximal-gradient iterations and tolerance (standardised units).
+        outer: refits with the base recomputed for the updated (e0, e1).
+        min_t: entries selected by the lasso whose refit value is below min_t standard errors are
+            set to zero (0: keep every selected entry).
+    """
+
+    n_lambdas: int = 20
+    lambda_ratio: float = 1e-3
+    folds: int = 5
+    rule: str = "1se"
+    seed: int = 0
+    maxiter: int = 1000
+    tol: float = 1e-5
+    outer: int = 3
+    min_t: float = 3.0
+
+    def __post_init__(self):
+        if self.rule not in ("1se", "min"):
+            raise ValueError(f"LassoSettings.rule = {self.rule!r}: must be '1se' or 'min'")
+        if self.folds < 2:
+            raise ValueError(f"LassoSettings.folds = {self.folds!r}: must be >= 2")
+        if self.n_lambdas < 2 or not 0.0 < self.lambda_ratio < 1.0:
+            raise ValueError(f"LassoSettings: n_lambdas = {self.n_lambdas!r} (>= 2), lambda_ratio = "
+                             f"{self.lambda_ratio!r} (in (0, 1))")
+
+
+@dataclasses.dataclass
+class Bounces:
+    """Table bounces with estimated states (surface frame = world frame, flat table).
+
+    Attributes:
+        vel_in, spin_in, vel_out, spin_out: (N, 3) velocity [m/s] and spin [rad/s] before / after.
+        event_id: (N,) ids of the bounces.
+        skipped: reason -> event ids of the bounces not used (:data:`SKIP_REASONS`).
+        n_bounces: table events examined.
+    """
+
+    vel_in: np.ndarray
+    spin_in: np.ndarray
+    vel_out: np.ndarray
+    spin_out: np.ndarray
+    event_id: np.ndarray
+    skipped: dict
+    n_bounces: int
+
+    def __len__(self) -> int:
+        return len(self.vel_in)
+
+    def counts(self) -> dict:
+        """reason -> number of bounces skipped for it (only reasons that occurred)."""
+        return {k: len(v) for k, v in self.skipped.items() if v}
+
+
+def table_bounces(ds, model="conti2026", fit: contacts.ContactFit = contacts.ContactFit(),
+                  min_horizontal_speed: float = table_stage.RESIDUAL_FADE_SPEED, validate: bool = True,
+                  progress: Callable | None = None) -> Bounces:
+    """The table bounces of a dataset with their pre- and post-bounce states.
+
+    Arguments:
+        ds: a :class:`~ttsim_jax.data.Dataset` with ``table`` events and segments.
+        model: bundled name, TOML path or Model (table geometry).
+        fit: how the states are estimated (:class:`~ttsim_jax.fit.contacts.ContactFit`; its
+            ``contact_point`` and ``max_face_gap`` do not apply).
+        min_horizontal_speed: slower bounces are skipped [m/s] (the residual fades below 1 m/s).
+        validate: validate ``ds`` first.
+        progress: optional ``progress(done, total)`` over the bounces.
+
+    Returns:
+        :class:`Bounces` (only those that passed every check).
+    """
+    from ttsim_jax.data import validate as check
+
+    m, _ = contacts.model_and_name(model)
+    if validate:
+        check(ds)
+    ev, seg = ds.events, ds.segments
+    rows = np.flatnonzero(np.asarray(ev["kind"]).astype(str) == "table")
+    event_ids = np.asarray(ev["event_id"], np.int64)[rows]
+    ends = {int(e): i for i, e in enumerate(seg["end_event_id"]) if e >= 0}
+    starts = {int(e): i for i, e in enumerate(seg["start_event_id"]) if e >= 0}
+    in_row = np.array([ends.get(int(e), -1) for e in event_ids], np.int64)
+    out_row = np.array([starts.get(int(e), -1) for e in event_ids], np.int64)
+    t_c = np.asarray(ev["t"], np.float64)[rows]
+    pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xy"], -1)
+    skipped = {k: [] for k in SKIP_REASONS}
+    vin, win, vout, wout, _, good = contacts.contact_states(ds, event_ids, t_c, in_row, out_row, fit, skipped,
+                                                            progress=progress)
+    half = np.array([0.5 * float(m.table.length), 0.5 * float(m.table.width)])
+    finite = np.isfinite(np.concatenate([vin, win, vout, wout], 1)).all(1)
+    checks = (("non_finite", ~finite),
+              ("off_surface", np.any(np.abs(pos) > half, axis=1)),
+              ("not_approaching", vin[:, 2] >= 0.0),
+              ("not_leaving", vout[:, 2] < table_stage.REST_SPEED),
+              ("slow_horizontal", np.linalg.norm(vin[:, :2], axis=1) < min_horizontal_speed))
+    keep = np.zeros(len(event_ids), bool)
+    keep[good] = True
+    for reason, bad in checks:
+        bad = bad & keep
+        skipped[reason].extend(int(e) for e in event_ids[bad])
+        keep &= ~bad
+    return Bounces(vel_in=vin[keep], spin_in=win[keep], vel_out=vout[keep], spin_out=wout[keep],
+                   event_id=event_ids[keep], skipped=skipped, n_bounces=len(event_ids))
+
+
+# ----------------------------------------------------------------------------------------------
+# Jitted pieces
+
+
+@jax.jit
+def _contact(table, radius, vel, spin):
+    """(v+, w+, residual weight) of the full table model for (N, 3) surface-frame states."""
+
+    def one(v, w):
+        vp, wp = table_stage.local_contact(table, radius, v, w)
+        zero = table.replace(residual=jnp.zeros_like(table.residual))
+        bv, bw = table_stage.local_contact(zero, radius, v, w)
+        rot = table_stage.residual_frame(v)
+        dv, dw = table_stage.apply_matrices(tuple(-rot.T @ da @ rot for da in table.residual), v, w)
+        lam = table_stage.residual_fade(v)
+        lam = lam * table_stage.residual_bound(table.kappa, radius, v, w, bv, bw, lam * dv, lam * dw)
+        return vp, wp, lam
+
+    return jax.vmap(one)(vel, spin)
+
+
+@jax.jit
+def _regression(table, radius, vel, spin, vel_out, spin_out):
+    """Features (N, 7) = (R v, R w, v_z^2) and targets (N, 6) = R (base - observed)."""
+
+    def one(v, w, vo, wo):
+        zero = table.replace(residual=jnp.zeros_like(table.residual))
+        bv, bw = table_stage.local_contact(zero, radius, v, w)
+        rot = table_stage.residual_frame(v)
+        x = jnp.concatenate([rot @ v, rot @ w, v[2:3] ** 2])
+        return x, jnp.concatenate([rot @ (bv - vo), rot @ (bw - wo)])
+
+    return jax.vmap(one)(vel, spin, vel_out, spin_out)
+
+
+def _proximal_solve(gram, cross, lam, penalty, mask, maxiter, tol):
+    """argmin_B 1/2 tr(B G B^T) - tr(B C) + lam sum(penalty |B|), entries outside ``mask`` zero."""
+    from jaxopt import ProximalGradient
+    from jaxopt.prox import prox_lasso
+
+    step = 1.0 / jnp.maximum(jnp.linalg.eigvalsh(gram)[-1], 1e-12)
+
+    def fun(b, gram, cross):
+        return 0.5 * jnp.sum((b @ gram) * b) - jnp.sum(b * cross.T)
+
+    def prox(b, l1reg, scaling):
+        return mask * prox_lasso(b, l1reg, scaling)
+
+    solver = ProximalGradient(fun=fun, prox=prox, stepsize=lambda _: step, maxiter=maxiter, tol=tol,
+                              acceleration=True, implicit_diff=False)
+    return solver.run(jnp.zeros(mask.shape, gram.dtype), lam * penalty, gram=gram, cross=cross).params
+
+
+@functools.partial(jax.jit, static_argnames=("maxiter", "tol"))
+def _lasso_path(grams, crosses, lambdas, penalty, mask, maxiter, tol):
+    """Coefficients (F, P, 6, 7) for F Gram pairs (folds) and P penalties."""
+    solve = lambda g, c, lam: _proximal_solve(g, c, lam, penalty, mask, maxiter, tol)  # noqa: E731
+    over_lambdas = jax.vmap(solve, in_axes=(None, None, 0))
+    return jax.vmap(over_lambdas, in_axes=(0, 0, None))(grams, crosses, lambdas)
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class TableFit:
+    """What :func:`fit_table` found.
+
+    Attributes:
+        e0, e1: fitted restitution law; stderr_e0, stderr_e1: their standard errors.
+        residual: (4, 3, 3) fitted dA_vv, dA_vw, dA_wv, dA_ww; stderr: (4, 3, 3), nan where zero.
+        pattern: (4, 3, 3) bool, the non-zero entries.
+        lambdas: (P,) penalty path (standardised units); cv_mean, cv_se: (P,) cross-validation error
+            (mean over folds of the standardised squared error per bounce) and its standard error.
+        lambda_index: the chosen penalty; lambda_min_index: the one of least CV error.
+        n_used: bounces in the final fit; n_bounded: bounces dropped by the residual bound.
+        used: (N,) bool over the input bounces.
+        errors: 'base' / 'fitted' -> component -> median absolute error of the model given to
+            :func:`fit_table` and of the fitted one on the used bounces.
+        settings: the :class:`LassoSettings` as a dict.
+    """
+
+    e0: float
+    e1: float
+    stderr_e0: float
+    stderr_e1: float
+    residual: np.ndarray
+    stderr: np.ndarray
+    pattern: np.ndarray
+    lambdas: np.ndarray
+    cv_mean: np.ndarray
+    cv_se: np.ndarray
+    lambda_index: int
+    lambda_min_index: int
+    n_used: int
+    n_bounded: int
+    used: np.ndarray
+    errors: dict
+    settings: dict
+
+    def params(self, table):
+        """``table`` (TableParams) with the fitted e0, e1 and residual matrices."""
+        dt = table.residual.dtype
+        return table.replace(e0=jnp.asarray(self.e0, dt), e1=jnp.asarray(self.e1, dt),
+                             residual=jnp.asarray(self.residual, dt))
+
+    def pattern_text(self) -> list[str]:
+        """One line per matrix: rows of 'x' (non-zero) and '.' (zero); '-' for the entries that are
+        not identifiable (dA_vv[2, 2], in e0; the (R v)_y columns)."""
+        out = []
+        for k, name in enumerate(MATRICES):
+            rows = []
+            for i in range(3):
+                rows.append("".join("-" if (k == 0 and i == 2 and j == 2) or (k in (0, 2) and j == 1)
+                                    else ("x" if self.pattern[k, i, j] else ".") for j in range(3)))
+            out.append(f"{name}: {' '.join(rows)}")
+        return out
+
+    def summary(self) -> str:
+        lines = [f"e0 = {self.e0:.4f} +- {self.stderr_e0:.4f}, e1 = {self.e1:.4f} +- {self.stderr_e1:.4f} s/m "
+                 f"({self.n_used} bounces; {self.n_bounded} dropped by the residual bound)",
+                 f"lasso: lambda {self.lambdas[self.lambda_index]:.3g} ({self.settings['rule']}; least CV error at "
+                 f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of the 29 identifiable "
+                 "entries non-zero (x; - not identifiable):"]
+        lines += ["  " + t for t in self.pattern_text()]
+        comps = list(self.errors["fitted"])
+        lines.append("median |error| base -> fitted: " + ", ".join(
+            f"{c} {self.errors['base'][c]:.3g} -> {self.errors['fitted'][c]:.3g}" for c in comps))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        clean = lambda a: [None if not np.isfinite(v) else float(v) for v in np.ravel(a)]  # noqa: E731
+        return dict(e0=self.e0, e1=self.e1, stderr_e0=self.stderr_e0, stderr_e1=self.stderr_e1,
+                    residual={n: np.asarray(self.residual[k]).tolist() for k, n in enumerate(MATRICES)},
+                    stderr={n: np.reshape(clean(self.stderr[k]), (3, 3)).tolist() for k, n in enumerate(MATRICES)},
+                    pattern={n: np.asarray(self.pattern[k]).astype(int).tolist() for k, n in enumerate(MATRICES)},
+                    pattern_text=self.pattern_text(), cv_lambda=float(self.lambdas[self.lambda_index]),
+                    cv_lambda_min=float(self.lambdas[self.lambda_min_index]), lambdas=clean(self.lambdas),
+                    cv_mean=clean(self.cv_mean), cv_se=clean(self.cv_se), n_used=self.n_used,
+                    n_bounded=self.n_bounded, errors=self.errors, settings=self.settings)
+
+
+_COMPONENTS = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")
+
+
+def _errors(table, radius, vel, spin, vel_out, spin_out, rows) -> dict:
+    """Component -> median |model - observed| over ``rows`` (all bounces go through the model:
+    one compiled shape)."""
+    vp, wp, _ = _contact(table, radius, vel, spin)
+    err = np.abs(np.concatenate([np.asarray(vp), np.asarray(wp)], 1) - np.concatenate([vel_out, spin_out], 1))[rows]
+    return {c: float(np.median(err[:, k])) if len(err) else float("nan") for k, c in enumerate(_COMPONENTS)}
+
+
+def _restitution_ols(vz_in, vz_out, w):
+    """(e0, e1) of v_z+ = -(e0 + e1 v_z) v_z by weighted least squares."""
+    a = np.stack([-vz_in, -vz_in**2], 1) * np.sqrt(w)[:, None]
+    return np.linalg.lstsq(a, vz_out * np.sqrt(w), rcond=None)[0]
+
+
+def _masks():
+    """(penalty, mask) of the (6, 7) coefficient matrix: e0 / e1 columns unpenalised; the v_z^2
+    column exists only in the v_z row; the (R v)_y column is identically zero."""
+    penalty = np.ones((6, 7))
+    penalty[2, 2] = penalty[2, 6] = 0.0
+    mask = np.ones((6, 7))
+    mask[:, 6] = 0.0
+    mask[2, 6] = 1.0
+    mask[:, 1] = 0.0  # (R v)_y = 0 by construction of R: dA_vv[:, 1], dA_wv[:, 1] act on nothing
+    return penalty, mask
+
+
+def _grams(z, u, w):
+    """Gram G = Z^T W Z / sum W (7, 7) and C = Z^T W U / sum W (7, 6)."""
+    s = max(float(np.sum(w)), 1e-30)
+    return (z * w[:, None]).T @ z / s, (z * w[:, None]).T @ u / s
+
+
+def _refit(x, y, rows, support):
+    """Least squares of each target column on its selected features (the relaxed lasso: the L1
+    penalty selects, this fit removes its shrinkage). Returns (coefficients, standard errors), both
+    (6, 7), zero / nan off the support."""
+    b, se = np.zeros(support.shape), np.full(support.shape, np.nan)
+    for i in range(support.shape[0]):
+        cols = np.flatnonzero(support[i])
+        if len(cols) == 0:
+            continue
+        a = x[rows][:, cols]
+        sol, *_ = np.linalg.lstsq(a, y[rows, i], rcond=None)
+        s2 = float(np.sum((y[rows, i] - a @ sol) ** 2)) / max(int(rows.sum()) - len(cols), 1)
+        b[i, cols] = sol
+        se[i, cols] = np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(a.T @ a)), 0.0))
+    return b, se
+
+
+# Bounces are padded (with weight 0) to a multiple of this, so that datasets of different sizes
+# share the compiled per-bounce functions.
+PAD = 2048
+
+
+def padded_size(n: int) -> int:
+    """``n`` rounded up to a multiple of :data:`PAD`."""
+    return max(-(-n // PAD), 1) * PAD
+
+
+def _pad(a, size: int):
+    """``a`` with its first row repeated up to ``size`` rows (finite values for the padding)."""
+    a = np.asarray(a)
+    return np.concatenate([a, np.repeat(a[:1], size - len(a), axis=0)]) if size > len(a) else a
+
+
+def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: LassoSettings = LassoSettings(),
+              progress: Callable | None = None) -> TableFit:
+    """Fits e0, e1 and the residual matrices to bounces (surface-frame states).
+
+    Arguments:
+        vel_in, spin_in, vel_out, spin_out: (N, 3) states before / after each bounce.
+        model: bundled name, TOML path or Model: ball radius and the fixed table parameters (mu,
+            kappa, alpha_roll, e_min, e_max); its e0, e1 and residual give the "base" errors.
+        settings: :class:`LassoSettings`.
+        progress: optional ``progress(done, total)`` over the solver passes.
+
+    Returns:
+        :class:`TableFit`.
+    """
+    from ttsim_jax.kernel.step import ball_properties
+
+    m, _ = contacts.model_and_name(model)
+    radius = ball_properties(m)[0]
+    vin, win, vout, wout = (np.asarray(a, np.float64) for a in (vel_in, spin_in, vel_out, spin_out))
+    n = len(vin)
+    for name, a in zip(("vel_in", "spin_in", "vel_out", "spin_out"), (vin, win, vout, wout)):
+        if a.shape != (n, 3) or not np.all(np.isfinite(a)):
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=-1)) if a.shape == (n, 3) else []
+            raise ValueError(f"fit_table: {name} must be a finite ({n}, 3) array; shape {a.shape}, non-finite rows "
+                             f"{np.asarray(bad[:5]).tolist()}")
+    if n < 2 * settings.folds:
+        raise ValueError(f"fit_table: {n} bounces; at least {2 * settings.folds} are needed for "
+                         f"{settings.folds}-fold cross-validation")
+    real = np.arange(padded_size(n)) < n
+    vin, win, vout, wout = (_pad(a, len(real)) for a in (vin, win, vout, wout))
+    jv, jw, jvo, jwo = (jnp.asarray(a, jnp.float32) for a in (vin, win, vout, wout))
+    weights = real.astype(np.float64)
+    folds = _pad(np.random.default_rng(settings.seed).permutation(n) % settings.folds, len(real))
+    penalty, mask = _masks()
+    e0, e1 = _restitution_ols(vin[:, 2], vout[:, 2], weights)
+    passes = settings.outer + 1
+    n_bounded = 0
+    table = m.table
+    for k in range(passes):
+        table = table.replace(e0=jnp.asarray(e0, table.e0.dtype), e1=jnp.asarray(e1, table.e1.dtype))
+        x, y = (np.asarray(a, np.float64) for a in _regression(table, radius, jv, jw, jvo, jwo))
+        act = weights > 0
+        sx = np.sqrt(np.mean(x[act] ** 2, axis=0)) + 1e-12
+        sy = np.sqrt(np.mean(y[act] ** 2, axis=0)) + 1e-12
+        z, u = x / sx, y / sy
+        train = [weights * (folds != f) for f in range(settings.folds)] + [weights]
+        grams, crosses = zip(*(_grams(z, u, w) for w in train))
+        lam_max = float(np.max(np.abs(crosses[-1].T) * penalty * mask))
+        lambdas = lam_max * np.geomspace(1.0, settings.lambda_ratio, settings.n_lambdas)
+        coef = np.asarray(_lasso_path(jnp.asarray(np.stack(grams), jnp.float32),
+                                      jnp.asarray(np.stack(crosses), jnp.float32), jnp.asarray(lambdas, jnp.float32),
+                                      jnp.asarray(penalty, jnp.float32), jnp.asarray(mask, jnp.float32),
+                                      maxiter=settings.maxiter, tol=settings.tol), np.float64)
+        cv = np.zeros((settings.folds, settings.n_lambdas))
+        for f in range(settings.folds):
+            held = weights * (folds == f)
+            g, c = _grams(z, u, held)
+            q = np.sum(held[:, None] * u**2) / max(np.sum(held), 1e-30)
+            b = coef[f]
+            cv[f] = np.einsum("pij,jk,pik->p", b, g, b) - 2.0 * np.einsum("pij,ji->p", b, c) + q
+        cv_mean, cv_se = cv.mean(0), cv.std(0, ddof=1) / np.sqrt(settings.folds)
+        best = int(np.argmin(cv_mean))
+        chosen = best if settings.rule == "min" else int(np.flatnonzero(cv_mean <= cv_mean[best] + cv_se[best])[0])
+        support = (coef[-1, chosen] != 0.0) & (mask > 0)
+        support[2, 2] = support[2, 6] = True
+        b, se = _refit(x, y, weights > 0, support)
+        if settings.min_t > 0:  # prune entries the refit cannot tell from zero, refit the rest
+            weak = np.abs(b) < settings.min_t * np.nan_to_num(se, nan=np.inf)
+            weak[2, 2] = weak[2, 6] = False
+            b, se = _refit(x, y, weights > 0, support & ~weak)
+        e0, e1 = e0 + b[2, 2], e1 + b[2, 6]
+        b[2, 2] = 0.0
+        residual = np.stack([b[:3, :3], b[:3, 3:6], b[3:, :3], b[3:, 3:6]])
+        if progress is not None:
+            progress(k + 1, passes)
+        if k < passes - 1:  # the next pass leaves out the bounces the fitted residual is bounded on
+            fitted = table.replace(e0=jnp.asarray(e0, table.e0.dtype), e1=jnp.asarray(e1, table.e1.dtype),
+                                   residual=jnp.asarray(residual, table.residual.dtype))
+            bounded = np.asarray(_contact(fitted, radius, jv, jw)[2]) < 0.999
+            n_bounded = int((bounded & real).sum())
+            weights = np.where(bounded | ~real, 0.0, 1.0)
+    act = weights > 0
+    stderr = np.stack([se[:3, :3], se[:3, 3:6], se[3:, :3], se[3:, 3:6]])
+    stderr_e0, stderr_e1 = float(se[2, 2]), float(se[2, 6])
+    stderr[0, 2, 2] = np.nan
+    pattern = residual != 0.0
+    stderr = np.where(pattern, stderr, np.nan)
+    result = TableFit(e0=float(e0), e1=float(e1), stderr_e0=stderr_e0, stderr_e1=stderr_e1, residual=residual,
+                      stderr=stderr, pattern=pattern, lambdas=lambdas, cv_mean=cv_mean, cv_se=cv_se,
+                      lambda_index=chosen, lambda_min_index=best, n_used=int(act.sum()), n_bounded=n_bounded,
+                      used=act[:n], errors={}, settings=dataclasses.asdict(settings))
+    result.errors = dict(base=_errors(m.table, radius, jv, jw, vout, wout, act),
+                         fitted=_errors(result.params(m.table), radius, jv, jw, vout, wout, act))
+    return result
+
+
+def table_sections(table, result: TableFit) -> dict:
+    """{section: TOML text} of ``[table]`` and ``[table.residual]`` with the fitted values (the
+    other table parameters from ``table``, the base model's TableParams)."""
+    from ttsim_jax.fit.aero_forms import toml_array
+
+    f = lambda v: f"{float(v):.6g}"  # noqa: E731
+    head = (f"[table]                                         # fitted: e_n = e0 + e1 v_z (ttsim fit)\n"
+            f'e0 = {{ value = {f(result.e0)}, unit = "1" }}\n'
+            f'e1 = {{ value = {f(result.e1)}, unit = "s/m" }}\n'
+            f'e_min = {{ value = {f(table.e_min)}, unit = "1" }}\n'
+            f'e_max = {{ value = {f(table.e_max)}, unit = "1" }}\n'
+            f'mu = {{ value = {f(table.mu)}, unit = "1" }}\n'
+            f'kappa = {{ value = {f(table.kappa)}, unit = "1" }}\n'
+            f'alpha_roll = {{ value = {f(table.alpha_roll)}, unit = "1" }}\n')
+    res = "[table.residual]                                # fitted: Lasso residual matrices, local frame of v_xy\n"
+    res += "".join(f'{name} = {{ value = {toml_array(result.residual[k])}, unit = "{UNITS[name]}" }}\n'
+                   for k, name in enumerate(MATRICES))
+    return {"table": head, "table.residual": res}
+
+
+def synthetic_bounces(table, radius: float, n: int, *, seed: int = 0, noise_vel: float = 0.0,
+                      noise_spin: float = 0.0) -> dict:
+    """Bounces with known parameters: rally-like incoming states through the table model.
+
+    Incoming: heading uniform, horizontal speed 2-12 m/s, v_z from -7 to -2.5 m/s, spin in the
+    local frame up to 150 (about the heading), 500 (top/back spin) and 300 rad/s (about z); the
+    outgoing state from :func:`~ttsim_jax.physics.table.local_contact` with ``table``. Gaussian
+    noise of ``noise_vel`` [m/s] and ``noise_spin`` [rad/s] is added to every component of both.
+
+    Returns:
+        dict of float64 (n, 3) arrays ``vel_in``, ``spin_in``, ``vel_out``, ``spin_out`` (noisy) and
+        ``true_*`` (without noise), and ``weight`` (n,) the residual's fade x bound factor.
+    """
+    rng = np.random.default_rng(seed)
+    heading = rng.uniform(-np.pi, np.pi, n)
+    vh = rng.uniform(2.0, 12.0, n)
+    c, s = np.cos(heading), np.sin(heading)
+    vel = np.stack([vh * c, vh * s, rng.uniform(-7.0, -2.5, n)], 1)
+    w_loc = np.stack([rng.uniform(-150, 150, n), rng.uniform(-500, 500, n), rng.uniform(-300, 300, n)], 1)
+    spin = np.stack([w_loc[:, 0] * c - w_loc[:, 1] * s, w_loc[:, 0] * s + w_loc[:, 1] * c, w_loc[:, 2]], 1)
+    size = padded_size(n)
+    vp, wp, lam = (np.asarray(a, np.float64)[:n] for a in _contact(table, jnp.asarray(radius, jnp.float32),
+                                                                    jnp.asarray(_pad(vel, size), jnp.float32),
+                                                                    jnp.asarray(_pad(spin, size), jnp.float32)))
+    out = dict(true_vel_in=vel, true_spin_in=spin, true_vel_out=vp, true_spin_out=wp, weight=lam)
+    for k in ("vel_in", "vel_out"):
+        out[k] = out["true_" + k] + rng.normal(0.0, noise_vel, (n, 3))
+    for k in ("spin_in", "spin_out"):
+        out[k] = out["true_" + k] + rng.normal(0.0, noise_spin, (n, 3))
+    return out
