@@ -37,7 +37,8 @@ def main(argv=None):
     p.add_argument("--horizon", type=float, default=1.2, help="flight after the contact [s]")
     p.add_argument("--dt", type=float, default=1e-3)
     p.add_argument("--fd-columns", type=int, default=4)
-    p.add_argument("--chunk", type=int, default=0, help="shots per compiled Jacobian call (0: all at once)")
+    p.add_argument("--chunk", type=int, default=512,
+                   help="shots per compiled Jacobian call, as `ttsim sensitivity --chunk` (0: all at once)")
     p.add_argument("--no-fd", action="store_true", help="time the Jacobian only")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
