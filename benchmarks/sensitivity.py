@@ -100,7 +100,8 @@ def main(argv=None):
         load_average=os.getloadavg()[0], machine=platform.machine(), jax=jax.__version__,
         sampling_s=t_shots, **timings, fd_seconds_per_input=per_column, fd_all_inputs_s=fd_all,
         fd_over_jacobian=fd_all / timings["jacobian_second_s"],
-        fd_over_jacobian_cpu=timings["fd_cpu_s"] / args.fd_columns * layout.n_columns / timings["jacobian_second_cpu_s"],
+        fd_over_jacobian_cpu=(timings["fd_cpu_s"] / args.fd_columns * layout.n_columns
+                              / timings["jacobian_second_cpu_s"]),
         fd_columns_checked=args.fd_columns, fd_vs_jacobian_median_rel_gap=float(np.median(rel)),
     )
     print(json.dumps(result, indent=1))

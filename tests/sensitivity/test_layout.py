@@ -31,9 +31,9 @@ def test_residual_network_weights_are_one_group():
     assert list(dict.fromkeys(groups))[:len(STATE_GROUPS)] == list(STATE_GROUPS)
 
 
-@pytest.mark.parametrize("name, group", [("table.e0", "table.restitution"), ("table.net_height", "table.geometry"),
-                                          ("aero.drag.cd", "aero.drag"), ("residual.variables.params.0", "residual.network"),
-                                          ("racket.k_n", "racket.params")])
+@pytest.mark.parametrize("name, group", [
+    ("table.e0", "table.restitution"), ("table.net_height", "table.geometry"), ("aero.drag.cd", "aero.drag"),
+    ("residual.variables.params.0", "residual.network"), ("racket.k_n", "racket.params")])
 def test_group_of_parameter_paths(name, group):
     assert group_of(name) == group
 

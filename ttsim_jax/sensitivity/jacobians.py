@@ -10,9 +10,10 @@ reverse-mode pass gives every shot its own gradient. Columns carry a group name
 ``residual.network`` (the whole network as one group) ... for the model.
 
 :func:`jacobian` uses ``jax.jacrev`` (two backward passes, as many as the widest target has
-components, so that every target shares one compiled program; any number of columns) or forward mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's
-batch axis). :func:`finite_differences` gives central differences along directions, batched the
-same way; :func:`local_flags` marks shots whose gradient holds only very locally (the event
+components, so that every target shares one compiled program; any number of columns) or forward
+mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's batch axis).
+:func:`finite_differences` gives central differences along directions, batched the same way;
+:func:`local_flags` marks shots whose gradient holds only very locally (the event
 sequence flips within the probe, or differences at two step sizes disagree).
 """
 
