@@ -7,7 +7,8 @@ input).
 
 Finite differences are timed on ``--fd-columns`` inputs (each a batched forward run of all shots
 at +h and -h) and scaled to all inputs: the cost of a forward run does not depend on which input
-moved. The first call of each (compilation) is timed apart.
+moved. The first call of each (compilation) is timed apart. Each phase records wall time and the
+process's CPU time (all threads), and the load average at its end: the machine may be shared.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ def main(argv=None):
     p.add_argument("--horizon", type=float, default=1.2, help="flight after the contact [s]")
     p.add_argument("--dt", type=float, default=1e-3)
     p.add_argument("--fd-columns", type=int, default=4)
+    p.add_argument("--chunk", type=int, default=512,
+                   help="shots per compiled Jacobian call, as `ttsim sensitivity --chunk` (0: all at once)")
+    p.add_argument("--no-fd", action="store_true", help="time the Jacobian only")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
 
@@ -49,26 +53,40 @@ def main(argv=None):
     print(f"{args.shots} shots sampled and rackets solved in {t_shots:.1f} s; {layout.n_columns} inputs", flush=True)
 
     timings = {}
+
+    def timed(name, fn):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        timings[f"{name}_s"] = time.perf_counter() - w0
+        timings[f"{name}_cpu_s"] = time.process_time() - c0
+        timings[f"{name}_load_average"] = os.getloadavg()[0]
+        print(f"{name}: {timings[f'{name}_s']:.1f} s wall, {timings[f'{name}_cpu_s']:.1f} s CPU, "
+              f"load average {timings[f'{name}_load_average']:.2f}", flush=True)
+        return out
+
     for run in ("first", "second"):
-        t0 = time.perf_counter()
-        jac = jacobian(model, shots, target="landing", dt=args.dt, n_steps=n_steps, mode="rev")
-        timings[f"jacobian_{run}_s"] = time.perf_counter() - t0
-        print(f"reverse-mode Jacobian ({run} call): {timings[f'jacobian_{run}_s']:.1f} s", flush=True)
+        jac = timed(f"jacobian_{run}", lambda: jacobian(model, shots, target="landing", dt=args.dt, n_steps=n_steps,
+                                                        mode="rev", chunk=args.chunk or None))
+    if args.no_fd:
+        print(json.dumps(timings, indent=1))
+        return timings
 
     nominal = flatten_inputs(model, shots, layout)
     h = 1e-3 * np.maximum(np.abs(nominal).mean(0), 1e-3)
-    t0 = time.perf_counter()
-    outcomes(model, shots, nominal, target="landing", dt=args.dt, n_steps=n_steps)
-    timings["forward_first_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    fd = []
-    for c in range(args.fd_columns):
-        step = np.zeros_like(nominal)
-        step[:, c] = h[c]
-        plus = outcomes(model, shots, nominal + step, target="landing", dt=args.dt, n_steps=n_steps).values
-        minus = outcomes(model, shots, nominal - step, target="landing", dt=args.dt, n_steps=n_steps).values
-        fd.append((plus - minus) / (2 * h[c]))
-    t_fd = time.perf_counter() - t0
+    timed("forward_first", lambda: outcomes(model, shots, nominal, target="landing", dt=args.dt, n_steps=n_steps))
+
+    def differences():
+        fd = []
+        for c in range(args.fd_columns):
+            step = np.zeros_like(nominal)
+            step[:, c] = h[c]
+            plus = outcomes(model, shots, nominal + step, target="landing", dt=args.dt, n_steps=n_steps).values
+            minus = outcomes(model, shots, nominal - step, target="landing", dt=args.dt, n_steps=n_steps).values
+            fd.append((plus - minus) / (2 * h[c]))
+        return fd
+
+    fd = timed("fd", differences)
+    t_fd = timings["fd_s"]
     per_column = t_fd / args.fd_columns
     fd_all = per_column * layout.n_columns
     ok = jac.valid
@@ -76,11 +94,14 @@ def main(argv=None):
     ad = jac.jac[ok][:, :, :args.fd_columns]
     rel = np.abs(ad - fd) / (np.abs(fd).max((0, 1), keepdims=True) + 1e-9)
     result = dict(
-        shots=args.shots, landed=int(ok.sum()), inputs=layout.n_columns, n_steps=n_steps, dt=args.dt,
+        shots=args.shots, chunk=args.chunk or args.shots, landed=int(ok.sum()), inputs=layout.n_columns,
+        n_steps=n_steps, dt=args.dt,
         dtype=str(model.ball.radius.dtype), backend=jax.default_backend(), cpus=os.cpu_count(),
         load_average=os.getloadavg()[0], machine=platform.machine(), jax=jax.__version__,
         sampling_s=t_shots, **timings, fd_seconds_per_input=per_column, fd_all_inputs_s=fd_all,
         fd_over_jacobian=fd_all / timings["jacobian_second_s"],
+        fd_over_jacobian_cpu=(timings["fd_cpu_s"] / args.fd_columns * layout.n_columns
+                              / timings["jacobian_second_cpu_s"]),
         fd_columns_checked=args.fd_columns, fd_vs_jacobian_median_rel_gap=float(np.median(rel)),
     )
     print(json.dumps(result, indent=1))

@@ -276,11 +276,10 @@ def _sensitivity_command(sub):
                    help="bundled model name or path to a model .toml (default: %(default)s)")
     p.add_argument("--residual", type=existing_file, default=None,
                    help="racket residual network checkpoint (.ttres) to include (its weights are one group)")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--data", type=existing_dir, default=None,
-                     help="dataset whose racket contacts (with racket states) are the shots")
-    src.add_argument("--shots", type=positive_int, default=None,
-                     help="number of sampled shots (default 256; with --data: at most this many contacts)")
+    p.add_argument("--data", type=existing_dir, default=None,
+                   help="dataset whose racket contacts (with racket states) are the shots")
+    p.add_argument("--shots", type=positive_int, default=None,
+                   help="number of sampled shots (default 256; with --data: at most this many contacts)")
     p.add_argument("--types", default="all", help="comma-separated shot types to sample, or 'all' (default: %(default)s)")
     p.add_argument("--target", choices=["landing", "landing_time", "net_clearance", "bounce_speed"], default="landing",
                    help="what to differentiate (default: %(default)s); the error budget is for 'landing'")

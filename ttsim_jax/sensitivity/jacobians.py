@@ -9,10 +9,11 @@ reverse-mode pass gives every shot its own gradient. Columns carry a group name
 ``aero.magnus``, ``table.restitution``, ``table.residual``, ``racket.params``,
 ``residual.network`` (the whole network as one group) ... for the model.
 
-:func:`jacobian` uses ``jax.jacrev`` (k backward passes for a k-component target, any number of
-columns) or forward mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's
-batch axis). :func:`finite_differences` gives central differences along directions, batched the
-same way; :func:`local_flags` marks shots whose gradient holds only very locally (the event
+:func:`jacobian` uses ``jax.jacrev`` (two backward passes, as many as the widest target has
+components, so that every target shares one compiled program; any number of columns) or forward
+mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's batch axis).
+:func:`finite_differences` gives central differences along directions, batched the same way;
+:func:`local_flags` marks shots whose gradient holds only very locally (the event
 sequence flips within the probe, or differences at two step sizes disagree).
 """
 
@@ -26,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.sensitivity.cases import ShotSet, rotation
-from ttsim_jax.sensitivity.targets import Outcome, check_target, shot_outcome
+from ttsim_jax.sensitivity.targets import (COLUMNS, TARGETS, Outcome, check_target, columns_of, for_target,
+                                          program_outcome)
 from ttsim_jax.state import Ball, Racket
 
 STATE_GROUPS = ("ball.pos", "ball.vel", "ball.spin", "racket.pos", "racket.rot", "racket.vel", "racket.ang_vel")
@@ -159,34 +161,42 @@ def flatten_inputs(model, shots: ShotSet, layout: Layout) -> np.ndarray:
     return np.concatenate(cols, 1)
 
 
-def _outcome(flat, rot0, face, dt, layout: Layout, target: str, n_steps: int) -> Outcome:
+def _outcome(flat, rot0, face, dt, layout: Layout, n_steps: int) -> Outcome:
     model, ball, rpos, rvec, rvel, rang = layout.unflatten(flat)
     racket = Racket(pos=rpos, rot=rotation(rvec) @ rot0, vel=rvel, ang_vel=rang, face=face)
-    return shot_outcome(model, ball, racket, dt, target=target, n_steps=n_steps)
+    return program_outcome(model, ball, racket, dt, n_steps=n_steps)
 
 
-@partial(jax.jit, static_argnames=("layout", "target", "n_steps"))
-def evaluate(flat, rot0, face, dt, *, layout: Layout, target: str, n_steps: int) -> Outcome:
-    """Outcomes of B shots given as flat inputs (B, C), with their racket orientations ``rot0``
-    (B, 3, 3) and face sizes (B, 2); jitted."""
-    return _outcome(flat, rot0, face, dt, layout, target, n_steps)
+@partial(jax.jit, static_argnames=("layout", "n_steps"))
+def evaluate(flat, rot0, face, dt, *, layout: Layout, n_steps: int) -> Outcome:
+    """Outcomes (every column of :data:`~ttsim_jax.sensitivity.targets.COLUMNS`) of B shots given as
+    flat inputs (B, C), with their racket orientations ``rot0`` (B, 3, 3) and face sizes (B, 2); jitted."""
+    return _outcome(flat, rot0, face, dt, layout, n_steps)
 
 
-@partial(jax.jit, static_argnames=("layout", "target", "n_steps"))
-def _jac_rev(flat, rot0, face, dt, *, layout, target, n_steps):
+@partial(jax.jit, static_argnames=("layout", "n_steps"))
+def _jac_rev(flat, rot0, face, dt, weights, *, layout, n_steps):
+    """(B, K, C) d (columns @ weights.T) / d inputs: K = ``weights``' rows (traced, so that every
+    target shares this compilation; a row of zeros costs a backward pass too)."""
     def total(x):
-        out = _outcome(x, rot0, face, dt, layout, target, n_steps)
-        return out.values.sum(0), out  # shots are independent: row b of the gradient is shot b's
+        out = _outcome(x, rot0, face, dt, layout, n_steps)
+        return (out.values @ weights.T).sum(0), out  # shots are independent: row b of the gradient is shot b's
 
     jac, out = jax.jacrev(total, has_aux=True)(flat)
-    return jnp.moveaxis(jac, 0, 1), out  # (B, k, C)
+    return jnp.moveaxis(jac, 0, 1), out
 
 
-@partial(jax.jit, static_argnames=("layout", "target", "n_steps"))
-def evaluate_jvp(flat, tangent, rot0, face, dt, *, layout: Layout, target: str, n_steps: int):
-    """(outcome, d values along ``tangent``): forward mode, each shot (row) with its own tangent (B, C)."""
-    out, tan = jax.jvp(lambda x: _outcome(x, rot0, face, dt, layout, target, n_steps).values, (flat,), (tangent,))
-    return _outcome(flat, rot0, face, dt, layout, target, n_steps), tan
+@partial(jax.jit, static_argnames=("layout", "n_steps"))
+def evaluate_jvp(flat, tangent, rot0, face, dt, *, layout: Layout, n_steps: int):
+    """(outcome, d values along ``tangent``) of every column of
+    :data:`~ttsim_jax.sensitivity.targets.COLUMNS`: forward mode, each shot (row) with its own
+    tangent (B, C)."""
+    def values(x):
+        out = _outcome(x, rot0, face, dt, layout, n_steps)
+        return out.values, out
+
+    _, tan, out = jax.jvp(values, (flat,), (tangent,), has_aux=True)
+    return out, tan
 
 
 @dataclass
@@ -215,6 +225,11 @@ class Jacobian:
         """(B, k, n) the columns of one group."""
         return self.jac[:, :, self.groups == name]
 
+    def take(self, index) -> "Jacobian":
+        """The shots at ``index`` (any numpy index)."""
+        return Jacobian(self.target, self.components, self.values[index], self.valid[index], self.sequence[index],
+                        self.jac[index], self.nominal[index], self.columns, self.groups)
+
 
 def _chunks(n: int, chunk: int | None):
     """(compiled size, [(lo, hi), ...]): ``chunk`` rows per call (the last padded), or all at once."""
@@ -242,8 +257,9 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
         shots: a :class:`~ttsim_jax.sensitivity.cases.ShotSet` made for this ``dt``.
         target: a key of :data:`~ttsim_jax.sensitivity.targets.TARGETS`.
         dt: step [s]; n_steps: flight horizon in steps.
-        mode: ``"rev"`` (``jax.jacrev``, cost ~ k backward passes) or ``"fwd"`` (forward mode, one
-            tangent column per copy of a shot: cost ~ C forward passes; for few columns or checks).
+        mode: ``"rev"`` (``jax.jacrev``, cost ~ two backward passes, the components of the widest
+            target: every target shares one compilation) or ``"fwd"`` (forward mode, one tangent
+            column per copy of a shot: cost ~ C forward passes; for few columns or checks).
         chunk: shots per compiled call (the last chunk is padded); default all at once.
         progress: show a tqdm bar over the chunks.
 
@@ -258,6 +274,11 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
     nominal = flatten_inputs(model, shots, layout)
     rot0, face = _racket_arrays(shots, dtype)
     c = layout.n_columns
+    cols = columns_of(target)
+    # reverse mode: one row of weights per component, as many rows as the widest target has (every
+    # target then shares one compilation)
+    weights = np.zeros((max(map(len, TARGETS.values())), len(COLUMNS)), dtype)
+    weights[np.arange(len(cols)), cols] = 1.0
     size, spans = _chunks(len(shots), min(chunk, len(shots)) if chunk else None)
     jac, vals, valid, seq = [], [], [], []
     bar = spans
@@ -267,22 +288,23 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
     for lo, hi in bar:
         x, r, f = (_pad(a[lo:hi], size) for a in (nominal, rot0, face))
         if mode == "rev":
-            j, out = _jac_rev(jnp.asarray(x, dtype), jnp.asarray(r), jnp.asarray(f), dt, layout=layout,
-                              target=target, n_steps=n_steps)
-            j = np.asarray(j)
+            j, out = _jac_rev(jnp.asarray(x, dtype), jnp.asarray(r), jnp.asarray(f), dt, jnp.asarray(weights),
+                              layout=layout, n_steps=n_steps)
+            j = np.asarray(j)[:, :len(cols)]
         else:
             # each shot repeated C times on the batch axis, copy i with tangent e_i
             xs = np.repeat(x, c, 0)
             tan = np.tile(np.eye(c, dtype=dtype), (size, 1))
             out, t = evaluate_jvp(jnp.asarray(xs, dtype), jnp.asarray(tan), jnp.asarray(np.repeat(r, c, 0)),
-                                  jnp.asarray(np.repeat(f, c, 0)), dt, layout=layout, target=target, n_steps=n_steps)
-            j = np.asarray(t).reshape(size, c, len(components)).transpose(0, 2, 1)
+                                  jnp.asarray(np.repeat(f, c, 0)), dt, layout=layout, n_steps=n_steps)
+            j = np.asarray(t)[:, list(cols)].reshape(size, c, len(cols)).transpose(0, 2, 1)
             out = jax.tree.map(lambda a: a[::c], out)
         n = hi - lo
+        out = for_target(jax.tree.map(lambda a: np.asarray(a)[:n], out), target)
         jac.append(j[:n])
-        vals.append(np.asarray(out.values)[:n])
-        valid.append(np.asarray(out.valid)[:n])
-        seq.append(np.asarray(out.sequence)[:n])
+        vals.append(out.values)
+        valid.append(out.valid)
+        seq.append(out.sequence)
     valid = np.concatenate(valid)
     jac = np.where(valid[:, None, None], np.concatenate(jac), 0.0)
     return Jacobian(target=target, components=components, values=np.concatenate(vals), valid=valid,
@@ -297,16 +319,16 @@ def outcomes(model, shots: ShotSet, flat: np.ndarray, *, target: str, dt: float,
     one compiled shape."""
     dtype = np.dtype(model.ball.radius.dtype)
     layout = layout_of(model)
+    check_target(target)
     rot0, face = _racket_arrays(shots, dtype)
     idx = np.arange(len(flat)) if shot_index is None else np.asarray(shot_index)
     size, spans = _chunks(len(flat), batch)
     parts = []
     for lo, hi in spans:
         x, r, f = (_pad(a, size) for a in (flat[lo:hi], rot0[idx[lo:hi]], face[idx[lo:hi]]))
-        out = evaluate(jnp.asarray(x, dtype), jnp.asarray(r), jnp.asarray(f), dt, layout=layout, target=target,
-                       n_steps=n_steps)
+        out = evaluate(jnp.asarray(x, dtype), jnp.asarray(r), jnp.asarray(f), dt, layout=layout, n_steps=n_steps)
         parts.append(jax.tree.map(lambda a: np.asarray(a)[:hi - lo], out))
-    return jax.tree.map(lambda *a: np.concatenate(a), *parts)
+    return for_target(jax.tree.map(lambda *a: np.concatenate(a), *parts), target)
 
 
 def group_directions(jac: Jacobian, rng: np.random.Generator, scale: np.ndarray) -> dict:

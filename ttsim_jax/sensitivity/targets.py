@@ -1,15 +1,19 @@
 """What a sensitivity study differentiates: a shot's outcome, read from the rally kernel's event log.
 
-A shot (:mod:`ttsim_jax.sensitivity.cases`) runs as two rollouts of the kernel: ``WINDOW`` steps with
-the racket (the contact, its time of impact, the racket model and the residual network, as in any
-rally), then the flight without racket until the horizon. The landing is the first event of the
-flight and must be a table contact; its point and time are the kernel's (refined time of impact),
-so they are differentiable in every input.
+A shot (:mod:`ttsim_jax.sensitivity.cases`) runs as one rollout of the kernel: the racket is in play
+for ``WINDOW`` steps (the contact, its time of impact, the racket model and the residual network, as
+in any rally), then withdrawn out of reach for the flight until the horizon. The first event must
+be the racket's and the second, the landing, a table contact; its point and time are the kernel's
+(refined time of impact), so they are differentiable in every input.
 
 Targets (:data:`TARGETS`): ``landing`` (x, y of the ball centre at the landing [m]),
 ``landing_time`` (from the racket contact to the landing [s]), ``net_clearance`` (height of the
 ball's underside above the net's top edge where its centre crosses the net plane x = 0 [m]) and
 ``bounce_speed`` (the ball's speed just after the landing [m/s]).
+
+Every target is read from one program (:func:`program_outcome`, all of :data:`COLUMNS`), so all
+share one compilation; a target keeps its own columns (:func:`for_target`). One rollout, not a
+racket window and a flight apart: the compiled program holds the kernel's step once.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ TARGETS = {
     "bounce_speed": ("bounce_speed",),
 }
 UNITS = {"landing_x": "m", "landing_y": "m", "landing_time": "s", "net_clearance": "m", "bounce_speed": "m/s"}
+# what the one program computes; every target is some of these columns
+COLUMNS = ("landing_x", "landing_y", "landing_time", "bounce_speed", "net_clearance")
 
 
 @struct.dataclass
@@ -40,16 +46,19 @@ class Outcome:
     """A batch of shots' outcomes.
 
     Attributes:
-        values: (B, k) the target's components (:data:`TARGETS`), 0 where not ``valid``.
-        sequence: (B, 2) int32: the first event kind of the racket window and the first event of
-            the flight (``physics.events``): (RACKET, TABLE) for a shot that lands.
+        values: (B, k) the target's components (:data:`TARGETS`; every column of :data:`COLUMNS`
+            from :func:`program_outcome`), 0 where not ``valid``.
+        sequence: (B, 2) int32: the kinds of the shot's first two events (``physics.events``):
+            (RACKET, TABLE) for a shot that lands.
         valid: (B,) the shot hit the racket, then landed on the table within the horizon (and,
-            for ``net_clearance``, crossed the net plane before landing).
+            for ``net_clearance``, crossed the net plane).
+        crossed: (B,) the ball's centre crossed the net plane x = 0 (toward the other side).
     """
 
     values: jnp.ndarray
     sequence: jnp.ndarray
     valid: jnp.ndarray
+    crossed: jnp.ndarray
 
 
 def check_target(target: str) -> tuple[str, ...]:
@@ -57,6 +66,18 @@ def check_target(target: str) -> tuple[str, ...]:
     if target not in TARGETS:
         raise ValueError(f"unknown target {target!r}; known: {', '.join(TARGETS)}")
     return TARGETS[target]
+
+
+def columns_of(target: str) -> tuple[int, ...]:
+    """Where ``target``'s components are among :data:`COLUMNS`."""
+    return tuple(COLUMNS.index(c) for c in check_target(target))
+
+
+def for_target(out: Outcome, target: str) -> Outcome:
+    """``out`` (every column) reduced to ``target``'s components and validity (works on numpy and jax)."""
+    valid = out.valid & out.crossed if target == "net_clearance" else out.valid
+    values = out.values[:, list(columns_of(target))]
+    return out.replace(values=values * valid[:, None], valid=valid)
 
 
 def _net_crossing(start: Ball, traj: Ball, dt):
@@ -84,46 +105,67 @@ def _net_crossing(start: Ball, traj: Ball, dt):
     return p[:, 2], found
 
 
-@partial(jax.jit, static_argnames=("target", "n_steps"))
-def shot_outcome(model, ball: Ball, racket: Racket, dt, *, target: str, n_steps: int) -> Outcome:
-    """Runs shots through the kernel and reads their target.
+def racket_schedule(racket: Racket, total: int, dt) -> Racket:
+    """(B, total, 1, ...) racket schedule of a shot: in play for the first ``WINDOW`` steps, moving
+    with its velocity (orientation held), then withdrawn: 100 m behind its face, at rest, where no
+    ball can reach it in a flight."""
+    dtype = racket.pos.dtype
+    k = jnp.arange(total, dtype=dtype) * dt - contact_time(dt)  # each step's start, from the contact
+    play = (jnp.arange(total) < WINDOW)[None, :, None]
+    pos = racket.pos[:, None] + k[None, :, None] * racket.vel[:, None]
+    away = racket.pos[:, None] - 100.0 * racket.rot[:, None, :, 0]
+    schedule = jax.tree.map(lambda a: jnp.broadcast_to(a[:, None], (a.shape[0], total) + a.shape[1:]), racket)
+    schedule = schedule.replace(pos=jnp.where(play, pos, away), vel=jnp.where(play, schedule.vel, 0.0),
+                                ang_vel=jnp.where(play, schedule.ang_vel, 0.0))
+    return jax.tree.map(lambda a: a[:, :, None], schedule)
+
+
+@partial(jax.jit, static_argnames=("n_steps",))
+def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int) -> Outcome:
+    """Runs shots through the kernel and reads every column of :data:`COLUMNS`.
+
+    One rollout records the ball at every step (the net crossing is read from it); in reverse mode
+    the kernel then rematerialises each step once (its chunks are single steps).
 
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` with a leading (B,) axis on every leaf (per shot,
             so that a reverse-mode Jacobian gives each shot its own parameter gradient).
         ball: :class:`Ball` (B, 3) at the start, ``cases.contact_time(dt)`` before the contact.
         racket: :class:`Racket` (B, ...) at the contact; in play for ``cases.WINDOW`` steps,
-            moving with its velocity (its orientation held).
+            moving with its velocity (its orientation held), then withdrawn (:func:`racket_schedule`).
         dt: step [s].
-        target: a key of :data:`TARGETS` (static).
         n_steps: steps of the flight after the racket window (static): the horizon.
+
+    Returns:
+        An :class:`Outcome` with every column of :data:`COLUMNS`.
+    """
+    dtype = ball.pos.dtype
+    total = WINDOW + n_steps
+    schedule = racket_schedule(racket, total, dt)
+    _, out = rollout(model, init_state(ball), total, dt, schedule, model_axes=0, max_events=2, record_every=1)
+    log = out.events
+    sequence = log.kind[:, :2]
+    valid = (sequence[:, 0] == ev.RACKET) & (sequence[:, 1] == ev.TABLE)
+    post = log.post.vel[:, 1]
+    z, crossed = _net_crossing(ball, out.trajectory, jnp.asarray(dt, dtype))
+    values = jnp.concatenate([
+        log.pre.pos[:, 1, :2],  # landing point
+        (log.time[:, 1] - log.time[:, 0])[:, None],  # landing time
+        jnp.sqrt(jnp.sum(post * post, -1) + jnp.finfo(dtype).tiny)[:, None],  # speed after the bounce
+        (z - model.ball.radius - model.table.net_height)[:, None],  # net clearance
+    ], -1)
+    values = jnp.where(valid[:, None], values, 0.0)
+    return Outcome(values=values, sequence=sequence.astype(jnp.int32), valid=valid, crossed=crossed)
+
+
+def shot_outcome(model, ball: Ball, racket: Racket, dt, *, target: str, n_steps: int) -> Outcome:
+    """:func:`program_outcome` reduced to ``target`` (:func:`for_target`).
+
+    Arguments:
+        target: a key of :data:`TARGETS`; the others as :func:`program_outcome`.
 
     Returns:
         An :class:`Outcome`.
     """
     check_target(target)
-    dtype = ball.pos.dtype
-    k = jnp.arange(WINDOW, dtype=dtype) * dt - contact_time(dt)  # each window step's start, from the contact
-    schedule = jax.tree.map(lambda a: jnp.broadcast_to(a[:, None], (a.shape[0], WINDOW) + a.shape[1:]), racket)
-    schedule = schedule.replace(pos=racket.pos[:, None] + k[None, :, None] * racket.vel[:, None])
-    schedule = jax.tree.map(lambda a: a[:, :, None], schedule)  # (B, T, R=1, ...)
-    state, hit = rollout(model, init_state(ball), WINDOW, dt, schedule, model_axes=0, max_events=2)
-    start = state.ball
-    record = 1 if target == "net_clearance" else 0
-    state, out = rollout(model, state, n_steps, dt, None, model_axes=0, max_events=2, record_every=record)
-    sequence = jnp.stack([hit.events.kind[:, 0], out.events.kind[:, 0]], -1)
-    valid = (sequence[:, 0] == ev.RACKET) & (hit.events.count == 1) & (sequence[:, 1] == ev.TABLE)
-    land = out.events.pre.pos[:, 0]
-    if target == "landing":
-        values = land[:, :2]
-    elif target == "landing_time":
-        values = (out.events.time[:, 0] - hit.events.time[:, 0])[:, None]
-    elif target == "bounce_speed":
-        post = out.events.post.vel[:, 0]
-        values = jnp.sqrt(jnp.sum(post * post, -1) + jnp.finfo(dtype).tiny)[:, None]
-    else:
-        z, found = _net_crossing(start, out.trajectory, jnp.asarray(dt, dtype))
-        valid = valid & found
-        values = (z - model.ball.radius - model.table.net_height)[:, None]
-    values = jnp.where(valid[:, None], values, 0.0)
-    return Outcome(values=values, sequence=sequence.astype(jnp.int32), valid=valid)
+    return for_target(program_outcome(model, ball, racket, dt, n_steps=n_steps), target)
