@@ -93,6 +93,17 @@ def test_table_surface_not_at_zero_labelled(small_dataset):
     assert "0.76" in str(err)
 
 
+def test_edge_contact_below_the_surface_level_is_valid(small_dataset):
+    # A ball hitting the table's end edge: centre 17 mm beyond the end, 10.6 mm below the surface
+    # level (distance r to the edge). The same height over the surface names the frame.
+    row = int(np.flatnonzero(small_dataset.events["kind"] == "table")[0])
+    ev = {k: v.copy() for k, v in small_dataset.events.items()}
+    ev["x"][row], ev["y"][row], ev["z"][row] = 1.37 + 0.017, 0.1, -0.0106
+    validate(small_dataset.replace(events=ev))
+    ev["x"][row] = 1.37 - 0.017
+    raises(small_dataset.replace(events=ev), row=row, column="z", words=("table surface", "not 0"))
+
+
 def test_table_surface_not_at_zero_unlabelled(simulate_flight):
     # No events at all: the bounces are found in the observations.
     sessions, ts, ps = [], [], []

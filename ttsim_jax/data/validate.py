@@ -261,7 +261,11 @@ def _check_table_level(ds: Dataset, files) -> Iterator[DataError]:
     r = schema.BALL_RADIUS
     is_table = np.asarray([k == "table" for k in ev["kind"]], bool)
     z = np.asarray(ev["z"], np.float64)
-    bad = np.flatnonzero(is_table & (np.abs(z - r) > TABLE_CONTACT_TOL))
+    # Only a contact over the playing surface says where the surface is: a ball that hits the
+    # table's edge or end face has its centre beyond the surface's outline and lower than r.
+    over = ((np.abs(np.asarray(ev["x"], np.float64)) <= 0.5 * schema.TABLE_LENGTH)
+            & (np.abs(np.asarray(ev["y"], np.float64)) <= 0.5 * schema.TABLE_WIDTH))
+    bad = np.flatnonzero(is_table & over & (np.abs(z - r) > TABLE_CONTACT_TOL))
     if bad.size:
         yield DataError(
             f"table contact with the ball centre at z = {z[bad[0]]:.4f} m; in the canonical frame it sits at the ball radius "
