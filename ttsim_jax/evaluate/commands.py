@@ -56,6 +56,7 @@ def register(subparsers) -> None:
     parser = subparsers.choices["evaluate"]
     parser.description = description + " 'ttsim evaluate residual' evaluates a residual network alone."
     sub.required = False
+    sub.metavar = "[residual]"  # optional: without it, the models are evaluated
     parser.add_argument("--data", metavar="DATA", type=existing_dir, help="dataset directory (required)")
     parser.add_argument("--models", metavar="MODELS", type=model_list,
                         help=f"comma-separated bundled model names or model .toml files (default: {DEFAULT_MODELS})")
