@@ -10,6 +10,8 @@ from ttsim_jax import Ball, Racket, load_model, simulate
 from ttsim_jax.physics import table as tbl
 from ttsim_jax.physics.events import FLOOR, INVALID, REST, TABLE
 
+from padding import pad_balls
+
 R = 0.02
 L2, W2 = 1.37, 0.7625  # half length and half width of the table
 MODEL = load_model("conti2026")
@@ -31,9 +33,7 @@ N = 1600  # every simulation here: N steps, 2 balls, 8 events (one compilation p
 
 def run(m, b, dt=1e-3):
     """``simulate`` for N steps with the batch padded to two balls (a ball at rest on the floor)."""
-    n = b.pos.shape[0]
-    pad = Ball.create(jnp.zeros((2 - n, 3)) + jnp.array([3.0, 0.0, -0.74]), jnp.zeros((2 - n, 3)), dtype=b.pos.dtype)
-    return simulate(m, jax.tree.map(lambda a, c: jnp.concatenate([a, c]), b, pad), N, dt)
+    return simulate(m, pad_balls(b, 2), N, dt)
 
 
 def kinds(r, i=0):

@@ -7,6 +7,8 @@ from ttsim_jax import Ball, Racket, RacketPolicy, init_state, load_model, rollou
 from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout, memory_bytes
 
+from padding import pad_balls
+
 
 def serve_batch(n=6, seed=0):
     rng = np.random.default_rng(seed)
@@ -30,12 +32,8 @@ def racket_schedule(n, x=1.6):
         pos=racket.pos + t * racket.vel)
 
 
-def pad(balls, n=B):
-    """The batch filled up to ``n`` balls with balls at rest on the floor far from everything (they
-    touch nothing the others touch)."""
-    k = balls.pos.shape[0]
-    filler = Ball.create(np.tile([[0.0, 3.0, -0.74]], (n - k, 1)), np.zeros((n - k, 3)), dtype=balls.pos.dtype)
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), balls, filler)
+def pad(balls):
+    return pad_balls(balls, B)
 
 
 @pytest.mark.parametrize("name", ["nakashima2011", "durr2026", "conti2026"])
