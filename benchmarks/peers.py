@@ -367,7 +367,8 @@ def main(argv=None) -> int:
     model = load_model(MODEL, dtype=jnp.float32)
     device = str(jax.devices()[0])
     report = dict(benchmark="rally_kernel_peers", unit="ball-steps/s (batch x steps / seconds)", model=MODEL,
-                  dt_s=DT, integrator="rk4", dtype="float32", device=device, platform=platform.platform(),
+                  dt_s=DT, integrator="rk4", dtype="float32", device=device,
+                  device_kind=jax.devices()[0].device_kind, platform=platform.platform(),
                   cpu_count=__import__("os").cpu_count(), versions=_versions(), repeats=args.repeats,
                   budget=args.budget, quick=args.quick,
                   notes=["mujoco/mjx: similar physics, not the same (MuJoCo's ellipsoid fluid model and soft "

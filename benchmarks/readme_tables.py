@@ -1,11 +1,14 @@
-"""Renders the peers benchmark's JSON as the README's throughput table, so that the table is
+"""Renders the peers benchmark's JSON files as the README's throughput tables, so that a table is
 always the numbers of one run and never typed by hand.
 
-    python benchmarks/readme_tables.py                      # print the table of results/peers_cpu.json
+    python benchmarks/readme_tables.py                      # print the tables
     python benchmarks/readme_tables.py --write README.md benchmarks/README.md
 
-``--write`` replaces what lies between the lines ``<!-- peers-table:start -->`` and
-``<!-- peers-table:end -->`` in each file (a file without them is an error).
+One table per entry of :data:`TABLES`: the CPU run (``results/peers_cpu.json``) between the lines
+``<!-- peers-table:start -->`` and ``<!-- peers-table:end -->``, the GPU run
+(``results/peers_gpu.json``) between ``<!-- peers-gpu-table:start -->`` and
+``<!-- peers-gpu-table:end -->``. ``--write`` replaces those blocks in each file (a file without
+them is an error).
 """
 
 from __future__ import annotations
@@ -18,11 +21,20 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
+# marker name -> the benchmark JSON its table is written from
+TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json"}
 START, END = "<!-- peers-table:start -->", "<!-- peers-table:end -->"
+
+
+def markers(name: str = "peers-table") -> tuple[str, str]:
+    """The start and end lines of the block named ``name``."""
+    return f"<!-- {name}:start -->", f"<!-- {name}:end -->"
 PEERS = ("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
 
 
 def _rate(x: float) -> str:
+    if x >= 1e9:
+        return f"{x / 1e9:.2f} G"
     return f"{x / 1e6:.2f} M" if x >= 1e5 else f"{x / 1e3:.1f} k"
 
 
@@ -32,7 +44,8 @@ def render(result: dict, source: str) -> str:
     shown = [p for p in PEERS if any(p in r["peers"] for c in configs.values() for r in c["results"])]
     lines = [f"Ball-steps/s and ratio to the kernel, medians of {result['repeats']} "
              f"({result['model']}, {result['dtype']}, {result['integrator']} at {result['dt_s'] * 1e3:g} ms; "
-             f"{result['device']}, {result['cpu_count']} cores; from `{source}`):", "",
+             f"{result.get('device_kind', result['device'])}, {result['cpu_count']} CPU cores; "
+             f"from `{source}`):", "",
              "| config | batch x steps | " + " | ".join(shown) + " |",
              "|---|---|" + "---|" * len(shown)]
     for name, c in configs.items():
@@ -56,43 +69,56 @@ def render(result: dict, source: str) -> str:
     return "\n".join(lines)
 
 
-def replace_block(text: str, block: str, name: str) -> str:
-    """``text`` with the lines between the markers replaced by ``block``."""
-    pattern = re.compile(re.escape(START) + r"\n.*?" + re.escape(END), re.S)
+def replace_block(text: str, block: str, name: str, marker: str = "peers-table") -> str:
+    """``text`` (of the file ``name``) with the lines between the ``marker`` lines replaced by ``block``."""
+    start, end = markers(marker)
+    pattern = re.compile(re.escape(start) + r"\n.*?" + re.escape(end), re.S)
     if not pattern.search(text):
-        raise ValueError(f"{name}: no '{START}' ... '{END}' block to write the table into")
-    return pattern.sub(lambda _: f"{START}\n{block}\n{END}", text, count=1)
+        raise ValueError(f"{name}: no '{start}' ... '{end}' block to write the table into")
+    return pattern.sub(lambda _: f"{start}\n{block}\n{end}", text, count=1)
 
 
-def block_of(text: str) -> str | None:
-    """The table now between the markers of ``text`` (None without markers)."""
-    m = re.search(re.escape(START) + r"\n(.*?)\n" + re.escape(END), text, re.S)
+def block_of(text: str, marker: str = "peers-table") -> str | None:
+    """The table now between the ``marker`` lines of ``text`` (None without them)."""
+    start, end = markers(marker)
+    m = re.search(re.escape(start) + r"\n(.*?)\n" + re.escape(end), text, re.S)
     return None if m is None else m.group(1)
+
+
+def source_of(path: Path) -> str:
+    """``path`` as the tables name it: relative to the repository when inside it."""
+    return path.resolve().relative_to(REPO).as_posix() if path.resolve().is_relative_to(REPO) else str(path)
+
+
+def rendered() -> dict[str, str]:
+    """marker -> the table of its committed JSON."""
+    return {marker: render(json.loads(path.read_text()), source_of(path)) for marker, path in TABLES.items()}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--json", type=Path, default=DEFAULT, help="peers benchmark JSON (default: %(default)s)")
     p.add_argument("--write", type=Path, nargs="*", default=[],
-                   help="Markdown files whose peers-table block is replaced (default: print only)")
+                   help="Markdown files whose table blocks (one per benchmark JSON: "
+                        + ", ".join(f"{m} <- {source_of(j)}" for m, j in TABLES.items())
+                        + ") are replaced (default: print only)")
     args = p.parse_args(argv)
     try:
-        result = json.loads(args.json.read_text())
+        blocks = rendered()
     except (OSError, ValueError) as e:
-        print(f"error: {args.json}: {e}", file=sys.stderr)
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    source = args.json.resolve().relative_to(REPO).as_posix() if args.json.resolve().is_relative_to(REPO) \
-        else str(args.json)
-    block = render(result, source)
     if not args.write:
-        print(block)
+        print("\n\n".join(blocks.values()))
     for path in args.write:
         try:
-            path.write_text(replace_block(path.read_text(), block, str(path)))
+            text = path.read_text()
+            for marker, block in blocks.items():
+                text = replace_block(text, block, str(path), marker)
+            path.write_text(text)
         except (OSError, ValueError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        print(f"wrote the table into {path}")
+        print(f"wrote the tables into {path}")
     return 0
 
 

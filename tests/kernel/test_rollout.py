@@ -81,6 +81,20 @@ def test_lean_step_equals_reference_step(model, whole):
     np.testing.assert_allclose(np.asarray(s.ball.as_array()), np.asarray(ref_state.ball.as_array()), atol=1e-10)
 
 
+def test_single_buffer_equals_loop_of_buffers(model, whole):
+    """The branch-free buffering of accelerators: one buffer of a single row per step, the whole
+    batch whenever two or more balls are flagged in a step (often, with 64 balls and two rackets),
+    gives the events and states of the CPU's loop of buffers."""
+    s1, o1 = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), buffering="single", contact_capacity=1)
+    s, o = whole
+    np.testing.assert_array_equal(np.asarray(o1.events.kind), np.asarray(o.events.kind))
+    np.testing.assert_allclose(np.asarray(o1.events.time), np.asarray(o.events.time), atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(s1.status), np.asarray(s.status))
+    np.testing.assert_allclose(np.asarray(s1.ball.as_array()), np.asarray(s.ball.as_array()), atol=1e-10)
+    with pytest.raises(ValueError, match="buffering"):
+        rollout(model, init_state(shots()), N, 1e-3, buffering="sometimes")
+
+
 def test_lean_step_equals_reference_on_thousands_of_shots():
     """Event sequences of 4,096 random shots with two rackets, float32: the lean step (exact
     detection only where a gap changes sign, in a small buffer that overflows on busy steps) and the

@@ -165,9 +165,10 @@ def _split_per_ball(model, axes):
 
 
 @partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
-                                   "sample", "rackets_batched", "remat", "reference", "block"))
+                                   "sample", "rackets_batched", "remat", "reference", "block",
+                                   "buffering"))
 def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
-             max_events, capacity, sample, rackets_batched, remat, reference, block):
+             max_events, capacity, sample, rackets_batched, remat, reference, block, buffering):
     axes = axes.tree()
     b = state.batch
     dtype = state.ball.pos.dtype
@@ -176,7 +177,8 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_ste
     same = (state.dt == dt) | (state.step == 0)
     t0 = jnp.where(same, state.t0, state.time)
     step0 = jnp.where(same, state.step, 0)
-    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample, reference=reference)
+    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample, reference=reference,
+                      buffering=buffering)
     every = record_every or chunk_length(n_steps)
     n_chunks, tail = divmod(n_steps, every)
 
@@ -290,6 +292,11 @@ def memory_bytes(batch: int, n_steps: int, record_every: int, max_events: int, d
     return dict(state=state, event_log=log, recording=rec, total=state + log + rec)
 
 
+def default_buffering() -> str:
+    """``"loop"`` on CPU, ``"single"`` elsewhere (see :func:`~ttsim_jax.kernel.step.step`)."""
+    return "loop" if jax.default_backend() == "cpu" else "single"
+
+
 def default_capacity(batch: int) -> int:
     """Contact buffer rows: B/32, at least 8 (a ball has a contact every ~100-300 steps)."""
     return min(batch, max(8, math.ceil(batch / 32)))
@@ -298,7 +305,7 @@ def default_capacity(batch: int) -> int:
 def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *,
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
             contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
-            reference: bool = False, block_size: int | None = None,
+            reference: bool = False, block_size: int | None = None, buffering: str | None = None,
             memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
@@ -328,6 +335,9 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         block_size: run the batch in blocks of this many balls, one after the other, each through
             the whole rollout (same results); default 1,024 on CPU (cache-sized), none on GPU; 0
             for none.
+        buffering: how a step hands its flagged balls to the contact models (same results):
+            ``"loop"`` (default on CPU) or ``"single"`` (default on GPU and other accelerators);
+            see :func:`~ttsim_jax.kernel.step.step`.
         memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
             need more is refused before compiling, with the sizes.
 
@@ -361,11 +371,15 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
     block = default_block(batch) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
+    if buffering is None:
+        buffering = default_buffering()
+    if buffering not in ("loop", "single"):
+        raise ValueError(f"buffering must be 'loop' or 'single', got {buffering!r}")
     key = jax.random.PRNGKey(0) if key is None else key
     return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
                     sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference,
-                    block=block)
+                    block=block, buffering=buffering)
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",

@@ -312,7 +312,7 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
 
 def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog | None, rackets: Racket | None,
          t, dt, *, rackets_batched: bool = False, integrator: str = "rk4", capacity: int = 64, key=None,
-         sample: bool = False, reference: bool = False):
+         sample: bool = False, reference: bool = False, buffering: str = "loop"):
     """Advances a batch of balls by one step.
 
     Arguments:
@@ -326,6 +326,12 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         key, sample: the step's PRNG key and whether to sample the residual from its predicted std.
         reference: run the exact detection for every ball (static): the straightforward step the
             lean one is tested against.
+        buffering: how the flagged balls reach the contact models (static; same results):
+            ``"loop"`` runs buffers of ``capacity`` rows one after the other, each only when it
+            holds a ball (a skipped branch is free on CPU); ``"single"`` runs one buffer at every
+            step, branch-free, and the whole batch in a step with more flagged balls than
+            ``capacity`` (on a GPU every branch costs a device-to-host copy of its predicate, which
+            made the loop ~1 ms a step).
 
     Returns:
         (ball, alive, status, log) after the step.
@@ -354,6 +360,17 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     if reference:
         rows = jnp.arange(b)
         return write(rows, events(rows))
+    if buffering == "single":
+        def one_buffer():
+            rows = jnp.nonzero(flag, size=capacity, fill_value=b)[0]
+            return write(rows, events(rows))
+
+        if capacity >= b:
+            return one_buffer()
+        everyone = jnp.arange(b)
+        return jax.lax.cond(jnp.sum(flag) > capacity, lambda: write(everyone, events(everyone)), one_buffer)
+    if buffering != "loop":
+        raise ValueError(f"buffering must be 'loop' or 'single', got {buffering!r}")
     # The flagged balls go through one buffer of ``capacity`` rows at a time: usually once, a few
     # times when many balls have an event in the same step. One buffer shape means one compiled copy
     # of the contact models whatever the count (a second, full-batch branch doubled compile time);
