@@ -32,11 +32,11 @@ import numpy as np
 MODELS = ("nakashima2011", "durr2026", "conti2026")
 
 
-def _real_root() -> Path:
+def real_root() -> Path:
     return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
 
-def _segments(ds, sessions=None, need_spin=True):
+def kept_segments(ds, sessions=None, need_spin=True):
     """Segments of ``ds`` the paper would keep, optionally only from ``sessions``."""
     from ttsim_jax.fit import aero as A
 
@@ -58,7 +58,7 @@ def _segments(ds, sessions=None, need_spin=True):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--real", type=Path, default=_real_root(), help="folder of the public data (default: %(default)s)")
+    p.add_argument("--real", type=Path, default=real_root(), help="folder of the public data (default: %(default)s)")
     p.add_argument("--test-fraction", type=float, default=0.3, help="SpinDOE sessions held out (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the split (default: %(default)s)")
     p.add_argument("--association", default="averaged", help="see ttsim fit --association (default: %(default)s)")
@@ -88,9 +88,9 @@ def main(argv=None) -> int:
                              cd=ident.drag.values["cd"].tolist(),
                              magnus={k: v.tolist() for k, v in ident.magnus.values.items()})
 
-    sets = {"spindoe (test split)": _segments(spindoe, ident.test_sessions)}
-    sets["tt3d (spin 0)"] = _segments(import_source(args.real / "tt3d", "tt3d"), need_spin=False)
-    sets["mpi (spin 0)"] = _segments(import_source(args.real / "mpi_ball_prediction", "mpi"), need_spin=False)
+    sets = {"spindoe (test split)": kept_segments(spindoe, ident.test_sessions)}
+    sets["tt3d (spin 0)"] = kept_segments(import_source(args.real / "tt3d", "tt3d"), need_spin=False)
+    sets["mpi (spin 0)"] = kept_segments(import_source(args.real / "mpi_ball_prediction", "mpi"), need_spin=False)
 
     results = {}
     for set_name, (times, positions, spins, counts) in sets.items():

@@ -29,7 +29,15 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, DragTable, DurrMagnus, MagnusTable
+from ttsim_jax.physics.aero import (
+    AeroParams,
+    BlendedDragTable,
+    ConstantCoefficient,
+    DragTable,
+    DurrMagnus,
+    MagnusTable,
+    MagnusValueTable,
+)
 from ttsim_jax.physics.racket import RACKET_KINDS, RacketParams
 from ttsim_jax.physics.table import TableParams
 
@@ -127,8 +135,16 @@ SCHEMA: dict[str, dict[str, Entry]] = {
     },
 }
 
+SCHEMA["aero.drag:table_blended"] = SCHEMA["aero.drag:table"]
+SCHEMA["aero.magnus:table_values"] = SCHEMA["aero.magnus:table"]
+# A model file's ``kind`` of each coefficient model -> its class. Two readings of the paper's tables
+# (see README "Open readings"): "table" is the default, the other a named variant.
+DRAG_KINDS = {"constant": ConstantCoefficient, "table": DragTable, "table_blended": BlendedDragTable}
+MAGNUS_KINDS = {"constant": ConstantCoefficient, "durr": DurrMagnus, "table": MagnusTable,
+                "table_values": MagnusValueTable}
+
 _CONVERT = {"mm": ("m", 1e-3), "cm": ("m", 1e-2), "g": ("kg", 1e-3), "mm^2/s": ("m^2/s", 1e-6)}
-_SECTIONS = {"ball", "aero", "table", "racket", "schema", "name", "description", "source"}
+_SECTIONS = {"ball", "aero", "table", "racket", "schema", "name", "description", "source", "extends"}
 
 
 def _error(file, key, value, why):
@@ -264,7 +280,7 @@ def _check_increasing(file, key, values, what):
 
 def _check_tables(file, kind, vals):
     """Consistency of the tabulated coefficient models (shapes agree, breakpoints increase)."""
-    if kind == "table" and "sp" in vals:
+    if kind in ("table", "table_blended") and "sp" in vals:
         _check_increasing(file, "aero.drag.re_ref", vals["re_ref"], "reference Reynolds numbers")
         k = vals["re_ref"].shape[0]
         if vals["sp"].shape[0] != k:
@@ -280,7 +296,7 @@ def _check_tables(file, kind, vals):
         if vals["cd_min"] > vals["cd"].min():
             _error(file, "aero.drag.cd_min", vals["cd_min"], f"the lower clamp exceeds the smallest tabulated C_D "
                    f"({vals['cd'].min().item()!r}) and would override the table")
-    if kind == "table" and "v_ref" in vals:
+    if kind in ("table", "table_values") and "v_ref" in vals:
         _check_increasing(file, "aero.magnus.v_ref", vals["v_ref"], "reference speeds")
         k = vals["v_ref"].shape[0]
         for key in ("m1", "s", "w_b", "a", "b", "c"):
@@ -319,9 +335,8 @@ def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
 
     ball = _read_section(file, data, "ball")
     aero = _read_section(file, data, "aero", skip=("drag", "magnus"))
-    drag_cls, drag_kind, drag = _coefficient(file, data, "aero.drag", {"constant": ConstantCoefficient, "table": DragTable})
-    magnus_cls, magnus_kind, magnus = _coefficient(
-        file, data, "aero.magnus", {"constant": ConstantCoefficient, "durr": DurrMagnus, "table": MagnusTable})
+    drag_cls, drag_kind, drag = _coefficient(file, data, "aero.drag", DRAG_KINDS)
+    magnus_cls, magnus_kind, magnus = _coefficient(file, data, "aero.magnus", MAGNUS_KINDS)
     _check_tables(file, drag_kind, drag)
     _check_tables(file, magnus_kind, magnus)
     table = _read_section(file, data, "table", skip=("residual", "geometry"))
@@ -392,6 +407,61 @@ def resolve_model_path(name_or_path: str | Path) -> Path:
     return path
 
 
+def _read_toml(path: Path) -> dict:
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: line {line}: byte {raw[exc.start:exc.start + 1]!r} at offset {exc.start} is not "
+                          "UTF-8 text; a model file is a UTF-8 TOML text file") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def _overlay(base: dict, over: dict) -> dict:
+    """``base`` with ``over`` laid on it: tables merge key by key; a value, or an entry
+    (a table with ``value``), replaces the base's whole."""
+    out = dict(base)
+    for key, val in over.items():
+        if isinstance(val, dict) and "value" not in val and isinstance(out.get(key), dict):
+            out[key] = _overlay(out[key], val)
+        else:
+            out[key] = val
+    return out
+
+
+def read_model_file(path: Path, _chain: tuple = ()) -> dict:
+    """The parsed model file ``path``, with ``extends = "BASE"`` resolved.
+
+    A variant names its base (a bundled model's name, or a path relative to the variant's folder)
+    and gives only what differs; the base's ``name`` is not inherited (a variant is named after
+    its file unless it says otherwise).
+    """
+    data = _read_toml(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        _error(str(path), "extends", base, "expected the name of a bundled model or a path to a .toml file")
+    base_path = Path(base)
+    if base_path.suffix == ".toml" and not base_path.is_absolute():
+        base_path = path.parent / base_path
+    try:
+        base_path = resolve_model_path(base_path if base_path.suffix == ".toml" else base)
+    except ConfigError as e:
+        _error(str(path), "extends", base, str(e))
+    chain = _chain + (path.resolve(),)
+    if base_path.resolve() in chain:
+        _error(str(path), "extends", base, "the models extend each other in a cycle: "
+               + " -> ".join(p.name for p in chain + (base_path.resolve(),)))
+    merged = read_model_file(base_path, chain)
+    merged.pop("name", None)
+    return _overlay(merged, data)
+
+
 def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tuple = ()) -> Model:
     """Loads a model by bundled name (``"conti2026"``) or TOML path.
 
@@ -405,18 +475,7 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
         A validated :class:`Model`.
     """
     path = resolve_model_path(name_or_path)
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[: exc.start].count(b"\n") + 1
-        raise ConfigError(f"{path}: line {line}: byte {raw[exc.start:exc.start + 1]!r} at offset {exc.start} is not "
-                          "UTF-8 text; a model file is a UTF-8 TOML text file") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    model = model_from_dict(data, str(path), dtype)
+    model = model_from_dict(read_model_file(path), str(path), dtype)
     if isinstance(residual, (str, Path)):
         from ttsim_jax.physics.residual import load_residual
         residual = load_residual(residual)

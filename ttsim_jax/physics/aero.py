@@ -123,6 +123,44 @@ def drag_table(p: DragTable, speed, spin_rate, radius, nu):
     return jnp.maximum(cd, p.cd_min)
 
 
+@struct.dataclass
+class BlendedDragTable(DragTable):
+    """C_D(Re, Sp) read as the authors' code reads Table I (model config ``kind = "table_blended"``).
+
+    Between two reference Reynolds numbers the Sp breakpoints *and* the C_D values of the two
+    bracketing rows are blended linearly in Re, and that one curve is evaluated at Sp (the
+    project's :class:`DragTable` evaluates both rows at the same Sp, then blends the values).
+    Above the last reference the values extrapolate as in :class:`DragTable` (up to ``re_cap``)
+    but the breakpoints are held at the last row's: extrapolated breakpoints cross above about
+    22 m/s. Same fields as :class:`DragTable`.
+    """
+
+
+@struct.dataclass
+class MagnusValueTable(MagnusTable):
+    """C_M(v, w) with the *values* interpolated in |v| (model config ``kind = "table_values"``).
+
+    C_M is evaluated with each reference speed's coefficients (clamped at 0) and those values are
+    interpolated linearly in |v|, held outside the references; :class:`MagnusTable` (the
+    authors' reading) interpolates the six coefficients instead. Same fields as :class:`MagnusTable`.
+    """
+
+
+def drag_table_blended(p: BlendedDragTable, speed, spin_rate, radius, nu):
+    re = 2.0 * speed * radius / nu
+    sp = spin_rate * radius / jnp.maximum(speed, 1e-6)
+    last = (p.re_cap - p.re_ref[-2]) / (p.re_ref[-1] - p.re_ref[-2])
+    breakpoints = _piecewise(re, p.re_ref, p.sp)  # (P,) held beyond the references
+    values = _piecewise(re, p.re_ref, p.cd, last)  # (P,)
+    return jnp.maximum(_piecewise(sp, breakpoints, values), p.cd_min)
+
+
+def magnus_table_values(p: MagnusValueTable, speed, spin_rate, radius, nu):
+    w = spin_rate
+    per_ref = jnp.maximum(jnp.where(w <= p.w_b, p.m1 * w + p.s, (p.a * w + p.b) * w + p.c), 0.0)  # (K,)
+    return _piecewise(speed, p.v_ref, per_ref)
+
+
 def magnus_constant(p: ConstantCoefficient, speed, spin_rate, radius, nu):
     return p.value
 
@@ -141,11 +179,13 @@ def magnus_table(p: MagnusTable, speed, spin_rate, radius, nu):
     return jnp.maximum(cm, 0.0)
 
 
-DRAG_MODELS: dict[type, Callable] = {ConstantCoefficient: drag_constant, DragTable: drag_table}
+DRAG_MODELS: dict[type, Callable] = {ConstantCoefficient: drag_constant, DragTable: drag_table,
+                                     BlendedDragTable: drag_table_blended}
 MAGNUS_MODELS: dict[type, Callable] = {
     ConstantCoefficient: magnus_constant,
     DurrMagnus: magnus_durr,
     MagnusTable: magnus_table,
+    MagnusValueTable: magnus_table_values,
 }
 
 
