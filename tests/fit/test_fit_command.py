@@ -113,3 +113,25 @@ def test_every_fit_option_has_help():
     assert all(action.help for action in fit._actions)
     assert "--forms" in fit.format_help() and "averaged" in fit.format_help()
     assert "--stages" in fit.format_help() and "residual" in fit.format_help()
+
+
+@pytest.mark.slow  # trains the network (its compilation is most of a minute of CPU)
+def test_fit_residual_stage_trains_a_network_on_what_the_fitted_base_leaves(tmp_path, capsys):
+    out = tmp_path / "withnet"
+    assert main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "racket,residual", "--epochs", "3",
+                 "--test-fraction", "0.3", "--quiet"]) == 0
+    network = out.with_suffix(".ttres")
+    info = json.loads(out.with_suffix(".fit.json").read_text())
+    assert info["stages"] == ["racket", "residual"] and network.is_file()
+    res = info["residual"]
+    assert 1 <= res["epochs"] <= 3 and np.isfinite(res["best_val_loss"])
+    # trained on the training sessions' contacts only, the fitted racket parameters as its base
+    assert 3 <= res["contacts"]["used"] < info["racket"]["counts"]["total"]
+    from ttsim_jax.physics.residual import checkpoint_metadata
+
+    model = load_model(out.with_suffix(".toml"), residual=network)
+    assert model.residual is not None and float(model.racket.e0) == pytest.approx(info["racket"]["fit"]["values"]["e0"], rel=1e-5)
+    assert checkpoint_metadata(network)["contacts"]["used"] == res["contacts"]["used"]
+    # a second run refuses to overwrite the checkpoint
+    assert main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "residual", "--quiet"]) != 0
+    assert "exists" in capsys.readouterr().err
