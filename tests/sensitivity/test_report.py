@@ -45,8 +45,10 @@ def test_group_sensitivity_is_the_scaled_column_norm():
 def test_report_files_hold_the_numbers(tmp_path):
     jac, shots = known_study()
     scale = report.column_scales(jac)
-    flags = dict(flag=np.zeros(12, bool), flip=np.zeros(12, bool), groups={}, disagreement={})
-    flags["flag"][0] = True
+    # shot 0's gradient is local in e0 only, shot 2's in the racket's orientation only
+    local_e0, local_rot = np.arange(12) == 0, np.arange(12) == 2
+    flags = dict(flag=local_e0 | local_rot, flip=np.zeros(12, bool), disagreement={},
+                 groups={"table.restitution": local_e0, "racket.rot": local_rot})
     budget = budgets.linear_budget(jac, budgets.default_sources())
     summary = report.summarise(jac, shots, flags, budget, scale)
     # the racket's orientation is the only state source that moves the landing: 100 % of the variance
@@ -59,10 +61,16 @@ def test_report_files_hold_the_numbers(tmp_path):
     assert doc["shots"][0]["flagged"] and not doc["shots"][1]["flagged"]
     np.testing.assert_allclose(doc["shots"][5]["jacobian"], jac.jac[5])
     np.testing.assert_allclose(doc["shots"][5]["budget"]["cov"], budget.cov[5])
-    # medians exclude the flagged shot 0 (a topspin drive)
-    want = 1e3 * np.median(summary["sensitivity"]["racket.rot"][2::2])
-    np.testing.assert_allclose(doc["by_type"]["topspin_drive"]["racket.rot"], want)
-    for png in (report.heatmaps(jac, shots, summary["sensitivity"], summary["ok"], tmp_path / "h.png"),
+    # a group's medians leave out only the shots flagged for that group (shots 0 and 2 are topspin
+    # drives): shot 0 counts for the racket's orientation, shot 2 does not
+    rot = summary["sensitivity"]["racket.rot"]
+    np.testing.assert_allclose(doc["by_type"]["topspin_drive"]["racket.rot"], 1e3 * np.median(rot[[0, 4, 6, 8, 10]]))
+    assert summary["local_by_group"] == {"table.restitution": 1, "racket.rot": 1}
+    # the budget relies on the racket and spin inputs: shot 2 is out of it, shot 0 in
+    assert budget.groups == ["racket.pos", "racket.rot", "racket.vel", "ball.spin"]
+    assert summary["ok_budget"][0] and not summary["ok_budget"][2] and summary["ok_budget"].sum() == 11
+    assert not summary["ok"][0] and not summary["ok"][2]
+    for png in (report.heatmaps(jac, shots, summary["sensitivity"], summary["ok_group"], tmp_path / "h.png"),
                 report.budget_bars(summary, budget.sources, tmp_path / "b.png")):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -126,12 +126,14 @@ class Budget:
         cov: (B, k, k) total covariance of the target per shot.
         parts: (S, B, k, k) each source's covariance.
         share: (S, B) each source's share of the variance (trace), nan where the total is 0.
+        groups: the input groups the sources act on (whose gradients the budget relies on).
     """
 
     sources: list
     cov: np.ndarray
     parts: np.ndarray
     share: np.ndarray
+    groups: list = field(default_factory=list)
 
     @property
     def std(self) -> np.ndarray:
@@ -141,9 +143,10 @@ class Budget:
 
 def linear_budget(jac: Jacobian, sources: list[Source]) -> Budget:
     """Linear propagation J C J^T of each source to the target, per shot."""
-    parts = []
+    parts, groups = [], []
     for s in sources:
         index, cov = s.covariance(jac)
+        groups += [str(g) for g in np.asarray(jac.groups)[np.asarray(index)]]
         j = jac.jac[:, :, index]
         parts.append(np.einsum("bki,bij,blj->bkl", j, cov, j))
     parts = np.stack(parts)
@@ -151,7 +154,8 @@ def linear_budget(jac: Jacobian, sources: list[Source]) -> Budget:
     tr = np.einsum("sbkk->sb", parts)
     ttot = tr.sum(0)
     share = np.where(ttot > 0, tr / np.where(ttot > 0, ttot, 1.0), np.nan)
-    return Budget(sources=[s.name for s in sources], cov=total, parts=parts, share=share)
+    return Budget(sources=[s.name for s in sources], cov=total, parts=parts, share=share,
+                  groups=list(dict.fromkeys(groups)))
 
 
 def sample_inputs(jac: Jacobian, sources: list[Source], n: int, rng: np.random.Generator) -> np.ndarray:

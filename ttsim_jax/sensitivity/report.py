@@ -65,81 +65,119 @@ def regimes(speed, spin, contact) -> dict:
     return {"speed": sp, "spin": sc, "contact": cp}
 
 
-def _table(rows: dict, columns: dict, unit: str, factor: float) -> str:
-    """Markdown table: one row per group (ranked by the first column), median of each column."""
+def usable(jac: Jacobian, flags: dict, groups=None) -> np.ndarray:
+    """(B,) the shots whose gradients with respect to ``groups`` (default: every group) hold beyond
+    the point: landed, and no probe of those groups flipped the event sequence or found central
+    differences at two steps disagreeing.
+
+    A flag is per group because a shot's Jacobian can be exact and smooth in its racket state while
+    a table's breakpoints make the landing curve sharply within a 0.1 % change of them: that shot's
+    racket-state sensitivities and error budget still hold.
+    """
+    if groups is None:
+        return jac.valid & ~flags["flag"]
+    ok = jac.valid.copy()
+    for g in groups:
+        if g in flags["groups"]:
+            ok &= ~flags["groups"][g]
+    return ok
+
+
+def _table(rows: dict, columns: dict, ok: dict, unit: str, factor: float) -> str:
+    """Markdown table: one row per group (ranked by the first column), median of each column over
+    the column's shots whose gradient for that group holds (``ok[group]``)."""
     names = list(columns)
     head = "| group | " + " | ".join(f"{n} (n={int(columns[n].sum())})" for n in names) + " |"
     lines = [head, "|" + "---|" * (len(names) + 1)]
-    overall = {g: np.median(v[np.any(list(columns.values()), 0)]) if v.size else 0.0 for g, v in rows.items()}
+    anywhere = np.any(list(columns.values()), 0)
+    overall = {g: np.median(v[anywhere & ok[g]]) if (anywhere & ok[g]).any() else 0.0 for g, v in rows.items()}
     for g in sorted(rows, key=lambda g: -np.nan_to_num(overall[g])):
-        cells = [f"{factor * np.median(rows[g][m]):.3g}" if m.any() else "-" for m in columns.values()]
+        cells = [f"{factor * np.median(rows[g][m & ok[g]]):.3g}" if (m & ok[g]).any() else "-" for m in columns.values()]
         lines.append(f"| {g} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + f"\n\n(median over unflagged shots, {unit})\n"
+    return "\n".join(lines) + (f"\n\n(median over the landed shots whose gradient for the group holds beyond "
+                                f"the point, {unit})\n")
 
 
 def summarise(jac: Jacobian, shots, flags: dict, budget: budgets.Budget | None, scale: np.ndarray) -> dict:
     """Everything a report shows, as plain numbers (JSON-ready) and markdown tables."""
     sens = group_sensitivity(jac, scale)
-    ok = jac.valid & ~flags["flag"]
+    ok = usable(jac, flags)
+    ok_group = {g: usable(jac, flags, [g]) for g in sens}
     unit, factor = ("mm", 1e3) if jac.target in ("landing", "net_clearance") else (
         ("ms", 1e3) if jac.target == "landing_time" else ("m/s", 1.0))
-    types = {t: ok & (shots.label == t) for t in dict.fromkeys(shots.label)}
-    types["all"] = ok
+    landed = jac.valid
+    types = {t: landed & (shots.label == t) for t in dict.fromkeys(shots.label)}
+    types["all"] = landed
     reg = regimes(shots.speed, shots.spin, shots.contact)
+    local = {g: int((landed & ~m).sum()) for g, m in ok_group.items() if (landed & ~m).any()}
     md = [f"# Sensitivity of {jac.target} ({', '.join(jac.components)})\n",
-          f"{int(ok.sum())} of {len(ok)} shots used; {int((~jac.valid).sum())} did not land after the racket, "
-          f"{int((jac.valid & flags['flag']).sum())} flagged as local (event flip or finite differences at two "
-          "steps disagree).\n", "## By shot type\n", _table(sens, types, unit, factor)]
+          f"{int(landed.sum())} of {len(landed)} shots landed after the racket; {int(ok.sum())} have gradients that "
+          "hold beyond the point for every input group. Gradients flagged as local (an event flip, or central "
+          "differences at two steps disagree), by group: "
+          + (", ".join(f"{g} {n}" for g, n in sorted(local.items(), key=lambda x: -x[1])) or "none")
+          + "; a shot flagged for one group still counts for the others.\n",
+          "## By shot type\n", _table(sens, types, ok_group, unit, factor)]
+
+    def medians(cols):
+        return {c: {g: float(factor * np.median(v[m & ok_group[g]])) if (m & ok_group[g]).any() else None
+                    for g, v in sens.items()} for c, m in cols.items()}
+
     by_regime = {}
     for name, lab in reg.items():
-        cols = {r: ok & (lab == r) for r in dict.fromkeys(lab)}
-        md += [f"## By {name}\n", _table(sens, cols, unit, factor)]
-        by_regime[name] = {r: {g: float(factor * np.median(v[m])) if m.any() else None for g, v in sens.items()}
-                           for r, m in cols.items()}
-    out = dict(unit=unit, by_type={t: {g: float(factor * np.median(v[m])) if m.any() else None
-                                       for g, v in sens.items()} for t, m in types.items()},
-               by_regime=by_regime, sensitivity=sens, ok=ok)
+        cols = {r: landed & (lab == r) for r in dict.fromkeys(lab)}
+        md += [f"## By {name}\n", _table(sens, cols, ok_group, unit, factor)]
+        by_regime[name] = medians(cols)
+    out = dict(unit=unit, by_type=medians(types), by_regime=by_regime, sensitivity=sens, ok=ok, ok_group=ok_group,
+               local_by_group=local)
     if budget is not None:
+        ok_budget = usable(jac, flags, budget.groups)
+        out["ok_budget"] = ok_budget
         md.append("## Landing error budget (linear), mean share of variance by shot type\n")
         md.append("| shot type | std [mm] | " + " | ".join(budget.sources) + " |")
         md.append("|" + "---|" * (len(budget.sources) + 2))
         shares = {}
         for t, m in types.items():
+            m = m & ok_budget
             if not m.any():
                 continue
             share = np.nanmean(budget.share[:, m], 1)
             std = 1e3 * float(np.median(np.sqrt(np.einsum("bkk->b", budget.cov[m]))))
             shares[t] = dict(std_mm=std, share={s: float(v) for s, v in zip(budget.sources, share)})
             md.append(f"| {t} | {std:.1f} | " + " | ".join(f"{100 * v:.0f} %" for v in share) + " |")
-        md.append("\n(std: median over shots of sqrt(trace of the landing covariance))\n")
+        md.append(f"\n(over the {int(ok_budget.sum())} landed shots whose gradients for the budget's inputs "
+                  "hold beyond the point; std: median over shots of sqrt(trace of the landing covariance))\n")
         out["budget_by_type"] = shares
     out["markdown"] = "\n".join(md)
     return out
 
 
-def heatmaps(jac: Jacobian, shots, sens: dict, ok, path, groups=None, bins: int = 6) -> Path:
+def heatmaps(jac: Jacobian, shots, sens: dict, ok_group: dict, path, groups=None, bins: int = 6) -> Path:
     """|d target / d group| (scaled, :func:`group_sensitivity`) averaged over (speed, spin) bins, one
-    panel per group (default: the four largest); PNG."""
+    panel per group (default: the four largest), each over the shots whose gradient for that group
+    holds (``ok_group[group]`` (B,), :func:`usable`); PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     factor = 1e3
-    groups = groups or sorted(sens, key=lambda g: -np.median(sens[g][ok]) if ok.any() else 0)[:4]
-    speed, spin = np.asarray(shots.speed)[ok], np.asarray(shots.spin)[ok]
+    groups = groups or sorted(sens, key=lambda g: -np.median(sens[g][ok_group[g]]) if ok_group[g].any() else 0)[:4]
+    any_ok = np.any([ok_group[g] for g in groups], 0)
+    speed_all, spin_all = np.asarray(shots.speed), np.asarray(shots.spin)
     fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
-    if len(speed):
-        es = np.linspace(speed.min(), speed.max() + 1e-9, bins + 1)
-        ew = np.linspace(spin.min(), spin.max() + 1e-9, bins + 1)
+    if any_ok.any():
+        es = np.linspace(speed_all[any_ok].min(), speed_all[any_ok].max() + 1e-9, bins + 1)
+        ew = np.linspace(spin_all[any_ok].min(), spin_all[any_ok].max() + 1e-9, bins + 1)
     for ax, g in zip(axes[0], groups):
+        ok = ok_group[g]
+        speed, spin = speed_all[ok], spin_all[ok]
         if len(speed):
             tot, _, _ = np.histogram2d(speed, spin, [es, ew], weights=factor * sens[g][ok])
             cnt, _, _ = np.histogram2d(speed, spin, [es, ew])
             mean = np.where(cnt > 0, tot / np.maximum(cnt, 1), np.nan)
             im = ax.imshow(mean.T, origin="lower", aspect="auto", extent=[es[0], es[-1], ew[0], ew[-1]], cmap="viridis")
             fig.colorbar(im, ax=ax, label="mm" if jac.target != "bounce_speed" else "")
-        ax.set_title(g)
+        ax.set_title(f"{g} ({int(ok.sum())} shots)")
         ax.set_xlabel("speed leaving the racket [m/s]")
         ax.set_ylabel("topspin [rad/s]")
     fig.suptitle(f"|d {jac.target} / d input group| x typical change")

@@ -109,7 +109,7 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
             t0 = time.perf_counter()
             mc = budgets.monte_carlo(model, shots, jac, sources, cfg.monte_carlo, dt=cfg.dt, n_steps=n_steps,
                                      seed=cfg.seed, batch=cfg.chunk)
-            ok = jac.valid & ~flags["flag"] & (mc["kept"] > 0.99)
+            ok = report.usable(jac, flags, budget.groups) & (mc["kept"] > 0.99)
             ratio = np.sqrt(np.einsum("bkk->b", mc["cov"][ok]) / np.einsum("bkk->b", budget.cov[ok]))
             log(f"Monte Carlo ({cfg.monte_carlo} samples per shot) in {time.perf_counter() - t0:.1f} s: "
                 f"landing std MC / linear on {int(ok.sum())} smooth shots: median {np.median(ratio):.3f}, "
@@ -124,7 +124,8 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
                                         summary=summary, scale=scale, budget=budget, mc=mc))
     (out / "report.md").write_text(summary["markdown"])
     paths["report"] = out / "report.md"
-    paths["heatmaps"] = report.heatmaps(jac, shots, summary["sensitivity"], summary["ok"], out / "heatmaps.png")
+    paths["heatmaps"] = report.heatmaps(jac, shots, summary["sensitivity"], summary["ok_group"],
+                                        out / "heatmaps.png")
     if budget is not None:
         paths["budget"] = report.budget_bars(summary, budget.sources, out / "budget.png")
     summary["paths"] = paths
