@@ -19,7 +19,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 START, END = "<!-- peers-table:start -->", "<!-- peers-table:end -->"
-PEERS = ("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
+PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
 
 
 def _rate(x: float) -> str:

@@ -42,8 +42,8 @@ from ttsim_jax.physics.numerics import TINY
 
 # Free-flight steps per kernel launch (a ball flies about 100-300 steps between contacts).
 SUBSTEPS = 32
-# Balls per kernel program (a power of two, as Triton needs).
-BLOCK = 256
+# Balls per kernel program (a power of two, as Triton needs): one per thread of 4 warps.
+BLOCK = 128
 # Margin [m] added to every stopping test, far above the rounding by which the kernel's path
 # differs from the reference path's, so that the kernel never flies through a step the reference
 # would flag; a ball stopped early only costs one ordinary step.
@@ -163,13 +163,21 @@ class _Reader:
         return [self.scalar() for _ in range(n)]
 
 
-def _ramp_sum(x, xp, fp, last=1.0):
-    """fp[0] + sum_k (fp[k] - fp[k-1]) clip((x - xp[k-1]) / (xp[k] - xp[k-1]), 0, upper_k) over lists
-    of scalars: ``aero._piecewise`` unrolled (``last`` is the last ramp's upper clip)."""
+def _ramps(xp, last=1.0):
+    """(start, 1 / width, upper clip) of each ramp of ``aero._ramps`` over breakpoints ``xp`` (a list
+    of scalars), computed once per launch so that the steps multiply instead of divide."""
+    return [(xp[k - 1], 1.0 / (xp[k] - xp[k - 1]), last if k == len(xp) - 1 else 1.0) for k in range(1, len(xp))]
+
+
+def _weights(x, ramps):
+    """The ramp weights s_k(x) of ``aero._ramps`` over :func:`_ramps`."""
+    return [jnp.clip((x - start) * inv, 0.0, upper) for start, inv, upper in ramps]
+
+
+def _ramp_sum(weights, fp):
+    """fp[0] + sum_k (fp[k] - fp[k-1]) s_k: ``aero._piecewise`` unrolled."""
     out = fp[0]
-    for k in range(1, len(xp)):
-        upper = last if k == len(xp) - 1 else 1.0
-        s = jnp.clip((x - xp[k - 1]) / (xp[k] - xp[k - 1]), 0.0, upper)
+    for k, s in enumerate(weights, start=1):
         out = out + (fp[k] - fp[k - 1]) * s
     return out
 
@@ -181,13 +189,14 @@ def _coefficient_fns(rd: _Reader, layout: Layout, radius, nu):
         sp = [rd.many(layout.n_sp) for _ in range(layout.n_re)]
         cd = [rd.many(layout.n_sp) for _ in range(layout.n_re)]
         re_cap, cd_min = rd.scalar(), rd.scalar()
-        last = (re_cap - re_ref[-2]) / (re_ref[-1] - re_ref[-2])
+        re_ramps = _ramps(re_ref, (re_cap - re_ref[-2]) / (re_ref[-1] - re_ref[-2]))
+        sp_ramps = [_ramps(row) for row in sp]
+        re_per_speed = 2.0 * radius / nu
 
         def drag(speed, spin_rate):
-            re = 2.0 * speed * radius / nu
             ratio = spin_rate * radius / jnp.maximum(speed, 1e-6)
-            curves = [_ramp_sum(ratio, sp[k], cd[k]) for k in range(layout.n_re)]
-            return jnp.maximum(_ramp_sum(re, re_ref, curves, last), cd_min)
+            curves = [_ramp_sum(_weights(ratio, sp_ramps[k]), cd[k]) for k in range(layout.n_re)]
+            return jnp.maximum(_ramp_sum(_weights(speed * re_per_speed, re_ramps), curves), cd_min)
     else:
         value = rd.scalar()
 
@@ -195,11 +204,12 @@ def _coefficient_fns(rd: _Reader, layout: Layout, radius, nu):
             return value
 
     if layout.magnus == "table":
-        v_ref = rd.many(layout.n_v)
+        v_ramps = _ramps(rd.many(layout.n_v))
         coef = [rd.many(layout.n_v) for _ in range(6)]  # m1, s, w_b, a, b, c
 
         def magnus(speed, spin_rate):
-            m1, s, w_b, a, b, c = (_ramp_sum(speed, v_ref, col) for col in coef)
+            weights = _weights(speed, v_ramps)
+            m1, s, w_b, a, b, c = (_ramp_sum(weights, col) for col in coef)
             w = spin_rate
             return jnp.maximum(jnp.where(w <= w_b, m1 * w + s, (a * w + b) * w + c), 0.0)
     elif layout.magnus == "durr":
@@ -350,7 +360,8 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
     extra = {}
     if not interpret:  # Triton (the GPU default may be another Pallas backend)
         from jax.experimental.pallas import triton as plt
-        extra["compiler_params"] = plt.CompilerParams(num_warps=4)
+        params_cls = getattr(plt, "CompilerParams", None) or getattr(plt, "TritonCompilerParams")
+        extra["compiler_params"] = params_cls(num_warps=4)
     out = pl.pallas_call(
         lambda *refs: _kernel(layout, substeps, *refs), out_shape=out_shape, grid=(n_blocks,),
         in_specs=[whole] + [lanes] * 10, out_specs=[lanes] * 10, interpret=interpret, name="fused_flight",

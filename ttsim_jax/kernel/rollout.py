@@ -418,7 +418,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
              record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
              sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
-             model_axes=None, memory_budget_bytes: int = 2 << 30) -> RallyResult:
+             model_axes=None, fused: bool | str = False, memory_budget_bytes: int = 2 << 30) -> RallyResult:
     """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
     :func:`rollout`.
 
@@ -427,7 +427,7 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
         ball: :class:`Ball` with (B, 3) fields (or (3,) for one ball; outputs keep B = 1), cast to
             the model's float dtype.
         n_steps, dt, racket, integrator, record_every, max_events, contact_capacity,
-        sample_residual, key, model_axes, memory_budget_bytes: as for :func:`rollout`.
+        sample_residual, key, model_axes, fused, memory_budget_bytes: as for :func:`rollout`.
         t0: start time [s].
         model_batched: shorthand for ``model_axes=0`` (every leaf per ball, e.g. ``stack_models``).
 
@@ -441,6 +441,7 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
     state, out = rollout(model, state, n_steps, dt, racket, integrator=integrator,
                          model_axes=0 if model_batched else model_axes, max_events=max_events,
                          record_every=record_every, contact_capacity=contact_capacity,
-                         sample_residual=sample_residual, key=key, memory_budget_bytes=memory_budget_bytes)
+                         sample_residual=sample_residual, key=key, fused=fused,
+                         memory_budget_bytes=memory_budget_bytes)
     return RallyResult(final=state.ball, alive=state.alive, status=state.status, events=out.events,
                        trajectory=out.trajectory, times=out.times, state=state)
