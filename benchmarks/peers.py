@@ -3,6 +3,10 @@
 Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1 ms in float32:
 
 - ``kernel``: the rally kernel (``ttsim_jax.rollout``; called only in :func:`kernel_rollout`).
+- ``kernel_fused``: the same with ``fused=True`` (``ttsim_jax.kernel.fused``: a Pallas kernel flies
+  the balls many steps per launch); compiled by Triton on a GPU, in Pallas's interpret mode
+  elsewhere (a correctness run there, not a speed: ``--max-batch-fused``). Flight + table only:
+  it does not cover racket policies.
 - ``plain_scan``: a straightforward ``lax.scan`` over steps of ``jax.vmap`` of a single-ball step
   calling the project's stages (``aero.flight_step``, ``table.table_contact``,
   ``racket.racket_contact``) with an end-of-step penetration check: no event log, no gathering,
@@ -57,17 +61,19 @@ from ttsim_jax.state import Ball  # noqa: E402
 DT = 1e-3
 MODEL = "conti2026"
 CONFIGS = ("table", "rackets")
+JAX_PEERS = ("kernel", "kernel_fused", "plain_scan")  # they take the shots as JAX arrays
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 
 
 # --------------------------------------------------------------------------- the kernel
-def kernel_rollout(model, balls: Ball, n_steps: int, dt: float, policy):
+def kernel_rollout(model, balls: Ball, n_steps: int, dt: float, policy, fused: bool = False):
     """The rally kernel on a batch (``init_state`` then ``rollout``); the only place it is called.
+    ``fused`` takes the fused flight path.
 
     Returns:
         (final positions (B, 3), first table bounce (B, 3), NaN where none) as JAX arrays.
     """
-    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8)
+    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8, fused=fused)
     ev_log = out.events
     is_table = ev_log.kind == ev.TABLE
     first = jnp.argmax(is_table, axis=1)
@@ -158,6 +164,16 @@ class Peers:
         self.runs: dict = {}
         self.compile_s: dict[str, float] = {}
         self.runs["kernel"] = lambda b, n: kernel_rollout(model, b, n, DT, self.policy)
+        if self.policy is not None:
+            self.skipped["kernel_fused"] = "the fused path does not cover racket policies (tracking_rackets)"
+        else:
+            self.runs["kernel_fused"] = lambda b, n: kernel_rollout(model, b, n, DT, None, fused=True)
+            if jax.default_backend() == "gpu":  # a Triton compilation that fails is recorded, not fatal
+                try:
+                    jax.block_until_ready(self.runs["kernel_fused"](_shots(8)[0], 2))
+                except Exception as e:
+                    del self.runs["kernel_fused"]
+                    self.skipped["kernel_fused"] = f"{type(e).__name__}: {str(e)[:300]}"
         self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
         numba_mod, why = _optional("numba")
         if numba_mod is None:
@@ -236,7 +252,7 @@ def agreement(peers: Peers, n_balls: int, n_steps: int, seed: int = 12345) -> di
                              median_m=float(np.median(d)), max_m=float(np.max(d)), compared=64)
             continue
         else:
-            _, first = run(balls if name == "plain_scan" else shots, n_steps)
+            _, first = run(balls if name in JAX_PEERS else shots, n_steps)
         first = np.asarray(first, np.float64)
         both = np.isfinite(first[:, 0]) & np.isfinite(k_first[:, 0])
         d = np.linalg.norm(first[both] - k_first[both], axis=-1)
@@ -261,7 +277,7 @@ def time_batch(peers: Peers, batch: int, n_steps: int, repeats: int, max_batch: 
     """
     balls, shots = _shots(batch, seed=batch)
     names = [n for n in peers.runs if batch <= max_batch.get(n, batch)]
-    arg = {n: balls if n in ("kernel", "plain_scan", "mjx") else shots for n in names}
+    arg = {n: balls if n in JAX_PEERS + ("mjx",) else shots for n in names}
     first = {n: _call(peers.runs[n], arg[n], n_steps) for n in names}
     times = {n: [] for n in names}
     for r in range(repeats):
@@ -275,7 +291,8 @@ def time_batch(peers: Peers, batch: int, n_steps: int, repeats: int, max_batch: 
                       first_call_s=first[n], compile_s=max(0.0, first[n] - med))
     for n in peers.runs:
         if n not in names:
-            out[n] = dict(skipped=f"batch above --max-batch-{n.split('_')[0]} ({max_batch[n]})")
+            flag = {"kernel_fused": "fused", "plain_scan": "plain"}.get(n, n)
+            out[n] = dict(skipped=f"batch above --max-batch-{flag} ({max_batch[n]})")
     return out
 
 
@@ -297,7 +314,8 @@ def plot(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     configs = list(report["configs"])
-    colours = {n: f"C{i}" for i, n in enumerate(("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx"))}
+    colours = {n: f"C{i}" for i, n in enumerate(("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx",
+                                                  "kernel_fused"))}
     fig, axes = plt.subplots(1, len(configs), figsize=(6 * len(configs), 4.5), squeeze=False)
     for ax, cfg in zip(axes[0], configs):
         rows = report["configs"][cfg]["results"]
@@ -345,6 +363,9 @@ def main(argv=None) -> int:
                    help="largest batch MuJoCo runs (it is far slower) (default: %(default)s)")
     p.add_argument("--max-batch-plain", type=int, default=1 << 30,
                    help="largest batch the plain scan runs (default: no limit)")
+    p.add_argument("--max-batch-fused", type=int, default=None,
+                   help="largest batch the fused kernel runs (default: no limit on a GPU, 4096 elsewhere, where "
+                        "Pallas runs in interpret mode)")
     p.add_argument("--mujoco-chunk", type=int, default=64, help="balls per MuJoCo model (default: %(default)s)")
     p.add_argument("--mjx", action="store_true",
                    help="also run MJX (slow to compile and run on CPU; batches up to --max-batch-mjx)")
@@ -365,12 +386,16 @@ def main(argv=None) -> int:
     if bad:
         p.error(f"--configs: unknown {sorted(bad)}; known: {list(CONFIGS)}")
     model = load_model(MODEL, dtype=jnp.float32)
+    gpu = jax.default_backend() == "gpu"
+    if args.max_batch_fused is None:
+        args.max_batch_fused = 1 << 30 if gpu else 4096
     device = str(jax.devices()[0])
     report = dict(benchmark="rally_kernel_peers", unit="ball-steps/s (batch x steps / seconds)", model=MODEL,
                   dt_s=DT, integrator="rk4", dtype="float32", device=device,
                   device_kind=jax.devices()[0].device_kind, platform=platform.platform(),
                   cpu_count=__import__("os").cpu_count(), versions=_versions(), repeats=args.repeats,
                   budget=args.budget, quick=args.quick,
+                  fused_pallas="triton (compiled)" if gpu else "interpret mode (a correctness run, not a speed)",
                   notes=["mujoco/mjx: similar physics, not the same (MuJoCo's ellipsoid fluid model and soft "
                          "contact, float64; flight + table only)",
                          "plain_scan: end-of-step contact check, no time of impact; its first bounce is the "
@@ -391,7 +416,8 @@ def main(argv=None) -> int:
             if a["median_m"] is not None:
                 print(f"    {n:11s} median {a['median_m'] * 1e3:9.4f} mm  max {a['max_m'] * 1e3:9.4f} mm "
                       f"({a['compared']} compared{', against ' + a['against'] if 'against' in a else ''})", flush=True)
-        max_batch = {"mujoco": args.max_batch_mujoco, "plain_scan": args.max_batch_plain, "mjx": args.max_batch_mjx}
+        max_batch = {"mujoco": args.max_batch_mujoco, "plain_scan": args.max_batch_plain, "mjx": args.max_batch_mjx,
+                     "kernel_fused": args.max_batch_fused}
         rows = []
         for batch in batches:
             n_steps = steps_for(batch, args.budget)

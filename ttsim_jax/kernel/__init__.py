@@ -2,7 +2,8 @@
 
 Modules, in the order the data flows: :mod:`.state` (``RallyState``, ``init_state``),
 :mod:`.plans` (racket schedules and policies), :mod:`.step` (one step for a batch),
-:mod:`.eventlog` (what happened), :mod:`.rollout` (``rollout``, ``simulate``).
+:mod:`.eventlog` (what happened), :mod:`.rollout` (``rollout``, ``simulate``); :mod:`.fused` (the
+Pallas flight path for accelerators), :mod:`.sharding` (the ball axis over devices).
 """
 
 from ttsim_jax.kernel.eventlog import EventLog

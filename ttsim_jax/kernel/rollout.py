@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
@@ -166,9 +167,23 @@ def _split_per_ball(model, axes):
 
 @partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
                                    "sample", "rackets_batched", "remat", "reference", "block",
-                                   "buffering"))
-def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
-             max_events, capacity, sample, rackets_batched, remat, reference, block, buffering):
+                                   "buffering", "fused"))
+def _rollout(model, state: RallyState, schedule, policy, dt, key, *, fused, **static):
+    """The jitted rollout; on the fused path (``fused`` > 0, its sub-steps per launch) a
+    ``custom_jvp`` whose derivative is the reference path's, so reverse mode never meets the kernel."""
+    if not fused:
+        return _run(model, state, schedule, policy, dt, key, fused=0, **static)
+
+    def path(substeps):
+        return lambda m, s, sc, d, k: _run(m, s, sc, None, d, k, fused=substeps, **static)
+
+    run = jax.custom_jvp(path(fused))
+    run.defjvp(lambda primals, tangents: jax.jvp(path(0), primals, tangents))
+    return run(model, state, schedule, dt, key)
+
+
+def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
+         max_events, capacity, sample, rackets_batched, remat, reference, block, buffering, fused):
     axes = axes.tree()
     b = state.batch
     dtype = state.ball.pos.dtype
@@ -214,11 +229,29 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, axes, n_ste
         split = lambda a, lo, n, shape: None if a is None else jax.tree.map(  # noqa: E731
             lambda x: x[lo:lo + n].reshape(shape + x.shape[1:]), a)
         carry = (ball, alive, status, log, step0)
+        if fused:
+            return run_fused(model, carry, ball_id, schedule)
         carry, rec = jax.lax.scan(chunk, carry, split(schedule, 0, n_chunks * every, (n_chunks, every)),
                                   length=n_chunks)
         if tail:
             carry = run(carry, split(schedule, n_chunks * every, tail, (tail,)), tail)
         return carry, rec
+
+    def run_fused(model, carry, ball_id, schedule):
+        """The rollout on the fused path: the balls' clocks meet at every recorded step."""
+        length = record_every or n_steps
+
+        def segment(carry, n):
+            ball, alive, status, log, k = carry
+            ball, alive, status, log = fused_path.advance(model, axes, ball, alive, status, ball_id, log, k, n,
+                                                          schedule, step0, t0, dt, stepper, substeps=fused)
+            return ball, alive, status, log, k + n
+
+        def chunk(carry, _):
+            carry = segment(carry, length)
+            return carry, ((carry[0], t0 + carry[4].astype(dtype) * dt) if record_every else None)
+
+        return jax.lax.scan(chunk, carry, None, length=n_steps // length)
 
     # a rally that has not started yet (dt 0): refuse balls inside the table, the net or a racket
     start = None if schedule is None else jax.tree.map(lambda a: a[0], schedule)
@@ -306,6 +339,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
             contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
             reference: bool = False, block_size: int | None = None, buffering: str | None = None,
+            fused: bool | str = False,
             memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
@@ -338,6 +372,12 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         buffering: how a step hands its flagged balls to the contact models (same results):
             ``"loop"`` (default on CPU) or ``"single"`` (default on GPU and other accelerators);
             see :func:`~ttsim_jax.kernel.step.step`.
+        fused: the fused flight path (:mod:`~ttsim_jax.kernel.fused`: a Pallas kernel flies the balls
+            many steps per launch up to their next possible event; same results within float32
+            rounding): True (refused with the reason where it does not cover the rollout), False
+            (default), or ``"auto"`` (on a GPU wherever it covers the rollout). Pallas runs
+            compiled (Triton) on a GPU and in interpret mode elsewhere (slow: for testing).
+            ``jax.grad`` always differentiates the reference path.
         memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
             need more is refused before compiling, with the sizes.
 
@@ -369,6 +409,14 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     elif racket is not None:
         schedule, batched = normalise_schedule(racket, n_steps, batch)
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
+    if fused not in (True, False, "auto"):
+        raise ValueError(f"fused must be True, False or 'auto', got {fused!r}")
+    if fused:
+        why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched,
+                                     sample=sample_residual)
+        if why is not None and fused is True:
+            raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
+        fused = why is None and not reference and (fused is True or jax.default_backend() == "gpu")
     block = default_block(batch) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
@@ -379,13 +427,13 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
                     sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference,
-                    block=block, buffering=buffering)
+                    block=block, buffering=buffering, fused=fused_path.SUBSTEPS if fused else 0)
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
              record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
              sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
-             model_axes=None, memory_budget_bytes: int = 2 << 30) -> RallyResult:
+             model_axes=None, fused: bool | str = False, memory_budget_bytes: int = 2 << 30) -> RallyResult:
     """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
     :func:`rollout`.
 
@@ -394,7 +442,7 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
         ball: :class:`Ball` with (B, 3) fields (or (3,) for one ball; outputs keep B = 1), cast to
             the model's float dtype.
         n_steps, dt, racket, integrator, record_every, max_events, contact_capacity,
-        sample_residual, key, model_axes, memory_budget_bytes: as for :func:`rollout`.
+        sample_residual, key, model_axes, fused, memory_budget_bytes: as for :func:`rollout`.
         t0: start time [s].
         model_batched: shorthand for ``model_axes=0`` (every leaf per ball, e.g. ``stack_models``).
 
@@ -408,6 +456,7 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
     state, out = rollout(model, state, n_steps, dt, racket, integrator=integrator,
                          model_axes=0 if model_batched else model_axes, max_events=max_events,
                          record_every=record_every, contact_capacity=contact_capacity,
-                         sample_residual=sample_residual, key=key, memory_budget_bytes=memory_budget_bytes)
+                         sample_residual=sample_residual, key=key, fused=fused,
+                         memory_budget_bytes=memory_budget_bytes)
     return RallyResult(final=state.ball, alive=state.alive, status=state.status, events=out.events,
                        trajectory=out.trajectory, times=out.times, state=state)

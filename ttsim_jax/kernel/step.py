@@ -301,9 +301,11 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
         post = post.replace(vel=post.vel + jnp.einsum("cij,cj->ci", rot, dv.astype(x.dtype)),
                             spin=post.spin + jnp.einsum("cij,cj->ci", rot, dw.astype(x.dtype)))
         sigma = jnp.where(is_r, jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1), 0.0).astype(x.dtype)
-    after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, None, None))(m_c, post, tau, t, dt)
-    nxt, kind, time, log_post, stops = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, 0, None, None))(
-        ball_c, alive_c, free_c, prop, post, after, t, dt)
+    t_ax = None if jnp.ndim(t) == 0 else 0
+    t_c = t if t_ax is None else take(t)
+    after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, t_ax, None))(m_c, post, tau, t_c, dt)
+    nxt, kind, time, log_post, stops = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, 0, t_ax, None))(
+        ball_c, alive_c, free_c, prop, post, after, t_c, dt)
     is_r = kind == ev.RACKET
     contact = jnp.where(is_r[:, None], x[:, 6:8], 0.0)
     sigma = jnp.where(is_r[:, None], sigma, 0.0)
@@ -321,7 +323,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         log: the :class:`EventLog` to append to, or None to log nothing.
         rackets: :class:`Racket` with (R, ...) fields shared by all balls, (B, R, ...) if
             ``rackets_batched``, or None.
-        t, dt: time at the start of the step and step length [s].
+        t, dt: time at the start of the step ((), or (B,) when the balls' clocks differ, as in the
+            fused path) and step length [s].
         integrator: flight integrator (static); capacity: contact buffer rows (static).
         key, sample: the step's PRNG key and whether to sample the residual from its predicted std.
         reference: run the exact detection for every ball (static): the straightforward step the
@@ -339,7 +342,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     b = alive.shape[0]
     phys, phys_axes = model.replace(residual=None), axes.replace(residual=None)
     r_ax = 0 if rackets_batched else None
-    free = jax.vmap(partial(flight, integrator=integrator), in_axes=(phys_axes, 0, None, None))(phys, ball, t, dt)
+    t_ax = None if jnp.ndim(t) == 0 else 0
+    free = jax.vmap(partial(flight, integrator=integrator), in_axes=(phys_axes, 0, t_ax, None))(phys, ball, t, dt)
     flag = alive & jax.vmap(may_have_event, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free, rackets, dt)
     base = jax.tree.map(lambda f, o: jnp.where(alive[:, None], f, o), free, ball)
     capacity = min(capacity, b)
