@@ -5,10 +5,10 @@ always the numbers of one run and never typed by hand.
     python benchmarks/readme_tables.py --write README.md benchmarks/README.md
 
 One table per entry of :data:`TABLES`: the CPU run (``results/peers_cpu.json``) between the lines
-``<!-- peers-table:start -->`` and ``<!-- peers-table:end -->``, the GPU run
-(``results/peers_gpu.json``) between ``<!-- peers-gpu-table:start -->`` and
-``<!-- peers-gpu-table:end -->``. ``--write`` replaces those blocks in each file (a file without
-them is an error).
+``<!-- peers-table:start -->`` and ``<!-- peers-table:end -->``, the GPU runs
+(``results/peers_gpu.json``, ``results/peers_gpu_fused.json``) between
+``<!-- peers-gpu-table:start -->`` / ``<!-- peers-gpu-fused-table:start -->`` and their end lines.
+``--write`` replaces those blocks in each file (a file without them is an error).
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 # marker name -> the benchmark JSON its table is written from
-TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json"}
+TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json",
+          "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json"}
 START, END = "<!-- peers-table:start -->", "<!-- peers-table:end -->"
 PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
 
