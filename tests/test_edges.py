@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import Ball, load_model
 from ttsim_jax.physics import table as tbl
 from ttsim_jax.physics.events import FLOOR, INVALID, REST, TABLE
 
-from padding import pad_balls
+from padding import AWAY, resting_racket, simulate_shared
 
 R = 0.02
 L2, W2 = 1.37, 0.7625  # half length and half width of the table
@@ -28,19 +28,10 @@ def weightless(m):
     return m.replace(aero=m.aero.replace(gravity=jnp.zeros_like(m.aero.gravity)))
 
 
-# every simulation here: N steps, B balls, 8 events, a racket schedule, a recording every 10 steps
-# (one compilation per dtype)
-N = 1600
-B = 8
-AWAY = (0.0, 5.0, 2.0)  # a racket beside the table, 2 m up, that no ball here comes near
-
-
 def run(m, b, dt=1e-3, racket_pos=AWAY):
-    """``simulate`` for N steps with the batch padded to B balls (balls at rest on the floor) and a
+    """The suite's shared rollout (every simulation here: one compilation per dtype) with a
     resting racket at ``racket_pos``."""
-    racket = Racket.create(jnp.asarray(racket_pos, m.ball.radius.dtype))
-    sched = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,) + a.shape), racket)
-    return simulate(m, pad_balls(b, B), N, dt, racket=sched, record_every=10)
+    return simulate_shared(m, b, dt, resting_racket(racket_pos))
 
 
 def kinds(r, i=0):
