@@ -127,6 +127,11 @@ def test_per_ball_leaf_with_wrong_shape_is_refused():
     m = load_model("conti2026")
     with pytest.raises(ValueError, match=r"table.e0.*leading axis must be the batch \(4\)"):
         rollout(m, init_state(shots(4)), 10, model_axes=per_ball_axes(m, "table.e0"))
+    # a leaf after a field the model leaves empty (no residual network): the check names it
+    windy = m.replace(effects=(make("air_flow"),))
+    assert windy.residual is None
+    with pytest.raises(ValueError, match=r"\.effects\[0\]\.wind is per ball but has shape \(3,\)"):
+        rollout(windy, init_state(shots(4)), 10, model_axes=per_ball_axes(windy, "effects.0.wind"))
     with pytest.raises(ValueError, match="no field 'table.nope'"):
         per_ball_axes(m, "table.nope")
 
