@@ -28,22 +28,19 @@ from ttsim_jax.physics import racket as racket_stage
 
 SAMPLE = Path(__file__).resolve().parents[1] / "ttsim_jax" / "data" / "sample"
 SIM = ",".join(fx.names("simulator"))
-TINY = dict(games=2, rallies_per_game=(2, 2), lanes=2)
-# the runs that compare one record effect with none: one rally a game, the same lanes (and so the
-# same compiled kernels)
-SHORT = dict(TINY, rallies_per_game=(1, 1))
+TINY = dict(games=2, rallies_per_game=(1, 1), lanes=2)
 
 
-def tiny(effects, seed=0, **size):
-    return generate(make_config(effects=effects, seed=seed, **(size or TINY)), progress=False)
+def tiny(effects, seed=0):
+    return generate(make_config(effects=effects, seed=seed, **TINY), progress=False)
 
 
 @pytest.fixture(scope="module")
 def runs():
     """Generated once per module: every run shares one set of compiled kernels (same in-simulator effects)."""
-    out = {"all": tiny("all"), "all_again": tiny("all"), "seed1": tiny("all", seed=1), "sim": tiny(SIM, **SHORT)}
+    out = {"all": tiny("all"), "all_again": tiny("all"), "seed1": tiny("all", seed=1), "sim": tiny(SIM)}
     for name in fx.names("record"):
-        out[name] = tiny(SIM + "," + name, **SHORT)
+        out[name] = tiny(SIM + "," + name)
     return out
 
 
@@ -230,7 +227,7 @@ def test_config_file_and_its_errors(tmp_path):
 
 def test_generate_command_writes_a_dataset_and_prints_the_truth(tmp_path, capsys):
     cfg = tmp_path / "one.toml"
-    cfg.write_text("[generator]\nrallies_per_game = [1, 1]\nlanes = 2\n")  # the fixture's compiled shapes
+    cfg.write_text("[generator]\nrallies_per_game = [1, 1]\nlanes = 2\n")  # TINY: the fixture's compiled shapes
     out = tmp_path / "ds"
     assert generate_main(["generate", "--out", str(out), "--games", "2", "--config", str(cfg), "--effects", SIM
                           + ",position_noise", "--quiet"]) == 0
