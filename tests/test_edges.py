@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import Ball, load_model
 from ttsim_jax.physics import table as tbl
 from ttsim_jax.physics.events import FLOOR, INVALID, REST, TABLE
 
-from padding import pad_balls
+from padding import AWAY, resting_racket, simulate_shared
 
 R = 0.02
 L2, W2 = 1.37, 0.7625  # half length and half width of the table
@@ -28,12 +28,10 @@ def weightless(m):
     return m.replace(aero=m.aero.replace(gravity=jnp.zeros_like(m.aero.gravity)))
 
 
-N = 1600  # every simulation here: N steps, 2 balls, 8 events (one compilation per dtype)
-
-
-def run(m, b, dt=1e-3):
-    """``simulate`` for N steps with the batch padded to two balls (a ball at rest on the floor)."""
-    return simulate(m, pad_balls(b, 2), N, dt)
+def run(m, b, dt=1e-3, racket_pos=AWAY):
+    """The suite's shared rollout (every simulation here: one compilation per dtype) with a
+    resting racket at ``racket_pos``."""
+    return simulate_shared(m, b, dt, resting_racket(racket_pos))
 
 
 def kinds(r, i=0):
@@ -63,7 +61,7 @@ def test_sliding_ball_reaches_the_rolling_speed_of_a_shell():
     v0, dt = 2.0, 1e-3
     b = Ball.create([[-1.0, 0.0, R]], [[v0, 0.0, 0.0]])
     t_roll = 0.4 * v0 / (0.25 * 9.81)
-    r = simulate(m, b, N, dt, record_every=10)
+    r = run(m, b, dt)
     vx = np.asarray(r.trajectory.vel[0, :, 0])
     times = np.asarray(r.times)
     on = np.asarray(r.trajectory.pos[0, :, 0]) < L2
@@ -142,12 +140,10 @@ def test_ball_clipping_an_edge_within_one_step_is_caught():
 # --------------------------------------------------------------------------- start states
 def test_balls_starting_inside_table_net_or_racket_are_refused(dtype):
     m = load_model("conti2026", dtype=dtype)
-    racket = Racket.create(jnp.array([-1.6, 0.0, 0.2], dtype))
     pos = [[0.5, 0.0, -0.01], [1.0, 0.3, 0.005], [0.0, 0.2, 0.08], [-1.6, 0.01, 0.21],  # inside
            [0.5, 0.0, R], [0.0, 0.2, 0.2], [-1.55, 0.0, 0.2]]  # touching / clear
     b = Ball.create(pos, [[3.0, 0.0, -1.0]] * 7, dtype=dtype)
-    sched = jax.tree.map(lambda a: jnp.broadcast_to(a, (20,) + a.shape), racket)
-    r = simulate(m, b, 20, racket=sched)
+    r = run(m, b, racket_pos=(-1.6, 0.0, 0.2))
     assert np.asarray(r.status).tolist()[:4] == [INVALID] * 4
     assert INVALID not in np.asarray(r.status).tolist()[4:]
     np.testing.assert_array_equal(np.asarray(r.final.pos[:4]), np.asarray(b.pos[:4]))  # not flown

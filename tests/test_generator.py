@@ -28,7 +28,7 @@ from ttsim_jax.physics import racket as racket_stage
 
 SAMPLE = Path(__file__).resolve().parents[1] / "ttsim_jax" / "data" / "sample"
 SIM = ",".join(fx.names("simulator"))
-TINY = dict(games=2, rallies_per_game=(2, 2), lanes=2)
+TINY = dict(games=2, rallies_per_game=(1, 1), lanes=2)
 
 
 def tiny(effects, seed=0):
@@ -227,9 +227,9 @@ def test_config_file_and_its_errors(tmp_path):
 
 def test_generate_command_writes_a_dataset_and_prints_the_truth(tmp_path, capsys):
     cfg = tmp_path / "one.toml"
-    cfg.write_text("[generator]\nrallies_per_game = [1, 1]\nlanes = 1\n")
+    cfg.write_text("[generator]\nrallies_per_game = [1, 1]\nlanes = 2\n")  # TINY: the fixture's compiled shapes
     out = tmp_path / "ds"
-    assert generate_main(["generate", "--out", str(out), "--games", "1", "--config", str(cfg), "--effects", SIM
+    assert generate_main(["generate", "--out", str(out), "--games", "2", "--config", str(cfg), "--effects", SIM
                           + ",position_noise", "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "table contacts:" in text and "racket_logo (dataset): grip_loss=" in text and "air_flow (session)" in text

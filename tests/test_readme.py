@@ -4,15 +4,41 @@ import re
 
 from pathlib import Path
 
+import jax
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
+GRAD = re.compile(r"^jax\.grad\((.+)\)\((\w+)\)", re.M)  # the example's one line ``jax.grad(f)(x)``
 
 
-def test_readme_api_example_runs():
+def api_example() -> str:
     text = (REPO / "README.md").read_text()
-    code = re.search(r"## The API in ten lines\n\n```python\n(.*?)```", text, re.S).group(1)
+    return re.search(r"## The API in ten lines\n\n```python\n(.*?)```", text, re.S).group(1)
+
+
+def run(code: str) -> dict:
     namespace = {}
     exec(compile(code, "README.md", "exec"), namespace)
+    return namespace
+
+
+@pytest.mark.slow  # compiles the reverse pass through the kernel (about a minute)
+def test_readme_api_example_runs():
+    namespace = run(api_example())
     assert namespace["out"].events.kind.shape[0] == 1
+
+
+def test_readme_api_example_runs_with_its_gradient_traced():
+    """Every line runs as written except ``jax.grad(f)(x)``, which is traced through the whole
+    kernel (forward, rematerialisation and transpose: ``jax.eval_shape``) but not compiled; the
+    gradient's values are checked against finite differences in test_gradients.py (-m slow)."""
+    code, n = GRAD.subn(r"grad_shape = jax.eval_shape(jax.grad(\1), \2)", api_example())
+    assert n == 1, "the README example has no line jax.grad(f)(x) any more: update this test"
+    namespace = run(code)
+    assert namespace["out"].events.kind.shape[0] == 1
+    grad, model = namespace["grad_shape"], namespace["model"]
+    assert jax.tree.structure(grad) == jax.tree.structure(model)
+    assert [g.shape for g in jax.tree.leaves(grad)] == [jax.numpy.shape(m) for m in jax.tree.leaves(model)]
 
 
 def test_ci_runs_the_readme_test_command():

@@ -11,6 +11,9 @@ from ttsim_jax.effects import make
 from ttsim_jax.kernel.rollout import _rollout
 from ttsim_jax.physics.events import NONE, RACKET, TABLE
 
+import padding as shared
+from padding import pad_balls
+
 B = 64
 N = 400
 
@@ -36,15 +39,50 @@ def two_rackets(n_steps, dt=1e-3):
     return sched.replace(pos=both.pos[None] + t * both.vel[None])
 
 
+# Two compiled float64 shapes serve most tests: B balls for N steps with the two rackets, with
+# shared parameters, and with per-ball parameters and rackets (recorded, in one block).
+PER_BALL = ("table.e0", "aero.rho_air", "effects.0.wind")
+
+
 @pytest.fixture(scope="module")
 def model():
-    return load_model("conti2026")
+    """conti2026 in moving air (an effect acting in the flight)."""
+    return load_model("conti2026").replace(effects=(make("air_flow"),))
 
 
 @pytest.fixture(scope="module")
 def whole(model):
     state = init_state(shots())
     return rollout(model, state, N, 1e-3, two_rackets(N))
+
+
+def with_values(model, e0, rho, wind):
+    return model.replace(table=model.table.replace(e0=e0), aero=model.aero.replace(rho_air=rho),
+                         effects=(model.effects[0].replace(wind=wind),))
+
+
+def per_ball_rollout(model, batched, balls, block_size=0):
+    """``batched`` (``model`` with (B,) values of PER_BALL) and a racket schedule per ball."""
+    sched = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (B,) + a.shape), two_rackets(N))
+    return rollout(batched, init_state(balls), N, 1e-3, sched, model_axes=per_ball_axes(model, *PER_BALL),
+                   block_size=block_size, record_every=100)
+
+
+# three parameter sets, ball i gets set i % 3; balls 0-2 are one shot (so it ends in three places)
+SETS = dict(e0=jnp.array([0.85, 0.93, 0.99]), rho=jnp.array([1.1, 1.2, 1.3]),
+            wind=jnp.array([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [-0.5, 0.3, 0.0]]))
+PICK = np.arange(B) % 3
+
+
+def per_ball_shots():
+    return jax.tree.map(lambda a: a.at[1:3].set(a[0]), shots())
+
+
+@pytest.fixture(scope="module")
+def per_ball(model):
+    """(batched model, rollout) of the per-ball shape, in one block."""
+    batched = with_values(model, *(v[PICK] for v in SETS.values()))
+    return batched, per_ball_rollout(model, batched, per_ball_shots())
 
 
 def test_two_halves_equal_one_rollout(model, whole):
@@ -113,48 +151,46 @@ def test_lean_step_equals_reference_on_thousands_of_shots():
     assert int(np.sum(np.asarray(lo.events.kind) == RACKET)) > 500
 
 
-def test_per_ball_parameters_equal_single_balls():
-    base = load_model("conti2026").replace(effects=(make("air_flow"),))
-    axes = per_ball_axes(base, "table.e0", "aero.rho_air", "effects.0.wind")
-    n = 3
-    e0 = jnp.array([0.85, 0.93, 0.99])
-    rho = jnp.array([1.1, 1.2, 1.3])
-    wind = jnp.array([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [-0.5, 0.3, 0.0]])
-    batched = base.replace(table=base.table.replace(e0=e0), aero=base.aero.replace(rho_air=rho),
-                           effects=(base.effects[0].replace(wind=wind),))
-    balls = jax.tree.map(lambda a: jnp.repeat(a[:1], n, 0), shots(1, seed=5))
-    s, o = rollout(batched, init_state(balls), 500, model_axes=axes)
-    for i in range(n):
-        one = base.replace(table=base.table.replace(e0=e0[i]), aero=base.aero.replace(rho_air=rho[i]),
-                           effects=(base.effects[0].replace(wind=wind[i]),))
-        si, oi = rollout(one, init_state(jax.tree.map(lambda a: a[i:i + 1], balls)), 500)
-        np.testing.assert_allclose(np.asarray(si.ball.pos[0]), np.asarray(s.ball.pos[i]), atol=1e-12)
-        np.testing.assert_array_equal(np.asarray(oi.events.kind[0]), np.asarray(o.events.kind[i]))
-    assert len({round(float(x), 6) for x in s.ball.pos[:, 0]}) == n
+def test_per_ball_parameters_equal_single_balls(model, per_ball):
+    batched, (s, o) = per_ball
+    for i in range(3):
+        one = with_values(model, *(v[i] for v in SETS.values()))
+        si, oi = rollout(one, init_state(per_ball_shots()), N, 1e-3, two_rackets(N))  # the shape of `whole`
+        sel = PICK == i
+        np.testing.assert_allclose(np.asarray(si.ball.pos)[sel], np.asarray(s.ball.pos)[sel], atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(oi.events.kind)[sel], np.asarray(o.events.kind)[sel])
+    assert len({round(float(x), 6) for x in s.ball.pos[:3, 0]}) == 3
     # new per-ball values do not recompile
     size = _rollout._cache_size()
-    rollout(batched.replace(table=batched.table.replace(e0=e0 * 0.99)), init_state(balls), 500, model_axes=axes)
+    per_ball_rollout(model, batched.replace(table=batched.table.replace(e0=batched.table.e0 * 0.99)),
+                     per_ball_shots())
     assert _rollout._cache_size() == size
 
 
-def test_per_ball_leaf_with_wrong_shape_is_refused():
+def test_per_ball_leaf_with_wrong_shape_is_refused(model):
     m = load_model("conti2026")
     with pytest.raises(ValueError, match=r"table.e0.*leading axis must be the batch \(4\)"):
         rollout(m, init_state(shots(4)), 10, model_axes=per_ball_axes(m, "table.e0"))
+    # a leaf after a field the model leaves empty (no residual network): the check names it
+    assert model.residual is None
+    with pytest.raises(ValueError, match=r"\.effects\[0\]\.wind is per ball but has shape \(3,\)"):
+        rollout(model, init_state(shots(4)), 10, model_axes=per_ball_axes(model, "effects.0.wind"))
     with pytest.raises(ValueError, match="no field 'table.nope'"):
         per_ball_axes(m, "table.nope")
 
 
 def test_time_is_a_step_count_and_does_not_drift():
     m = load_model("conti2026", dtype=jnp.float32)
-    ball = Ball.create([[0.0, 0.0, 3.0]], [[0.0, 0.0, 0.0]], dtype=jnp.float32)
-    s, _ = rollout(m, init_state(ball), 5000, 1e-3, max_events=0)
-    assert float(s.time) == pytest.approx(5.0, abs=1e-6)
-    # a float32 clock adding dt each step would be off by ~1.8e-4 s here
+    s = init_state(pad_balls(Ball.create([[0.5, 0.0, 3.0]], [[0.0, 0.0, 0.0]], dtype=jnp.float32), shared.B))
+    for _ in range(3):  # the suite's shared shape (padding.py), resumed
+        s, _ = rollout(m, s, shared.N, 1e-3, shared.resting_racket(), record_every=shared.RECORD)
+    assert int(s.step) == 3 * shared.N
+    assert float(s.time) == pytest.approx(3 * shared.N * 1e-3, abs=1e-6)
+    # a float32 clock adding dt each step would be off by ~1.2e-4 s here
     clock = np.float32(0.0)
-    for _ in range(5000):
+    for _ in range(3 * shared.N):
         clock = np.float32(clock + np.float32(1e-3))
-    assert abs(float(clock) - 5.0) > 1e-4
+    assert abs(float(clock) - 3 * shared.N * 1e-3) > 1e-4
 
 
 def test_changing_dt_continues_from_the_current_time(model, whole):
@@ -171,14 +207,11 @@ def test_simulate_is_init_state_then_rollout(model, whole):
     assert int(np.sum(np.asarray(r.events.kind) != NONE)) == int(np.sum(np.minimum(np.asarray(o.events.count), 8)))
 
 
-def test_blocks_of_balls_equal_the_whole_batch(model, whole):
+def test_blocks_of_balls_equal_the_whole_batch(model, per_ball):
     """Blocks (here 5 blocks of 13 balls, the last one padded with dead balls) with per-ball
     parameters and a per-ball racket schedule give the unblocked results."""
-    axes = per_ball_axes(model, "table.e0")
-    m = model.replace(table=model.table.replace(e0=jnp.linspace(0.9, 0.99, B)))
-    sched = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (B,) + a.shape), two_rackets(N))
-    s0, o0 = rollout(m, init_state(shots()), N, 1e-3, sched, model_axes=axes, block_size=0, record_every=100)
-    s1, o1 = rollout(m, init_state(shots()), N, 1e-3, sched, model_axes=axes, block_size=13, record_every=100)
+    batched, (s0, o0) = per_ball
+    s1, o1 = per_ball_rollout(model, batched, per_ball_shots(), block_size=13)
     np.testing.assert_allclose(np.asarray(s1.ball.as_array()), np.asarray(s0.ball.as_array()), atol=1e-12)
     np.testing.assert_array_equal(np.asarray(o1.events.kind), np.asarray(o0.events.kind))
     np.testing.assert_array_equal(np.asarray(s1.status), np.asarray(s0.status))

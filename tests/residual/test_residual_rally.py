@@ -14,6 +14,9 @@ from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout
 from ttsim_jax.kernel.step import ball_properties
 
+import padding as shared
+from padding import simulate_shared
+
 TINY = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
 N_STEPS = 600
 RACKET0 = dict(pos=[1.6, 0.0, 0.2], vel=[-0.5, 0.0, 0.1], ang_vel=[0.0, 5.0, 3.0])
@@ -87,7 +90,7 @@ def test_sigma_logged_for_racket_contacts_only(setup):
     assert np.all(sigma[kinds == RACKET] > 0.0)
     assert np.all(sigma[kinds != RACKET] == 0.0)
     base, _, _, _ = setup
-    plain = simulate(base, balls(), N_STEPS, racket=schedule())
+    plain = simulate_shared(base, balls(), racket=schedule(shared.N))  # the suite's shared shape
     assert np.all(np.asarray(plain.events.sigma) == 0.0)
     # the correction changed the racket contacts and only them
     first_table = [int(np.flatnonzero(kinds[b] == TABLE)[0]) for b in range(3)]

@@ -108,10 +108,12 @@ def _resolve_axes(model: Model, model_axes):
 
 
 def _check_per_ball(model, axes, batch):
-    leaves = jax.tree_util.tree_flatten_with_path(model)[0]
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(model)
     flat_axes = jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: ax, sub), axes, model,
                              is_leaf=lambda x: x is None)
-    for (path, leaf), ax in zip(leaves, jax.tree.leaves(flat_axes, is_leaf=lambda x: x is None)):
+    # flattened along the model's own structure: a field that is None in the model (no leaf) must
+    # not shift the axes of the leaves after it
+    for (path, leaf), ax in zip(leaves, treedef.flatten_up_to(flat_axes)):
         if ax == 0 and (jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != batch):
             raise ValueError(f"model leaf {jax.tree_util.keystr(path)} is per ball but has shape "
                              f"{jnp.shape(leaf)}; its leading axis must be the batch ({batch})")
