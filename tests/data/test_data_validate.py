@@ -93,15 +93,25 @@ def test_table_surface_not_at_zero_labelled(small_dataset):
     assert "0.76" in str(err)
 
 
-def test_edge_contact_below_the_surface_level_is_valid(small_dataset):
+def test_edge_and_underside_contacts_are_valid_a_shifted_surface_is_not(small_dataset):
+    rows = np.flatnonzero(small_dataset.events["kind"] == "table")
+    assert len(rows) == 2 and np.all(np.abs(small_dataset.events["x"][rows]) <= 1.37)
+    base = small_dataset.events
     # A ball hitting the table's end edge: centre 17 mm beyond the end, 10.6 mm below the surface
-    # level (distance r to the edge). The same height over the surface names the frame.
-    row = int(np.flatnonzero(small_dataset.events["kind"] == "table")[0])
-    ev = {k: v.copy() for k, v in small_dataset.events.items()}
-    ev["x"][row], ev["y"][row], ev["z"][row] = 1.37 + 0.017, 0.1, -0.0106
+    # level (distance r to the edge).
+    ev = {k: v.copy() for k, v in base.items()}
+    ev["x"][rows[0]], ev["y"][rows[0]], ev["z"][rows[0]] = 1.37 + 0.017, 0.1, -0.0106
     validate(small_dataset.replace(events=ev))
-    ev["x"][row] = 1.37 - 0.017
-    raises(small_dataset.replace(events=ev), row=row, column="z", words=("table surface", "not 0"))
+    # A ball under the table meeting its underside 25 mm below the surface, inside the outline
+    # (the reality generator makes these when an opponent digs a low ball up under the end),
+    # beside a contact on top: one contact off the surface's height does not name the frame.
+    ev = {k: v.copy() for k, v in base.items()}
+    ev["x"][rows[1]], ev["y"][rows[1]], ev["z"][rows[1]] = -1.13, -0.42, -0.045
+    validate(small_dataset.replace(events=ev))
+    # Every contact over the surface 4 cm low: the frame's surface is not at z = 0.
+    ev = {k: v.copy() for k, v in base.items()}
+    ev["z"][rows] -= 0.04
+    raises(small_dataset.replace(events=ev), row=int(rows[0]), column="z", words=("table surface", "not 0", "median"))
 
 
 def test_table_surface_not_at_zero_unlabelled(simulate_flight):
