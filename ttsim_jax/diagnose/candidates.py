@@ -64,7 +64,7 @@ FREE = {
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Flight states are refitted (one Gauss-Newton step) every this many Adam steps: the effect moves
 #: slowly, and the gradient at a slightly stale state is nearly that of the minimised error.
-REFIT = 10
+REFIT = 1
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
 FINAL_GN = 3
 #: Least held-out reduction [%] (lower end of the 95 % interval) of a significant candidate.

@@ -44,6 +44,8 @@ AXES = ("topspin", "backspin", "sidespin", "gyro")
 #: Observations kept per flight segment (its first ones): the padded length bounds the cost of every
 #: flight evaluation, and 128 samples at 200 Hz (0.64 s) hold most of a flight's deviation.
 MAX_SAMPLES = 128
+#: Flight segments used at most (a seeded random subset of more): the flight stage is the costly one.
+MAX_SEGMENTS = 128
 #: Padded lengths of the flight arrays (samples).
 CAPACITIES = (64, 128, 256, 512, 1024, 4096)
 
@@ -124,9 +126,10 @@ def pad_rows(n: int, multiple: int = 32) -> int:
 
 
 def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float = 0.5,
-            max_samples: int = MAX_SAMPLES) -> Flights | None:
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Flights | None:
     """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
-    Segments longer than ``max_samples`` keep their first ``max_samples`` observations."""
+    Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
+    than ``max_segments`` segments a seeded random subset is kept."""
     from ttsim_jax.fit import aero as A
 
     ids, times, positions, spins, conf = A.dataset_segments(ds, min_samples)
@@ -139,6 +142,8 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
         keep[:] = True
         spins = np.zeros_like(spins)
     idx = np.flatnonzero(keep)
+    if len(idx) > max_segments:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, max_segments, replace=False))
     session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
     s, t = pad_rows(len(idx)), _capacity(max(len(times[i]) for i in idx))
     out = Flights(t0=np.zeros(s), tau=np.zeros((s, t)), pos=np.zeros((s, t, 3)), mask=np.zeros((s, t)),
@@ -226,13 +231,14 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
 
 
 def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, phases=("flight", "table", "racket"),
-            max_samples: int = MAX_SAMPLES) -> Phases:
-    """Every phase's items of ``ds`` for ``model`` (its ball radius, its racket frame convention)."""
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Phases:
+    """Every phase's items of ``ds`` for ``model`` (its ball radius, its racket frame convention);
+    see :func:`flights` for ``max_samples``, ``max_segments`` and ``seed``."""
     sessions = np.unique(np.asarray(ds.sessions["session_id"], np.int64)) if len(ds.sessions["session_id"]) else \
         np.unique(np.asarray(ds.segments["session_id"], np.int64))
     index = {int(s): k for k, s in enumerate(sessions)}
     skipped = {}
-    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples) if "flight" in phases else None
+    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed) if "flight" in phases else None
     if fl is None and "flight" in phases:
         skipped["flight"] = f"no flight segment with at least {min_samples} observations"
     tb = rk = None
