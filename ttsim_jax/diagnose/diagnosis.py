@@ -35,6 +35,10 @@ from ttsim_jax.diagnose import where as W
 from ttsim_jax.diagnose.phases import MAX_SEGMENTS, collect
 from ttsim_jax.fit.contacts import ContactFit
 
+class NoData(ValueError):
+    """The dataset has no usable item in any phase; the message gives each phase's reason."""
+
+
 #: Most significant candidates fitted jointly for the before/after.
 TOP = 3
 
@@ -132,6 +136,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     radius = float(ball_properties(model)[0])
     names = C.candidate_names(settings.effects)
     ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
+    if ph.flights is None and ph.table is None and ph.racket is None:
+        raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
     tick("phases", 1)
     pb = C.problem(ph, model, settings.test_fraction, settings.seed)
     tick("model errors", 1)
