@@ -162,13 +162,15 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
 
     # which effect
     cands = []
+    available = [n for n in names if any(p in pb.phases for p in C.spec(n)[0].phases)]
+    group_of = {n: g for g in C.groups(available, pb.phases) for n in g}
     for name in names:
         spec, _ = C.spec(name)
         if not any(p in pb.phases for p in spec.phases):
             out["skipped"][f"effect {name}"] = f"acts in {', '.join(spec.phases)}: no data there"
             tick(name, 1)
             continue
-        cands.append(C.fit(pb, [name], model, steps=settings.steps, lr=settings.lr))
+        cands.append(C.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
         tick(name, 1)
     ranked = C.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
@@ -178,7 +180,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     best = None
     if len(significant) > 1 and settings.combine:
         top = [c.spec.name for c in significant[:TOP]]
-        best = C.fit(pb, top, model, steps=settings.steps, lr=settings.lr, name="+".join(top))
+        group = next((g for g in set(group_of.values()) if set(top) <= set(g)), None)
+        best = C.fit(pb, top, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(top))
         out["combined"] = _candidate_json(best, 0)
     elif significant:
         best = significant[0]

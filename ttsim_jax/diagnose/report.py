@@ -172,9 +172,9 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
             for r, rows in ba["regimes"].items():
                 cells = ", ".join(f"{b['label']}: {b['before'] * f:.3g} -> {b['after'] * f:.3g}" for b in rows)
                 lines.append(f"- {r}: {cells}")
-        lines += ["", f"![before and after]({FIGURES['before_after']})"]
     else:
         lines.append("No candidate is significant: nothing to add to the model.")
+    lines += ["", f"![held-out errors before and after]({FIGURES['before_after']})"]
     if out.get("landing"):
         g = out["landing"]
         lines += ["", f"Landing error (rollouts, {g['n']} contacts): median {g['before_median']:.3f} m"
