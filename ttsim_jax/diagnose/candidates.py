@@ -67,6 +67,8 @@ FREE = {
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
 FINAL_GN = 3
+#: Items per stratum of the split (sorted by the model's error).
+STRATUM = 5
 #: Least held-out reduction [%] (lower end of the 95 % interval) of a significant candidate.
 MIN_REDUCTION = 1.0
 #: Least fall of the held-out RMS error of a significant candidate, per phase [m, m/s, m/s]: a
@@ -160,46 +162,58 @@ class Problem:
     norm: dict = dataclasses.field(default_factory=dict)
 
 
-def _split(n: int, rows: int, test_fraction: float, rng) -> tuple[np.ndarray, np.ndarray]:
+def _split(score, n: int, rows: int, test_fraction: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) weights (rows,): the first n rows split at random, stratified by ``score``.
+
+    Rows sorted by ``score`` (the model's own error) are cut into blocks of :data:`STRATUM` and a
+    share ``test_fraction`` of each block is held out, so that the rare large errors (an effect
+    acting in a narrow regime) fall on both sides. The split depends on the model only, never on
+    a candidate.
+    """
     test = np.zeros(rows, np.float32)
-    k = int(round(test_fraction * n))
-    test[rng.permutation(n)[:k]] = 1.0
+    order = np.argsort(np.asarray(score, np.float64)[:n], kind="stable")
+    for lo in range(0, n, STRATUM):
+        block = order[lo:lo + STRATUM]
+        k = rng.binomial(len(block), test_fraction) if len(block) < STRATUM else int(round(test_fraction * len(block)))
+        test[rng.permutation(block)[:k]] = 1.0
     real = np.zeros(rows, np.float32)
     real[:n] = 1.0
     return real * (1.0 - test), test
 
 
-def _pad_contacts(c, rng, test_fraction):
+def _pad_contacts(c):
     n = len(c)
-    rows = pad_rows(n)
-    idx = np.minimum(np.arange(rows), n - 1)
+    idx = np.minimum(np.arange(pad_rows(n)), n - 1)
     f = lambda a: jnp.asarray(np.asarray(a)[idx], jnp.float32)  # noqa: E731
-    train, test = _split(n, rows, test_fraction, rng)
     return dict(pos=f(c.pos), x=f(c.x), y_obs=f(c.y_obs), known=f(c.spin_known.astype(np.float32)),
-                correction=f(c.correction), session=jnp.asarray(c.session[idx], jnp.int32),
-                train=jnp.asarray(train), test=jnp.asarray(test))
+                correction=f(c.correction), session=jnp.asarray(c.session[idx], jnp.int32))
 
 
 def problem(ph: Phases, model, test_fraction: float = 0.4, seed: int = 0) -> Problem:
-    """The padded arrays of ``ph`` with a seeded split (segments / contacts drawn at random), and
-    the model's own errors on them (one compilation)."""
+    """The padded arrays of ``ph``, the model's own errors on them (one compilation) and a seeded
+    split of the segments / contacts stratified by those errors (:func:`_split`)."""
     rng = np.random.default_rng(seed)
-    data = {}
+    data, real = {}, {}
     if ph.flights is not None:
         fl = ph.flights
-        train, test = _split(fl.n, len(fl.t0), test_fraction, rng)
         f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
         data["flight"] = dict(t0=f(fl.t0), tau=f(fl.tau), pos=f(fl.pos), mask=f(fl.mask), spin=f(fl.spin),
-                              session=jnp.asarray(fl.session, jnp.int32), train=jnp.asarray(train), test=jnp.asarray(test))
+                              session=jnp.asarray(fl.session, jnp.int32))
+        real["flight"] = fl.n
     for name in ("table", "racket"):
         c = getattr(ph, name)
         if c is not None:
-            data[name] = _pad_contacts(c, rng, test_fraction)
+            data[name] = _pad_contacts(c)
+            real[name] = len(c)
     pb = Problem(data=data, phases=tuple(p for p in PHASES if p in data), n_sessions=len(ph.sessions), sessions=ph.sessions)
     if "flight" in data:
         d = data["flight"]
         pb.x0 = _initial(d["tau"], d["pos"], d["mask"])
     pb.base, pb.x0 = evaluate(model, (), (), (), pb, S.GN_START)
+    for p in pb.phases:
+        sse, n = item_sums(pb, p, pb.base[p])
+        train, test = _split(sse / np.maximum(n, 1.0), real[p], len(sse), test_fraction, rng)
+        data[p]["train"], data[p]["test"] = jnp.asarray(train), jnp.asarray(test)
     for p in pb.phases:
         sse, n = item_sums(pb, p, pb.base[p])
         w = np.asarray(pb.data[p]["train"])
