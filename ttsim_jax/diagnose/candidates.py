@@ -225,13 +225,12 @@ _initial = jax.jit(S.initial_state)
 
 
 def item_sums(pb: Problem, phase: str, errors) -> tuple[np.ndarray, np.ndarray]:
-    """Per row: (sum of squared errors, number of error values) (flight: over the segment's samples)."""
+    """Per row: (sum of squared error norms, number of items): flight, over the segment's samples
+    (3-D position errors); contacts, one item (the 6-vector of :mod:`~ttsim_jax.diagnose.stages`)."""
     e = np.asarray(errors, np.float64)
     if phase == "flight":
-        m = np.asarray(pb.data["flight"]["mask"], np.float64)
-        return np.sum(e**2, axis=(1, 2)), 3.0 * m.sum(1)
-    cols = np.concatenate([np.ones((len(e), 3)), np.repeat(np.asarray(pb.data[phase]["known"], np.float64)[:, None], 3, 1)], 1)
-    return np.sum(e**2, axis=1), cols.sum(1)
+        return np.sum(e**2, axis=(1, 2)), np.asarray(pb.data["flight"]["mask"], np.float64).sum(1)
+    return np.sum(e**2, axis=1), np.ones(len(e))
 
 
 # ---------------------------------------------------------------------------------------------- jitted
@@ -248,10 +247,10 @@ def _errors(model, specs, consts, u, data, x, phases, iterations):
 
 
 def _mse(phase, e, d, w):
+    """Weighted mean squared error norm per item, as :func:`item_sums` counts them."""
     if phase == "flight":
-        return jnp.sum(w[:, None, None] * e**2) / jnp.maximum(3.0 * jnp.sum(w[:, None] * d["mask"]), 1.0)
-    n = 3.0 + 3.0 * d["known"]
-    return jnp.sum(w[:, None] * e**2) / jnp.maximum(jnp.sum(w * n), 1.0)
+        return jnp.sum(w[:, None, None] * e**2) / jnp.maximum(jnp.sum(w[:, None] * d["mask"]), 1.0)
+    return jnp.sum(w[:, None] * e**2) / jnp.maximum(jnp.sum(w), 1.0)
 
 
 def _evaluate_impl(model, consts, u, data, x, specs, phases, iterations):

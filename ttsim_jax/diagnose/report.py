@@ -130,7 +130,8 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     deps = [(p, d) for p, ds in out["dependence"].items() for d in ds]
     lines += [f"- {p}: {d['error']} on {d['quantity']}: rho {d['rho']:+.2f}" for p, d in deps[:12]] or ["- none"]
     lines += ["", "## Which effect", "", "Each candidate fitted on the training split, scored on the held-out split "
-              "(reduction of the RMS error, 95 % paired bootstrap interval).", "",
+              "(reduction of the RMS error: flight, of the 3-D position error; contacts, of the norm of (velocity error, "
+              "radius x spin error); 95 % paired bootstrap interval).", "",
               "| rank | effect | phase | held-out reduction [%] | significant | fitted parameters |", "|---|---|---|---|---|---|"]
     for c in out["candidates"]:
         params = json.dumps(jsonable(c["params"]))
@@ -178,7 +179,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     if out.get("landing"):
         g = out["landing"]
         lines += ["", f"Landing error (rollouts, {g['n']} contacts): median {g['before_median']:.3f} m"
-                  + (f" -> {g['after_median']:.3f} m with the effects ({g['reduction_median_pct']:.0f} % less)"
+                  + (f" -> {g['after_median']:.3f} m with the effects (median {g['reduction_median_pct']:+.0f} % lower)"
                      if "after_median" in g else "")]
     lines += ["", f"Run time {out['seconds']:.0f} s. Every number is in diagnosis.json.", ""]
     return "\n".join(lines)
