@@ -33,7 +33,9 @@ CANDIDATES = ("worn_ball", "buckling", "table_tilt", "racket_logo")
 def withheld():
     ds = load(BUCKLING)
     model = load_model("conti2026", dtype=jnp.float32)
-    return diagnose(ds, model, Settings.quick(effects=CANDIDATES))
+    keep = {}
+    out = diagnose(ds, model, Settings.quick(effects=CANDIDATES), keep=keep)
+    return dict(out, problem=keep["problem"], model=model)
 
 
 def test_withheld_effect_ranks_first_and_is_significant(withheld):
@@ -55,6 +57,18 @@ def test_withheld_effect_parameters_are_recovered_roughly(withheld):
 
     fitted = {k: p[k] for k in ("table_onset", "table_width", "table_depth")}
     assert 0.5 * loss(TRUE_BUCKLING) < loss(fitted) < 1.5 * loss(TRUE_BUCKLING), fitted
+
+
+def test_oracle_shrink_of_the_selfcheck(withheld):
+    """The selfcheck's oracle (the model given the true effect) removes the table gap of noise-free
+    data, and the diagnosis recovers most of that shrink."""
+    from ttsim_jax.diagnose.selfcheck import oracle_scores
+
+    truth = json.loads((BUCKLING / "truth.json").read_text())
+    oracle = oracle_scores(withheld["problem"], withheld["model"], "buckling", truth)
+    assert oracle["table"]["pct"] > 80.0, oracle
+    found = withheld["candidates"][0]["heldout"]["table"]["pct"]
+    assert found > 0.8 * oracle["table"]["pct"]
 
 
 @pytest.fixture(scope="module")

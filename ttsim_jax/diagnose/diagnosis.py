@@ -115,7 +115,8 @@ def _with_effects(model, cand) -> object:
     return model.replace(effects=tuple(model.effects) + tuple(extra))
 
 
-def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str, int], None] | None = None) -> dict:
+def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str, int], None] | None = None,
+             keep: dict | None = None) -> dict:
     """The diagnosis of ``model`` on ``ds`` (see the module docstring).
 
     Arguments:
@@ -123,6 +124,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         settings: :class:`Settings`.
         progress: optional ``progress(what, units)`` called as work is done (units of
             :func:`work_units`).
+        keep: optional dict that receives the :class:`~ttsim_jax.diagnose.candidates.Problem`
+            (``"problem"``), for scoring other models on the same split.
 
     Returns:
         dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``dependence``,
@@ -140,6 +143,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
     tick("phases", 1)
     pb = C.problem(ph, model, settings.test_fraction, settings.seed)
+    if keep is not None:
+        keep["problem"] = pb
     tick("model errors", 1)
     out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
