@@ -103,10 +103,3 @@ def test_cli_writes_every_file(clean_run):
     for fig in FIGURES.values():
         assert f"]({fig})" in report
     assert "## Where" in report and "## Which effect" in report
-
-
-def test_cli_refuses_a_record_effect_as_a_candidate(tmp_path, capsys):
-    status = main(["diagnose", "--data", str(CLEAN), "--out", str(tmp_path / "x"), "--effects", "position_noise"])
-    assert status == 2
-    err = capsys.readouterr().err
-    assert "position_noise" in err and "record" in err
