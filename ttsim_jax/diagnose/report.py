@@ -55,8 +55,7 @@ def plot_where(where: dict, path) -> Path:
             ax.set_xticks(x)
             ax.set_xticklabels([b["label"] for b in rows], rotation=45, ha="right", fontsize=6)
             ax.tick_params(axis="y", labelsize=7)
-            if i == 0 or j == 0:
-                ax.set_title(f"{p}: {REGIMES[r][0]}" if j == 0 else REGIMES[r][0], fontsize=8)
+            ax.set_title(f"{p}: {REGIMES[r][0]}" if j == 0 else REGIMES[r][0], fontsize=7)
             if j == 0:
                 ax.set_ylabel(f"{p} mean error [{unit}]", fontsize=8)
     return _save(fig, path)
