@@ -5,9 +5,11 @@ that effect at a random magnitude (its ``sample`` draw: a realistic range) and p
 diagnosis runs with the effect hidden from the model, and the case is scored:
 
 * *rank 1*: the true effect is the first candidate and significant;
-* *phase*: the first candidate's best held-out phase is one the true effect acts in;
+* *phase*: the first candidate is significant and its best held-out phase is one the true effect
+  acts in;
 * *shrink*: the held-out RMS reduction the diagnosis found in that phase, as a fraction of the
-  oracle's (the model given the true effect with its true parameters, on the same held-out split).
+  oracle's (the model given the true effect with its true parameters, on the same held-out split;
+  the oracle's best phase when nothing is significant, the diagnosis then recovering 0).
 
 The generator's truth is read here, and only here: the diagnosis itself never sees it.
 """
@@ -75,11 +77,13 @@ def run_case(name: str, seed: int, settings, games: int = 2, rallies: int = 6) -
     top = out["candidates"][0] if out["candidates"] else None
     true_phases = C.phases_of(fx.effect_class(name))
     oracle = oracle_scores(pb, model, name, gen.truth)
-    phase = max(top["heldout"], key=lambda p: top["heldout"][p]["pct"]) if top else None
-    found = top["heldout"][phase]["pct"] if top and top["name"] == name else 0.0
-    ref = oracle.get(phase if phase in oracle else next(iter(oracle)), {}).get("pct", math.nan)
-    return dict(effect=name, seed=int(cfg.seed), rank1=bool(top and top["name"] == name and top["significant"]),
-                top=top["name"] if top else None, phase=phase, phase_right=bool(phase in true_phases),
+    located = top is not None and top["significant"]
+    phase = max(top["heldout"], key=lambda p: top["heldout"][p]["pct"]) if located else None
+    found = top["heldout"][phase]["pct"] if located and top["name"] == name else 0.0
+    best_oracle = max(oracle, key=lambda p: oracle[p]["pct"])
+    ref = oracle[phase if phase in oracle else best_oracle]["pct"]
+    return dict(effect=name, seed=int(cfg.seed), rank1=bool(located and top["name"] == name),
+                top=top["name"] if located else "none significant", phase=phase, phase_right=bool(phase in true_phases),
                 found_pct=found, oracle_pct=ref, shrink=found / ref if ref and ref > 0 else math.nan,
                 seconds=out["seconds"])
 
@@ -111,9 +115,9 @@ def table(result: dict) -> str:
         if "error" in r:
             lines.append(f"| {r['effect']} | {r['error'][:60]} | | | | | |")
             continue
-        lines.append(f"| {r['effect']} | {r['top']} | {'yes' if r['rank1'] else 'no'} | {r['phase']} "
-                     f"({'right' if r['phase_right'] else 'wrong'}) | {r['found_pct']:.1f} | {r['oracle_pct']:.1f} | "
-                     f"{r['shrink']:.2f} |")
+        phase = f"{r['phase']} ({'right' if r['phase_right'] else 'wrong'})" if r["phase"] else "-"
+        lines.append(f"| {r['effect']} | {r['top']} | {'yes' if r['rank1'] else 'no'} | {phase} | {r['found_pct']:.1f} | "
+                     f"{r['oracle_pct']:.1f} | {r['shrink']:.2f} |")
     lines.append(f"\nrank-1 rate {result['rank1_rate']:.2f}, located phase {result['phase_rate']:.2f}, median shrink "
                  f"recovered {result['median_shrink']:.2f}; {result['seconds']:.0f} s")
     return "\n".join(lines)
