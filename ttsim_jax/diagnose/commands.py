@@ -58,7 +58,8 @@ def register(subparsers) -> None:
         f"contact) with bootstrap intervals; a bin is flagged when its interval lies above {FLAG_RATIO} x the phase's "
         "mean. WHICH EFFECT: every simulator effect of the catalogue ('python -m ttsim_jax.effects') is fitted by "
         "gradient descent through the phase it acts in on a training split and scored by the reduction of the "
-        f"held-out RMS error (significant: 95 % interval above {MIN_REDUCTION:g} % and a fall above the phase's resolution); effects on the record (noise, "
+        f"held-out RMS error (significant: 95 % interval above {MIN_REDUCTION:g} % and a fall above the phase's "
+        "resolution); effects on the record (noise, "
         "missing frames, racket-state error) are sized instead. When no candidate is significant, the report says "
         "'unexplained' and where the gap is. HOW FAR: the significant effects fitted together, before and after. "
         "Writes report.md, diagnosis.json and PNG figures to --out.")

@@ -208,8 +208,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             res, _ = _landing(ds, _with_effects(model, best), settings.fit, radius)
             after = res["error"]["model"]
             ok = np.isfinite(before) & np.isfinite(after)
-            entry.update(after_median=float(np.nanmedian(after)),
-                         reduction_median_pct=100.0 * (1.0 - np.median(after[ok]) / np.median(before[ok])) if ok.any() else math.nan)
+            fall = 100.0 * (1.0 - np.median(after[ok]) / np.median(before[ok])) if ok.any() else math.nan
+            entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
             arrays["after_landing"] = after[np.isfinite(after)]
         out["landing"] = entry
     tick("landing after", 1)

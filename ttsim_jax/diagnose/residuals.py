@@ -155,7 +155,8 @@ def record_sizes(ds, phases, model) -> dict:
         out["position_noise"] = position_noise(fl)
         out["missing_frames"] = missing_frames(fl)
     conf = np.asarray(ds.segments["spin_conf"], np.float64)
-    out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)) if len(conf) else math.nan,
-                             median_confidence=float(np.median(conf)) if len(conf) else math.nan)
+    some = len(conf) > 0
+    out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)) if some else math.nan,
+                             median_confidence=float(np.median(conf)) if some else math.nan)
     out["racket_state_error"] = racket_state_error(model, phases.racket)
     return out

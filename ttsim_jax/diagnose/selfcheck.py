@@ -40,7 +40,8 @@ def oracle_scores(pb, model, name: str, truth: dict) -> dict:
     cls = fx.effect_class(name)
     per_session = cls.SCOPE == "session"
     sp = C.Spec(name, cls, tuple(cls.PARAMS), per_session)
-    consts = dict(start={k: np.zeros(p.shape) for k, p in cls.PARAMS.items()}, scale={k: np.float64(1.0) for k in cls.PARAMS})
+    consts = dict(start={k: np.zeros(p.shape) for k, p in cls.PARAMS.items()},
+                  scale={k: np.float64(1.0) for k in cls.PARAMS})
     if per_session:
         values = [truth["sessions"][int(s)]["effects"][name] for s in pb.sessions]
     else:
