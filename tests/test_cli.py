@@ -121,6 +121,13 @@ BAD = {
                                 ["--clusters", "'-2'"]),
     "train-seed-nan": (["train", "residual", "--data", SAMPLE, "--out", "{P}/n.ttres", "--seed", "nan"],
                        ["--seed", "'nan'"]),
+    "diagnose-data-missing": (["diagnose", "--out", "{P}/d"], ["--data", "required"]),
+    "diagnose-unknown-effect": (["diagnose", "--data", SAMPLE, "--out", "{P}/d", "--effects", "windy"], ["--effects", "windy"]),
+    "diagnose-record-effect": (["diagnose", "--data", SAMPLE, "--out", "{P}/d", "--effects", "spin_noise"],
+                               ["--effects", "spin_noise", "record"]),
+    "diagnose-test-fraction-one": (["diagnose", "--data", SAMPLE, "--out", "{P}/d", "--test-fraction", "1"],
+                                   ["--test-fraction", "'1'"]),
+    "diagnose-out-under-a-file": (["diagnose", "--data", SAMPLE, "--out", "{P}/bin/d"], ["--out", "{P}/bin/d"]),
     "evaluate-checkpoint-dir": (["evaluate", "residual", "--data", SAMPLE, "--checkpoint", "{P}/dir"],
                                 ["--checkpoint", "{P}/dir"]),
     "evaluate-checkpoint-binary": (["evaluate", "residual", "--data", SAMPLE, "--checkpoint", "{P}/bin"],
@@ -159,7 +166,7 @@ def test_version_and_help(capsys):
     assert ttsim_jax.__version__ in capsys.readouterr().out
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
-    for command in ("simulate", "data", "generate", "fit", "train", "evaluate"):
+    for command in ("simulate", "data", "generate", "fit", "train", "evaluate", "diagnose"):
         assert command in out
 
 

@@ -340,13 +340,14 @@ def build_parser() -> argparse.ArgumentParser:
     from ttsim_jax import __version__
     from ttsim_jax.data import commands as data_commands
     from ttsim_jax.data import generator_cli
+    from ttsim_jax.diagnose import commands as diagnose_commands
     from ttsim_jax.evaluate import commands as evaluate_commands
     from ttsim_jax.fit import commands as fit_commands
     from ttsim_jax.rl import commands as rl_commands
 
     parser = argparse.ArgumentParser(
         prog="ttsim", description="Differentiable table tennis ball physics in JAX: simulate shots, import, "
-                                  "generate and inspect data, fit aerodynamics, compare models on data, train and evaluate the racket "
+                                  "generate and inspect data, fit aerodynamics, compare models on data, diagnose the sim-to-real gap, train and evaluate the racket "
                                   "residual network, train and play a racket policy (PPO). "
                                   "World frame: origin at the centre of the table surface, x along the table, z "
                                   "up; SI units.")
@@ -358,6 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     generator_cli.register(sub)
     fit_commands.register(sub)
     evaluate_commands.register(sub)  # after fit_commands: adds to its 'evaluate' group
+    diagnose_commands.register(sub)
     rl_commands.register(sub)
     return parser
 

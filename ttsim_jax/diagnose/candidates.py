@@ -1,0 +1,405 @@
+"""Which effect: each simulator effect of the catalogue fitted by gradient descent on a training
+split and scored by its error reduction on the held-out split.
+
+For a candidate effect (:func:`spec`), the phases it can change follow from its hooks
+(:func:`phases_of`): ``spin_derivative`` and ``air_velocity`` act in flight, ``table_surface`` and
+``table_restitution`` on table contacts, ``racket_coefficients`` on racket contacts, and
+``ball_properties`` on all three. Its free parameters are written ``start + scale * u`` with ``u``
+starting at 0 (the effect neutral, or at the typical values of its fixed shape parameters, e.g. the
+bump centres of ``table_unevenness``), so Adam's step size means the same for every parameter.
+Effects drawn per session (``SCOPE == "session"``: air flow, ball variation, worn ball) get one set
+of parameters per session.
+
+The effects of one compilation group (:func:`groups`) are all attached in one compiled program,
+and a fit frees only its own (the others stay exactly neutral), so a group costs one compilation.
+The loss is the sum over the effect's phases of the training split's mean squared error divided by
+the model's own (so each phase counts equally), plus a small ridge on ``u``. The whole descent
+(``steps`` Adam steps, a cosine-decayed step size, one warm-started Gauss-Newton step of each
+flight segment's initial state per step) is one ``lax.scan`` in one jitted call, the data padded to
+one capacity per phase.
+
+Held-out score (:func:`score`): per phase, the reduction of the held-out RMS error against the
+model's, 100 (1 - RMS_after / RMS_before) [%], with a 95 % paired bootstrap interval over held-out
+segments / contacts. A candidate is *significant* when in some phase the interval's lower end is
+above :data:`MIN_REDUCTION` % and the RMS error falls by more than that phase's :data:`MIN_GAIN`;
+candidates are ranked by their largest held-out reduction, significant ones first.
+
+A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
+its parameters are fitted is inferred (those whose typical value differs from the neutral one, at
+the scale of that difference) unless :data:`FREE` says otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ttsim_jax import effects as fx
+from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
+from ttsim_jax.diagnose.phases import Phases, pad_rows
+
+#: Phases whose errors the candidates are fitted and scored on.
+PHASES = ("flight", "table", "racket")
+#: Hooks -> phases they act in.
+HOOK_PHASES = {
+    "ball_properties": ("flight", "table", "racket"),
+    "air_velocity": ("flight",),
+    "spin_derivative": ("flight",),
+    "table_surface": ("table",),
+    "table_restitution": ("table",),
+    "racket_coefficients": ("racket",),
+}
+#: Fitted parameters and their scales where the default rule (typical != neutral) is not right:
+#: gusts need their frequencies, which are not identifiable by descent, so only the steady wind is
+#: fitted; the onsets of buckling are fitted too; the bumps keep their typical centres and widths.
+FREE = {
+    "air_flow": {"wind": 0.2},
+    "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0},
+    "table_unevenness": {"amplitude": 0.0015, "center": 0.3},
+}
+#: Parameters that start at their typical value (the others at neutral).
+START_TYPICAL = {"table_unevenness": ("center", "width")}
+#: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
+FINAL_GN = 3
+#: Items per stratum of the split (sorted by the model's error).
+STRATUM = 5
+#: Least held-out reduction [%] (lower end of the 95 % interval) of a significant candidate.
+MIN_REDUCTION = 1.0
+#: Least fall of the held-out RMS error of a significant candidate, per phase [m, m/s, m/s]: a
+#: reduction below the resolution of the phase's measurement is not a physical effect (with a
+#: perfect model, the contact states' polynomial estimates still err by millimetres per second).
+MIN_GAIN = {"flight": 5e-5, "table": 0.01, "racket": 0.01}
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """A candidate effect as the fit sees it (hashable: a static argument of the jitted fit).
+
+    Attributes:
+        name: catalogue name; cls: effect class; free: fitted parameter names;
+        per_session: one parameter set per session.
+    """
+
+    name: str
+    cls: type
+    free: tuple
+    per_session: bool
+
+    @property
+    def phases(self) -> tuple:
+        return phases_of(self.cls)
+
+
+def phases_of(cls) -> tuple:
+    """Phases (of :data:`PHASES`) an effect class can change, from its hooks."""
+    out = set()
+    for h in cls.hooks():
+        out.update(HOOK_PHASES.get(h, ()))
+    return tuple(p for p in PHASES if p in out)
+
+
+def spec(name: str) -> tuple[Spec, dict]:
+    """(:class:`Spec`, numpy constants {"start": {param: value}, "scale": {param: value}}) of a
+    catalogue effect."""
+    cls = fx.effect_class(name)
+    if cls.WHERE != "simulator":
+        raise fx.EffectError(f"effect {name!r} acts on the record, not in the simulator: it is not fitted as physics")
+    free = FREE.get(name)
+    if free is None:
+        free = {}
+        for k, p in cls.PARAMS.items():
+            d = np.abs(np.broadcast_to(np.asarray(p.typical, np.float64) - np.asarray(p.neutral, np.float64), p.shape))
+            if d.size and d.max() > 0:
+                free[k] = float(d.max())
+    typical = START_TYPICAL.get(name, ())
+    start = {k: np.broadcast_to(np.asarray(p.typical if k in typical else p.neutral, np.float64), p.shape).copy()
+             for k, p in cls.PARAMS.items()}
+    scale = {k: np.float64(free.get(k, 0.0)) for k in cls.PARAMS}
+    return Spec(name, cls, tuple(free), cls.SCOPE == "session"), dict(start=start, scale=scale)
+
+
+def initial_u(specs, n_sessions: int) -> tuple:
+    """Zeros of every free parameter (leading axis: sessions, or 1)."""
+    return tuple({k: jnp.zeros(((n_sessions if s.per_session else 1),) + s.cls.PARAMS[k].shape, jnp.float32)
+                  for k in s.free} for s in specs)
+
+
+def parameters(sp: Spec, const: dict, u: dict, sessions) -> dict:
+    """The fitted values {param: value} (per session {session id: {...}} for per-session effects)."""
+    def values(i):
+        return {k: (const["start"][k] + const["scale"][k] * np.asarray(u[k][i], np.float64)).tolist()
+                if k in u else np.asarray(const["start"][k]).tolist() for k in sp.cls.PARAMS}
+
+    if sp.per_session:
+        return {int(s): values(i) for i, s in enumerate(sessions)}
+    return values(0)
+
+
+# ---------------------------------------------------------------------------------------------- the problem
+@dataclasses.dataclass
+class Problem:
+    """Padded JAX arrays of every phase, the split, and the model's own errors.
+
+    Attributes:
+        data: {phase: dict of arrays}, each with ``train`` and ``test`` weights per row (0 for
+            padding); ``phases``: the phases present; ``n_sessions``; ``x0``: (S, 6) the flight
+            segments' fitted initial states under the model; ``base``: {phase: per-row errors of
+            the model}; ``norm``: {phase: the model's training mean squared error}.
+    """
+
+    data: dict
+    phases: tuple
+    n_sessions: int
+    sessions: np.ndarray
+    x0: jnp.ndarray | None = None
+    base: dict = dataclasses.field(default_factory=dict)
+    norm: dict = dataclasses.field(default_factory=dict)
+
+
+def _split(score, n: int, rows: int, test_fraction: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) weights (rows,): the first n rows split at random, stratified by ``score``.
+
+    Rows sorted by ``score`` (the model's own error) are cut into blocks of :data:`STRATUM` and a
+    share ``test_fraction`` of each block is held out, so that the rare large errors (an effect
+    acting in a narrow regime) fall on both sides. The split depends on the model only, never on
+    a candidate.
+    """
+    test = np.zeros(rows, np.float32)
+    order = np.argsort(np.asarray(score, np.float64)[:n], kind="stable")
+    for lo in range(0, n, STRATUM):
+        block = order[lo:lo + STRATUM]
+        k = rng.binomial(len(block), test_fraction) if len(block) < STRATUM else int(round(test_fraction * len(block)))
+        test[rng.permutation(block)[:k]] = 1.0
+    real = np.zeros(rows, np.float32)
+    real[:n] = 1.0
+    return real * (1.0 - test), test
+
+
+def _pad_contacts(c):
+    n = len(c)
+    idx = np.minimum(np.arange(pad_rows(n)), n - 1)
+    f = lambda a: jnp.asarray(np.asarray(a)[idx], jnp.float32)  # noqa: E731
+    return dict(pos=f(c.pos), x=f(c.x), y_obs=f(c.y_obs), known=f(c.spin_known.astype(np.float32)),
+                correction=f(c.correction), session=jnp.asarray(c.session[idx], jnp.int32))
+
+
+def problem(ph: Phases, model, test_fraction: float = 0.4, seed: int = 0) -> Problem:
+    """The padded arrays of ``ph``, the model's own errors on them (one compilation) and a seeded
+    split of the segments / contacts stratified by those errors (:func:`_split`)."""
+    rng = np.random.default_rng(seed)
+    data, real = {}, {}
+    if ph.flights is not None:
+        fl = ph.flights
+        f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+        data["flight"] = dict(t0=f(fl.t0), tau=f(fl.tau), pos=f(fl.pos), mask=f(fl.mask), spin=f(fl.spin),
+                              session=jnp.asarray(fl.session, jnp.int32))
+        real["flight"] = fl.n
+    for name in ("table", "racket"):
+        c = getattr(ph, name)
+        if c is not None:
+            data[name] = _pad_contacts(c)
+            real[name] = len(c)
+    pb = Problem(data=data, phases=tuple(p for p in PHASES if p in data), n_sessions=len(ph.sessions), sessions=ph.sessions)
+    if "flight" in data:
+        d = data["flight"]
+        pb.x0 = _initial(d["tau"], d["pos"], d["mask"])
+    pb.base, pb.x0 = evaluate(model, (), (), (), pb, S.GN_START)
+    for p in pb.phases:
+        sse, n = item_sums(pb, p, pb.base[p])
+        train, test = _split(sse / np.maximum(n, 1.0), real[p], len(sse), test_fraction, rng)
+        data[p]["train"], data[p]["test"] = jnp.asarray(train), jnp.asarray(test)
+    for p in pb.phases:
+        sse, n = item_sums(pb, p, pb.base[p])
+        w = np.asarray(pb.data[p]["train"])
+        pb.norm[p] = float(max(np.sum(w * sse) / max(np.sum(w * n), 1.0), 1e-20))
+    return pb
+
+
+_initial = jax.jit(S.initial_state)
+
+
+def item_sums(pb: Problem, phase: str, errors) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: (sum of squared error norms, number of items): flight, over the segment's samples
+    (3-D position errors); contacts, one item (the 6-vector of :mod:`~ttsim_jax.diagnose.stages`)."""
+    e = np.asarray(errors, np.float64)
+    if phase == "flight":
+        return np.sum(e**2, axis=(1, 2)), np.asarray(pb.data["flight"]["mask"], np.float64).sum(1)
+    return np.sum(e**2, axis=1), np.ones(len(e))
+
+
+# ---------------------------------------------------------------------------------------------- jitted
+def _errors(model, specs, consts, u, data, x, phases, iterations):
+    out = {}
+    if "flight" in phases:
+        if iterations:
+            x = S.flight_states(model, specs, consts, u, data["flight"], x, iterations)
+        out["flight"] = S.flight_errors(model, specs, consts, u, data["flight"], x)
+    for p in ("table", "racket"):
+        if p in phases:
+            out[p] = S.ERRORS[p](model, specs, consts, u, data[p])
+    return out, x
+
+
+def _mse(phase, e, d, w):
+    """Weighted mean squared error norm per item, as :func:`item_sums` counts them."""
+    if phase == "flight":
+        return jnp.sum(w[:, None, None] * e**2) / jnp.maximum(jnp.sum(w[:, None] * d["mask"]), 1.0)
+    return jnp.sum(w[:, None] * e**2) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _evaluate_impl(model, consts, u, data, x, specs, phases, iterations):
+    return _errors(model, specs, consts, u, data, x, phases, iterations)
+
+
+_evaluate = jax.jit(_evaluate_impl, static_argnames=("specs", "phases", "iterations"))
+
+
+def evaluate(model, specs, consts, u, pb: Problem, iterations: int = 2, phases=None):
+    """Per-row errors {phase: array} of ``model`` plus the effects, and the flight states."""
+    phases = tuple(phases or pb.phases)
+    consts = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), consts)
+    return _evaluate(model.replace(name=""), consts, u, pb.data, pb.x0, tuple(specs), phases, iterations)
+
+
+def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases, steps, ridge):
+    schedule = optax.cosine_decay_schedule(lr, steps, alpha=0.05)
+    opt = optax.adam(schedule)
+
+    def loss(u, x):
+        errs, _ = _errors(model, specs, consts, u, data, x, phases, 0)
+        total = sum(weight[p] * _mse(p, errs[p], data[p], data[p]["train"]) / norm[p] for p in phases)
+        return total + ridge * sum(jnp.sum(v**2) for uk in u for v in uk.values()), errs
+
+    def body(carry, i):
+        u, state, x, _ = carry
+        if "flight" in phases:  # one Gauss-Newton step of the states per step keeps them at their optimum
+            x = S.flight_states(model, specs, consts, u, data["flight"], x, 1)
+        (value, errs), g = jax.value_and_grad(loss, has_aux=True)(u, x)
+        # effects not being fitted keep u = 0 (neutral); a non-finite gradient is skipped
+        g = tuple({k: jnp.where(jnp.isfinite(a), a, 0.0) * f for k, a in gk.items()} for gk, f in zip(g, free))
+        upd, state = opt.update(g, state, u)
+        upd = jax.tree.map(lambda a: jnp.where(i < steps, a, 0.0), upd)  # the final steps only refit the states
+        return (optax.apply_updates(u, upd), state, x, errs), value
+
+    zeros = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(loss, u0, x0)[1])
+    n = steps + (FINAL_GN if "flight" in phases else 1)
+    (u, _, _, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, zeros), jnp.arange(n))
+    return u, history[:steps], errors
+
+
+_fit = jax.jit(_fit_impl, static_argnames=("specs", "phases", "steps", "ridge"))
+
+
+# ---------------------------------------------------------------------------------------------- candidates
+@dataclasses.dataclass
+class Candidate:
+    """A fitted candidate: its spec, fitted values, loss history, per-row errors and per-phase
+    held-out reductions {phase: {"pct", "ci95", "before_rms", "after_rms", "n"}}."""
+
+    spec: Spec
+    consts: dict
+    u: tuple
+    history: np.ndarray
+    errors: dict
+    heldout: dict
+    params: dict
+
+    @property
+    def best(self) -> float:
+        vals = [h["pct"] for h in self.heldout.values() if math.isfinite(h["pct"])]
+        return max(vals) if vals else math.nan
+
+    @property
+    def significant(self) -> bool:
+        return any(significant(p, h) for p, h in self.heldout.items())
+
+
+def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 0.1, ridge: float = 1e-4,
+        name: str = "") -> Candidate:
+    """Fits the effects ``names`` jointly on the training split (see the module docstring) and scores
+    them on the held-out split, in the phases they act in.
+
+    Arguments:
+        pb: the :class:`Problem`; names: catalogue names of simulator effects; model: the model.
+        group: the effects of the compiled program (default ``names``; must contain them): effects
+            of the group that are not fitted stay neutral, so every fit of one group shares one
+            compilation (:func:`groups`).
+        steps, lr, ridge: Adam steps, initial step size (in units of each parameter's scale), ridge
+            weight on ``u``.
+        name: label of the result (default: the names joined by '+').
+
+    Returns:
+        :class:`Candidate` (its spec is that of the first effect when several are fitted jointly).
+    """
+    group = tuple(group or names)
+    missing = set(names) - set(group)
+    if missing:
+        raise ValueError(f"fit: effects {sorted(missing)} are not in the group {list(group)}")
+    built = [spec(n) for n in group]
+    specs = tuple(b[0] for b in built)
+    consts = tuple(b[1] for b in built)
+    fitted = [s for s in specs if s.name in names]
+    phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
+    scored = tuple(p for p in phases if any(p in s.phases for s in fitted))
+    if not scored:
+        raise ValueError(f"effects {list(names)}: none of the phases they act in "
+                         f"({sorted({p for s in fitted for p in s.phases})}) has data")
+    c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), consts)
+    norm = {p: jnp.asarray(pb.norm[p], jnp.float32) for p in phases}
+    weight = {p: jnp.asarray(1.0 if p in scored else 0.0, jnp.float32) for p in phases}
+    free = tuple(jnp.asarray(1.0 if s.name in names else 0.0, jnp.float32) for s in specs)
+    u, history, errors = _fit(model.replace(name=""), c32, initial_u(specs, pb.n_sessions), pb.data, pb.x0, norm,
+                              jnp.asarray(lr, jnp.float32), free, weight, specs, phases, steps, ridge)
+    heldout = score(pb, {p: errors[p] for p in scored})
+    u_np = jax.tree.map(np.asarray, u)
+    params = {s.name: parameters(s, c, uk, pb.sessions) for s, c, uk in zip(specs, consts, u_np) if s.name in names}
+    sp = fitted[0] if len(fitted) == 1 else Spec(name or "+".join(names), fitted[0].cls, (), False)
+    return Candidate(spec=sp, consts=consts, u=u_np, history=np.asarray(history), errors={p: errors[p] for p in scored},
+                     heldout=heldout, params=params)
+
+
+def groups(names, phases) -> list:
+    """Candidates split into compilation groups: those acting in flight (the costly phase) and the
+    others (contacts only), each group one compiled program; empty groups left out."""
+    flight = tuple(n for n in names if "flight" in phases_of(fx.effect_class(n)))
+    other = tuple(n for n in names if n not in flight)
+    return [g for g in (flight, other) if g]
+
+
+def score(pb: Problem, errors: dict, seed: int = 0) -> dict:
+    """Held-out RMS reduction per phase of ``errors`` against the model's (see the module docstring)."""
+    out = {}
+    for p, e in errors.items():
+        test = np.asarray(pb.data[p]["test"]) > 0
+        before, n = item_sums(pb, p, pb.base[p])
+        after, _ = item_sums(pb, p, e)
+        before, after, n = before[test], after[test], n[test]
+        w = group_weights(len(n), seed=seed)
+        pct, ci = rms_reduction(before, after, n, w)
+        out[p] = dict(pct=pct, ci95=ci, before_rms=float(np.sqrt(before.sum() / max(n.sum(), 1))),
+                      after_rms=float(np.sqrt(after.sum() / max(n.sum(), 1))), n=int(len(n)))
+    return out
+
+
+def significant(phase: str, h: dict) -> bool:
+    """Whether a held-out score ``h`` of :func:`score` is significant (see the module docstring)."""
+    return bool(h["ci95"][0] > MIN_REDUCTION and h["before_rms"] - h["after_rms"] > MIN_GAIN[phase])
+
+
+def rank(cands: list) -> list:
+    """Candidates ordered: significant ones first, then by their largest held-out reduction."""
+    key = lambda c: (not c.significant, -(c.best if math.isfinite(c.best) else -1e9))  # noqa: E731
+    return sorted(cands, key=key)
+
+
+def candidate_names(which=None) -> list:
+    """The simulator effects of the catalogue to try (``which``: names or a spec for
+    :func:`ttsim_jax.effects.parse_names`; default all)."""
+    chosen = fx.parse_names(which) if which is not None else fx.names("simulator")
+    return [n for n in chosen if fx.effect_class(n).WHERE == "simulator"]

@@ -1,0 +1,275 @@
+"""The whole diagnosis of a model on a dataset: where, which effect, how far the gap shrinks.
+
+:func:`diagnose` runs, in order:
+
+1. the phases' items (:mod:`ttsim_jax.diagnose.phases`) and the model's own errors on them, with a
+   seeded split of segments and contacts into training and held-out parts;
+2. *where* (:mod:`ttsim_jax.diagnose.where`): the model's errors by phase and regime on all items,
+   with the landing error of ``ttsim evaluate``'s rollouts unless ``landing`` is off;
+3. the model-free residual dependences and the record effects' sizes
+   (:mod:`ttsim_jax.diagnose.residuals`);
+4. *which effect* (:mod:`ttsim_jax.diagnose.candidates`): every candidate fitted on the training
+   part, scored on the held-out part, ranked;
+5. *how far*: the significant candidates (at most :data:`TOP` of them) fitted jointly, their
+   held-out errors against the model's per phase and regime, and the landing error of the model
+   with them (per-session parameters averaged over the sessions);
+6. the verdict: the significant effects by rank, or "unexplained" with where the gap is (flagged
+   regimes and significant dependences) when no candidate reduces a held-out error significantly.
+
+Nothing here reads a generator's truth files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable
+
+import jax
+import numpy as np
+
+from ttsim_jax.diagnose import candidates as C
+from ttsim_jax.diagnose import residuals as R
+from ttsim_jax.diagnose import where as W
+from ttsim_jax.diagnose.phases import MAX_SEGMENTS, collect
+from ttsim_jax.fit.contacts import ContactFit
+
+class NoData(ValueError):
+    """The dataset has no usable item in any phase; the message gives each phase's reason."""
+
+
+#: Most significant candidates fitted jointly for the before/after.
+TOP = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """What the diagnosis does.
+
+    Attributes:
+        effects: candidate names (None: every simulator effect of the catalogue).
+        test_fraction: share of segments / contacts held out.
+        seed: seed of the split and the bootstraps.
+        steps: Adam steps per candidate; lr: initial step size (units of each parameter's scale).
+        landing: run the landing rollouts (where, and before/after).
+        combine: fit the significant candidates jointly for the before/after (else the first alone).
+        max_segments: flight segments used at most (a seeded random subset of more).
+        fit: contact state estimation.
+    """
+
+    effects: tuple | None = None
+    test_fraction: float = 0.4
+    seed: int = 0
+    steps: int = 100
+    lr: float = 0.1
+    landing: bool = True
+    combine: bool = True
+    max_segments: int = MAX_SEGMENTS
+    fit: ContactFit = ContactFit()
+
+    @classmethod
+    def quick(cls, **kw) -> "Settings":
+        """Fewer steps and segments, no landing rollouts, no joint fit."""
+        return cls(**{**dict(steps=60, landing=False, combine=False, max_segments=96), **kw})
+
+
+def _test_rows(pb, phase):
+    return np.flatnonzero(np.asarray(pb.data[phase]["test"]) > 0)
+
+
+def _items(ph, pb, phase, errors, radius, rows=None):
+    if phase == "flight":
+        return W.flight_items(ph.flights, errors, pb.x0, radius, rows)
+    return W.contact_items(getattr(ph, phase), phase, errors, radius, rows)
+
+
+def _components(ph, phase, errors):
+    e = np.asarray(errors, np.float64)
+    if phase == "flight":
+        return e[: ph.flights.n][ph.flights.mask[: ph.flights.n] > 0]
+    return e[: len(getattr(ph, phase)), :3]
+
+
+def _landing(ds, model, fit, radius):
+    from ttsim_jax.evaluate.stages import EvaluateSettings, landing_cases, landing_stage
+
+    st = EvaluateSettings(fit=fit)
+    res = landing_stage(ds, [("model", model)], st)
+    if "skipped" in res:
+        return res, None
+    cases = landing_cases(ds, st, radius)
+    return res, cases
+
+
+def _with_effects(model, cand) -> object:
+    """The model plus a fitted candidate's effects (per-session parameters averaged)."""
+    from ttsim_jax import effects as fx
+
+    extra = []
+    for name, values in cand.params.items():
+        cls = fx.effect_class(name)
+        if cls.SCOPE == "session" and values and isinstance(next(iter(values)), int):
+            values = {k: np.mean([np.asarray(v[k]) for v in values.values()], axis=0) for k in cls.PARAMS}
+        extra.append(cls.from_dict({k: np.asarray(v) for k, v in values.items()}, dtype=model.ball.radius.dtype))
+    return model.replace(effects=tuple(model.effects) + tuple(extra))
+
+
+def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str, int], None] | None = None,
+             keep: dict | None = None) -> dict:
+    """The diagnosis of ``model`` on ``ds`` (see the module docstring).
+
+    Arguments:
+        ds: a validated dataset; model: a loaded :class:`~ttsim_jax.params.Model` (float32).
+        settings: :class:`Settings`.
+        progress: optional ``progress(what, units)`` called as work is done (units of
+            :func:`work_units`).
+        keep: optional dict that receives the :class:`~ttsim_jax.diagnose.candidates.Problem`
+            (``"problem"``), for scoring other models on the same split.
+
+    Returns:
+        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``dependence``,
+        ``record``, ``candidates`` (ranked), ``combined``, ``before_after``, ``landing``,
+        ``verdict``, ``settings``, ``seconds``, and ``arrays`` (per-item errors for the figures).
+    """
+    from ttsim_jax.kernel.step import ball_properties
+
+    tick = progress or (lambda what, n=1: None)
+    t_start = time.perf_counter()
+    radius = float(ball_properties(model)[0])
+    names = C.candidate_names(settings.effects)
+    ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
+    if ph.flights is None and ph.table is None and ph.racket is None:
+        raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
+    tick("phases", 1)
+    pb = C.problem(ph, model, settings.test_fraction, settings.seed)
+    if keep is not None:
+        keep["problem"] = pb
+    tick("model errors", 1)
+    out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
+        dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
+    out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
+
+    # where, on every item
+    items = {p: _items(ph, pb, p, pb.base[p], radius) for p in pb.phases}
+    landing, cases = (None, None)
+    if settings.landing:
+        landing, cases = _landing(ds, model, settings.fit, radius)
+        if cases is not None:
+            items["landing"] = W.landing_items(cases, landing["error"]["model"], radius)
+        else:
+            out["skipped"]["landing"] = landing["skipped"]
+    tick("landing", 1)
+    out["where"] = {p: W.summarise(it, settings.seed) for p, it in items.items()}
+    out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
+                         for p, it in items.items()}
+    out["record"] = R.record_sizes(ds, ph, model)
+
+    # which effect
+    cands = []
+    available = [n for n in names if any(p in pb.phases for p in C.spec(n)[0].phases)]
+    group_of = {n: g for g in C.groups(available, pb.phases) for n in g}
+    for name in names:
+        spec, _ = C.spec(name)
+        if not any(p in pb.phases for p in spec.phases):
+            out["skipped"][f"effect {name}"] = f"acts in {', '.join(spec.phases)}: no data there"
+            tick(name, 1)
+            continue
+        cands.append(C.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
+        tick(name, 1)
+    ranked = C.rank(cands)
+    out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
+    significant = [c for c in ranked if c.significant]
+
+    # how far
+    best = None
+    if len(significant) > 1 and settings.combine:
+        top = [c.spec.name for c in significant[:TOP]]
+        group = next((g for g in set(group_of.values()) if set(top) <= set(g)), None)
+        best = C.fit(pb, top, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(top))
+        out["combined"] = _candidate_json(best, 0)
+    elif significant:
+        best = significant[0]
+        out["combined"] = _candidate_json(best, 1)
+    tick("combined", 1)
+    arrays = {f"before_{p}": _items(ph, pb, p, pb.base[p], radius, _test_rows(pb, p))["error"] for p in pb.phases}
+    out["before_after"] = {}
+    if best is not None:
+        for p, e in best.errors.items():
+            rows = _test_rows(pb, p)
+            before, after = _items(ph, pb, p, pb.base[p], radius, rows), _items(ph, pb, p, e, radius, rows)
+            out["before_after"][p] = dict(W.compare(before, after, settings.seed), heldout=best.heldout[p])
+            arrays[f"after_{p}"] = after["error"]
+    if landing is not None and cases is not None:
+        before = landing["error"]["model"]
+        arrays["before_landing"] = before[np.isfinite(before)]
+        entry = dict(before_median=float(np.nanmedian(before)), n=int(np.isfinite(before).sum()))
+        if best is not None:
+            res, _ = _landing(ds, _with_effects(model, best), settings.fit, radius)
+            after = res["error"]["model"]
+            ok = np.isfinite(before) & np.isfinite(after)
+            fall = 100.0 * (1.0 - np.median(after[ok]) / np.median(before[ok])) if ok.any() else math.nan
+            entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
+            arrays["after_landing"] = after[np.isfinite(after)]
+        out["landing"] = entry
+    tick("landing after", 1)
+    out["verdict"] = verdict(out, significant)
+    out["seconds"] = time.perf_counter() - t_start
+    out["arrays"] = arrays
+    out["histories"] = {c.spec.name: c.history for c in ranked}
+    return out
+
+
+def work_units(settings: Settings) -> int:
+    """Progress units of :func:`diagnose` (for a progress bar)."""
+    return 5 + len(C.candidate_names(settings.effects))
+
+
+def _candidate_json(c: C.Candidate, rank: int) -> dict:
+    return dict(rank=rank, name=c.spec.name, phases=sorted(c.heldout), significant=c.significant,
+                best_reduction_pct=c.best, heldout=c.heldout, params=c.params,
+                loss=dict(start=float(c.history[0]) if len(c.history) else math.nan,
+                          end=float(c.history[-1]) if len(c.history) else math.nan))
+
+
+def _where_text(out: dict) -> list:
+    lines = []
+    for p, w in out["where"].items():
+        for name, label in w["flagged"]:
+            row = next(r for r in w["regimes"][name] if r["label"] == label)
+            lines.append(f"{p}: {name} {label} ({row['ratio']:.2f} x the phase's mean error)")
+    for p, deps in out["dependence"].items():
+        for d in deps[:2]:
+            lines.append(f"{p}: {d['error']} depends on {d['quantity']} (Spearman rho {d['rho']:+.2f})")
+    return lines
+
+
+def verdict(out: dict, significant: list) -> dict:
+    """{"explained": bool, "effects": [names by rank], "text": one paragraph, "where": [lines]}."""
+    where = _where_text(out)
+    if significant:
+        parts = []
+        for c in significant:
+            p = max(c.heldout, key=lambda k: c.heldout[k]["pct"])
+            h = c.heldout[p]
+            parts.append(f"{c.spec.name} ({p}: held-out RMS error {h['pct']:.1f} % lower, 95 % interval "
+                         f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
+        text = "Explained by: " + "; ".join(parts) + "."
+        return dict(explained=True, effects=[c.spec.name for c in significant], text=text, where=where)
+    text = ("Unexplained: no candidate effect reduces a held-out error significantly. " +
+            (("The gap lies in: " + "; ".join(where) + ".") if where else "No regime stands out and no residual "
+             "dependence is significant: what remains looks like noise."))
+    return dict(explained=False, effects=[], text=text, where=where)
+
+
+def jsonable(obj):
+    """``obj`` with numpy and JAX values turned into plain Python (NaN stays a float)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return np.asarray(obj).tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        return obj.item()
+    return obj

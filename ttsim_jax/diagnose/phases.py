@@ -1,0 +1,290 @@
+"""The measured items of each phase, gathered once for the diagnosis, with their regime quantities.
+
+* *flight*: every flight segment with at least ``min_samples`` observations (only those with a
+  measured spin when the data has any), padded to one capacity: absolute sample times, positions,
+  mask, the segment's spin and session. The items of the "where" analysis are the observations.
+* *table*: every usable table bounce, estimated as in ``ttsim evaluate``
+  (:func:`ttsim_jax.evaluate.stages.table_stage`): contact point, pre- and post-bounce velocity
+  and spin.
+* *racket*: every usable racket contact with a racket state, in the racket frame
+  (:func:`ttsim_jax.fit.contacts.contact_arrays`): inputs x = (v~, w~, d), the observation, the
+  racket's rotation (for racket-state error sizes).
+
+Nothing here reads the generator's truth files: any dataset in the format works.
+
+Regime quantities (:data:`REGIMES`) are computed from measured quantities only: speed [m/s],
+spin magnitude [rad/s], spin ratio r|w|/|v|, spin axis (the dominant component of the spin
+relative to the velocity: topspin, backspin, sidespin or gyro), impact angle [deg] (below the
+surface for table contacts, from the face normal for racket contacts), contact distance on the
+racket face [m], position on the table x and y [m], time since the last contact [s].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ttsim_jax.fit.contacts import ContactFit
+
+#: Regime quantities: name -> (label, unit).
+REGIMES = {
+    "speed": ("speed", "m/s"),
+    "spin": ("spin magnitude", "rad/s"),
+    "spin_ratio": ("spin ratio r|w|/|v|", "1"),
+    "spin_axis": ("spin axis", ""),
+    "impact_angle": ("impact angle", "deg"),
+    "distance": ("contact distance on the face", "m"),
+    "x": ("position along the table x", "m"),
+    "y": ("position across the table y", "m"),
+    "since_contact": ("time since the last contact", "s"),
+}
+#: Categories of the spin axis (:func:`spin_axis`).
+AXES = ("topspin", "backspin", "sidespin", "gyro")
+#: Observations kept per flight segment (its first ones): the padded length bounds the cost of every
+#: flight evaluation, and 128 samples at 200 Hz (0.64 s) hold most of a flight's deviation.
+MAX_SAMPLES = 128
+#: Flight segments used at most (a seeded random subset of more): the flight stage is the costly one.
+MAX_SEGMENTS = 128
+#: Padded lengths of the flight arrays (samples).
+CAPACITIES = (64, 128, 256, 512, 1024, 4096)
+
+
+@dataclasses.dataclass
+class Flights:
+    """Flight segments padded to one shape (S_pad, T).
+
+    Attributes:
+        t0: (S,) absolute time of the first sample [s]; tau: (S, T) times from t0, padding repeats
+            the last; pos: (S, T, 3); mask: (S, T) 1 for real samples; spin: (S, 3) measured spin;
+            session: (S,) session index (0..n_sessions-1); segment_id: (S,); n: number of real
+            segments (rows beyond are padding with mask 0).
+    """
+
+    t0: np.ndarray
+    tau: np.ndarray
+    pos: np.ndarray
+    mask: np.ndarray
+    spin: np.ndarray
+    session: np.ndarray
+    segment_id: np.ndarray
+    n: int
+
+
+@dataclasses.dataclass
+class Contacts:
+    """Contacts of one kind (table or racket), one row each.
+
+    Attributes:
+        event_id: (N,); session: (N,) session index; pos: (N, 3) contact point (world);
+        x: (N, 8) table: (v_in, w_in, 0, 0) world frame; racket: (v~, w~, d) racket frame;
+        y_obs: (N, 6) observed post-contact (v, w) in the same frame; spin_known: (N,) whether
+        the post-contact spin is measured (and the pre-contact one); correction: (N, 6) the model's
+        residual network's correction (zeros without one); rot: (N, 3, 3) racket frame (identity
+        for the table); world_in: (N, 6) world-frame pre-contact (v, w); since: (N,) time since
+        the previous contact [s].
+    """
+
+    event_id: np.ndarray
+    session: np.ndarray
+    pos: np.ndarray
+    x: np.ndarray
+    y_obs: np.ndarray
+    spin_known: np.ndarray
+    correction: np.ndarray
+    rot: np.ndarray
+    world_in: np.ndarray
+    since: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.event_id)
+
+
+@dataclasses.dataclass
+class Phases:
+    """What the diagnosis works on; a phase the data cannot support is None with a reason in
+    ``skipped``. ``sessions``: the dataset's session ids in index order."""
+
+    flights: Flights | None
+    table: Contacts | None
+    racket: Contacts | None
+    sessions: np.ndarray
+    skipped: dict
+
+
+def _capacity(n: int) -> int:
+    for c in CAPACITIES:
+        if n <= c:
+            return c
+    raise ValueError(f"a flight segment of {n} samples is longer than {CAPACITIES[-1]}")
+
+
+def pad_rows(n: int, multiple: int = 32) -> int:
+    """Rows of a padded batch of n items: a multiple of ``multiple`` (one compiled shape for
+    similar sizes)."""
+    return max(multiple, -(-n // multiple) * multiple)
+
+
+def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float = 0.5,
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Flights | None:
+    """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
+    Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
+    than ``max_segments`` segments a seeded random subset is kept."""
+    from ttsim_jax.fit import aero as A
+
+    ids, times, positions, spins, conf = A.dataset_segments(ds, min_samples)
+    times = [t[:max_samples] for t in times]
+    positions = [p[:max_samples] for p in positions]
+    if not len(ids):
+        return None
+    keep = conf >= min_spin_conf
+    if not keep.any():  # no measured spin anywhere: flown with spin 0
+        keep[:] = True
+        spins = np.zeros_like(spins)
+    idx = np.flatnonzero(keep)
+    if len(idx) > max_segments:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, max_segments, replace=False))
+    session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
+    s, t = pad_rows(len(idx)), _capacity(max(len(times[i]) for i in idx))
+    out = Flights(t0=np.zeros(s), tau=np.zeros((s, t)), pos=np.zeros((s, t, 3)), mask=np.zeros((s, t)),
+                  spin=np.zeros((s, 3)), session=np.zeros(s, np.int64), segment_id=np.full(s, -1, np.int64), n=len(idx))
+    for row, i in enumerate(idx):
+        ti = np.asarray(times[i], np.float64)
+        k = len(ti)
+        out.t0[row] = ti[0]
+        out.tau[row, :k] = ti - ti[0]
+        out.tau[row, k:] = ti[-1] - ti[0]
+        out.pos[row, :k] = positions[i]
+        out.pos[row, k:] = positions[i][-1]
+        out.mask[row, :k] = 1.0
+        out.spin[row] = spins[i]
+        out.session[row] = session_index[session_of[int(ids[i])]]
+        out.segment_id[row] = ids[i]
+    return out
+
+
+def _since(ds, event_ids) -> np.ndarray:
+    """(N,) time from the start of the incoming segment to each contact [s] (NaN without one)."""
+    from ttsim_jax.data.batch import segments_around
+
+    in_rows, _ = segments_around(ds, event_ids)
+    ev = ds.events
+    row = {int(e): i for i, e in enumerate(ev["event_id"])}
+    t_c = np.array([ev["t"][row[int(e)]] for e in event_ids], np.float64)
+    seg, obs = ds.segments, ds.observations
+    first = {}
+    sid = np.asarray(obs["segment_id"])
+    t_obs = np.asarray(obs["t"], np.float64)
+    order = np.argsort(sid, kind="stable")
+    starts = np.searchsorted(sid[order], np.asarray(seg["segment_id"]))
+    for k, st in enumerate(starts):
+        if st < len(order) and sid[order[st]] == seg["segment_id"][k]:
+            first[k] = t_obs[order[st]]
+    return np.array([t_c[i] - first[r] if r >= 0 and r in first else np.nan for i, r in enumerate(in_rows)])
+
+
+def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
+    """The usable table bounces (see :class:`Contacts`), or (None, reason)."""
+    from ttsim_jax.evaluate.stages import EvaluateSettings, table_stage
+
+    res = table_stage(ds, [("model", model)], EvaluateSettings(fit=fit))
+    if "skipped" in res:
+        return None, res["skipped"]
+    ids = res["event_id"]
+    ev = ds.events
+    row = {int(e): i for i, e in enumerate(ev["event_id"])}
+    rows = np.array([row[int(e)] for e in ids])
+    pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1)
+    sess = np.array([session_index[int(s)] for s in np.asarray(ev["session_id"])[rows]], np.int64)
+    n = len(ids)
+    x = np.concatenate([res["pre"], np.zeros((n, 2))], 1)
+    return Contacts(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
+                    correction=np.zeros((n, 6)), rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"],
+                    since=_since(ds, ids)), ""
+
+
+def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
+    """The usable racket contacts in the racket frame (see :class:`Contacts`), or (None, reason)."""
+    from ttsim_jax.evaluate.stages import SKIP_REASONS, counts_text
+    from ttsim_jax.fit.contacts import contact_arrays, quat_to_matrix
+    from ttsim_jax.fit.residual import predict
+
+    if len(ds.rackets["event_id"]) == 0:
+        return None, "no racket states (the dataset's rackets table is empty)"
+    a = contact_arrays(ds, model, n_inputs=8, fit=fit, validate=False)
+    if not len(a):
+        return None, f"none of the {a.n_contacts} racket contacts is usable ({counts_text(a.counts(), SKIP_REASONS)})"
+    corr = np.zeros((len(a), 6))
+    if model.residual is not None:
+        y, _, _ = predict(model.residual, a.x[:, :model.residual.config.n_inputs], a.y_base)
+        corr = y - np.asarray(a.y_base, np.float64)
+    rk = ds.rackets
+    rrow = {int(e): i for i, e in enumerate(rk["event_id"])}
+    q = np.array([[rk[k][rrow[int(e)]] for k in ("qw", "qx", "qy", "qz")] for e in a.event_id], np.float64)
+    ev = ds.events
+    row = {int(e): i for i, e in enumerate(ev["event_id"])}
+    pos = np.array([[ev[k][row[int(e)]] for k in "xyz"] for e in a.event_id], np.float64)
+    sess = np.array([session_index[int(s)] for s in a.session_id], np.int64)
+    return Contacts(event_id=a.event_id, session=sess, pos=pos, x=np.asarray(a.x, np.float64),
+                    y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool), correction=corr,
+                    rot=quat_to_matrix(q), world_in=a.world_in, since=_since(ds, a.event_id)), ""
+
+
+def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, phases=("flight", "table", "racket"),
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Phases:
+    """Every phase's items of ``ds`` for ``model`` (its ball radius, its racket frame convention);
+    see :func:`flights` for ``max_samples``, ``max_segments`` and ``seed``."""
+    sessions = np.unique(np.asarray(ds.sessions["session_id"], np.int64)) if len(ds.sessions["session_id"]) else \
+        np.unique(np.asarray(ds.segments["session_id"], np.int64))
+    index = {int(s): k for k, s in enumerate(sessions)}
+    skipped = {}
+    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed) if "flight" in phases else None
+    if fl is None and "flight" in phases:
+        skipped["flight"] = f"no flight segment with at least {min_samples} observations"
+    tb = rk = None
+    if "table" in phases:
+        tb, why = table_contacts(ds, model, index, fit)
+        if tb is None:
+            skipped["table"] = why
+    if "racket" in phases:
+        rk, why = racket_contacts(ds, model, index, fit)
+        if rk is None:
+            skipped["racket"] = why
+    return Phases(flights=fl, table=tb, racket=rk, sessions=sessions, skipped=skipped)
+
+
+# ---------------------------------------------------------------------------------------------- regimes
+def spin_axis(vel, spin) -> np.ndarray:
+    """(N,) index into :data:`AXES`: the dominant component of the spin relative to the velocity.
+
+    Components: along z x v_h (top- or backspin, v_h the horizontal velocity's direction), along
+    z (sidespin) and along v_h (gyro spin).
+    """
+    v, w = np.asarray(vel, np.float64).reshape(-1, 3), np.asarray(spin, np.float64).reshape(-1, 3)
+    h = v * np.array([1.0, 1.0, 0.0])
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-9)
+    top = np.cross(np.array([0.0, 0.0, 1.0]), h)
+    c_top, c_side, c_gyro = np.sum(w * top, 1), w[:, 2], np.sum(w * h, 1)
+    k = np.argmax(np.abs(np.stack([c_top, c_side, c_gyro], 1)), axis=1)
+    return np.where(k == 0, np.where(c_top >= 0, 0, 1), k + 1).astype(np.float64)
+
+
+def kinematic_regimes(vel, spin, radius: float) -> dict:
+    """speed, spin, spin_ratio, spin_axis of (N, 3) velocities and spins."""
+    v, w = np.linalg.norm(vel, axis=1), np.linalg.norm(spin, axis=1)
+    return dict(speed=v, spin=w, spin_ratio=radius * w / np.maximum(v, 1e-9), spin_axis=spin_axis(vel, spin))
+
+
+def contact_regimes(c: Contacts, kind: str, radius: float) -> dict:
+    """Regime quantities of contacts (see the module docstring)."""
+    out = kinematic_regimes(c.world_in[:, :3], c.world_in[:, 3:], radius)
+    if kind == "table":
+        v = c.world_in[:, :3]
+        out["impact_angle"] = np.degrees(np.arctan2(-v[:, 2], np.linalg.norm(v[:, :2], axis=1)))
+    else:
+        v = c.x[:, :3]
+        out["impact_angle"] = np.degrees(np.arctan2(np.linalg.norm(v[:, 1:], axis=1), -v[:, 0]))
+        out["distance"] = np.linalg.norm(c.x[:, 6:8], axis=1)
+    out["x"], out["y"] = c.pos[:, 0], c.pos[:, 1]
+    out["since_contact"] = c.since
+    return out

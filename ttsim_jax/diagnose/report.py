@@ -1,0 +1,200 @@
+"""The files of a diagnosis: ``report.md``, ``diagnosis.json`` and PNG figures.
+
+Figures (:data:`FIGURES`): the gap by phase and regime (mean error per regime bin with its 95 %
+interval, flagged bins in red, the phase's mean as a line), the ranked candidates' held-out
+reductions with their intervals, and the held-out error distributions before / after the
+significant effects.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ttsim_jax.diagnose.diagnosis import jsonable
+from ttsim_jax.diagnose.phases import REGIMES
+from ttsim_jax.diagnose.where import FLAG_RATIO, UNITS
+
+FIGURES = {"where": "gap_by_regime.png", "effects": "effects.png", "before_after": "before_after.png"}
+#: Displayed unit and factor per phase error unit.
+_SHOW = {"m": ("mm", 1e3), "m/s": ("m/s", 1.0)}
+
+
+def _show(phase):
+    return _SHOW[UNITS[phase]]
+
+
+def plot_where(where: dict, path) -> Path:
+    """Mean error per regime bin and phase (rows: phases, columns: regimes)."""
+    from ttsim_jax.plots import _pyplot, _save
+
+    plt = _pyplot()
+    phases = list(where)
+    regimes = [r for r in REGIMES if any(r in where[p]["regimes"] for p in phases)]
+    fig, axes = plt.subplots(len(phases), max(1, len(regimes)), figsize=(2.6 * max(1, len(regimes)), 2.4 * len(phases)),
+                             squeeze=False)
+    for i, p in enumerate(phases):
+        unit, f = _show(p)
+        for j, r in enumerate(regimes):
+            ax = axes[i, j]
+            rows = where[p]["regimes"].get(r)
+            if not rows:
+                ax.axis("off")
+                continue
+            m = np.array([b["mean"] for b in rows]) * f
+            lo = np.array([b["ci95"][0] for b in rows]) * f
+            hi = np.array([b["ci95"][1] for b in rows]) * f
+            colours = ["#d62728" if b["flag"] else "#1f77b4" for b in rows]
+            x = np.arange(len(rows))
+            ax.bar(x, m, color=colours, alpha=0.8)
+            ax.errorbar(x, m, yerr=[np.maximum(m - lo, 0), np.maximum(hi - m, 0)], fmt="none", ecolor="k", lw=1)
+            ax.axhline(where[p]["mean"] * f, color="grey", ls="--", lw=1)
+            ax.set_xticks(x)
+            ax.set_xticklabels([b["label"] for b in rows], rotation=45, ha="right", fontsize=6)
+            ax.tick_params(axis="y", labelsize=7)
+            ax.set_title(f"{p}: {REGIMES[r][0]}" if j == 0 else REGIMES[r][0], fontsize=7)
+            if j == 0:
+                ax.set_ylabel(f"{p} mean error [{unit}]", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_effects(candidates: list, path) -> Path:
+    """Held-out RMS reduction [%] of each candidate and phase with its 95 % interval."""
+    from ttsim_jax.plots import _pyplot, _save
+
+    plt = _pyplot()
+    rows = [(c["name"], p, c["heldout"][p]) for c in candidates for p in c["phases"]]
+    fig, ax = plt.subplots(figsize=(7, 0.35 * max(len(rows), 3) + 1))
+    colours = {"flight": "#1f77b4", "table": "#2ca02c", "racket": "#ff7f0e"}
+    y = np.arange(len(rows))[::-1]
+    for k, (name, p, h) in enumerate(rows):
+        lo, hi = h["ci95"]
+        ax.barh(y[k], h["pct"], color=colours.get(p, "grey"), alpha=0.8)
+        if math.isfinite(lo) and math.isfinite(hi):
+            ax.errorbar(h["pct"], y[k], xerr=[[max(h["pct"] - lo, 0)], [max(hi - h["pct"], 0)]], fmt="none", ecolor="k")
+    ax.set_yticks(y)
+    ax.set_yticklabels([f"{n} ({p})" for n, p, _ in rows], fontsize=8)
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_xlabel("held-out RMS error reduction [%] (95 % interval)")
+    ax.set_title("candidate effects, ranked")
+    return _save(fig, path)
+
+
+def plot_before_after(arrays: dict, path) -> Path:
+    """Histograms of the held-out errors per phase, before and after."""
+    from ttsim_jax.plots import _pyplot, _save
+
+    plt = _pyplot()
+    phases = [k[len("before_"):] for k in arrays if k.startswith("before_")]
+    fig, axes = plt.subplots(1, max(1, len(phases)), figsize=(3.4 * max(1, len(phases)), 3), squeeze=False)
+    for ax, p in zip(axes[0], phases):
+        unit, f = _show(p)
+        b = np.asarray(arrays[f"before_{p}"]) * f
+        a = arrays.get(f"after_{p}")
+        top = np.percentile(b, 99) if len(b) else 1.0
+        edges = np.linspace(0, top if top > 0 else 1.0, 40)
+        ax.hist(np.clip(b, 0, edges[-1]), edges, alpha=0.5, label="model")
+        if a is not None:
+            ax.hist(np.clip(np.asarray(a) * f, 0, edges[-1]), edges, alpha=0.5, label="with the effects")
+        ax.set_xlabel(f"{p} error [{unit}]")
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _pm(v, ci, f=1.0, fmt="{:.3g}") -> str:
+    if not math.isfinite(v):
+        return "-"
+    return f"{fmt.format(v * f)} [{fmt.format(ci[0] * f)}, {fmt.format(ci[1] * f)}]"
+
+
+def markdown(out: dict, data: str = "", model: str = "") -> str:
+    """The report's Markdown."""
+    v = out["verdict"]
+    lines = [f"# Sim-to-real gap diagnosis{f' of {model}' if model else ''}{f' on {data}' if data else ''}", "",
+             f"**Verdict.** {v['text']}", ""]
+    lines += ["## Where", "", "Mean error per phase, 95 % group-bootstrap interval "
+              f"(flagged: the interval's lower end above {FLAG_RATIO} x the phase's mean).", "",
+              "| phase | items | groups | mean error | flagged regimes |", "|---|---|---|---|---|"]
+    for p, w in out["where"].items():
+        unit, f = _show(p)
+        flagged = ", ".join(f"{r} {label}" for r, label in w["flagged"]) or "none"
+        lines.append(f"| {p} | {w['n']} | {w['groups']} | {_pm(w['mean'], w['ci95'], f)} {unit} | {flagged} |")
+    for p, why in out["skipped"].items():
+        lines.append(f"\nSkipped {p}: {why}")
+    lines += ["", f"![gap by phase and regime]({FIGURES['where']})", "", "Residual dependences (Spearman, over segments / "
+              "contacts; |rho| >= 0.3, p < 0.001):", ""]
+    deps = [(p, d) for p, ds in out["dependence"].items() for d in ds]
+    lines += [f"- {p}: {d['error']} on {d['quantity']}: rho {d['rho']:+.2f}" for p, d in deps[:12]] or ["- none"]
+    lines += ["", "## Which effect", "", "Each candidate fitted on the training split, scored on the held-out split "
+              "(reduction of the RMS error: flight, of the 3-D position error; contacts, of the norm of (velocity error, "
+              "radius x spin error); 95 % paired bootstrap interval).", "",
+              "| rank | effect | phase | held-out reduction [%] | significant | fitted parameters |", "|---|---|---|---|---|---|"]
+    for c in out["candidates"]:
+        params = json.dumps(jsonable(c["params"]))
+        params = params if len(params) < 160 else params[:157] + "..."
+        for p in c["phases"]:
+            h = c["heldout"][p]
+            lines.append(f"| {c['rank']} | {c['name']} | {p} | {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} | "
+                         f"{'yes' if c['significant'] else 'no'} | `{params}` |")
+    lines += ["", f"![ranked effects]({FIGURES['effects']})", "", "Effects on the record (sizes, not physics):", ""]
+    rec = out["record"]
+    if "position_noise" in rec:
+        s = rec["position_noise"]["sigma"]
+        lines.append(f"- position_noise: sigma x/y/z = {s[0] * 1e3:.2f} / {s[1] * 1e3:.2f} / {s[2] * 1e3:.2f} mm")
+    if "missing_frames" in rec:
+        lines.append(f"- missing_frames: {100 * rec['missing_frames']['fraction']:.1f} % of frames inside segments")
+    sn = rec.get("spin_noise", {})
+    if sn:
+        lines.append(f"- spin_noise: {100 * sn['low_confidence_fraction']:.0f} % of segments with spin confidence below 0.5 "
+                     f"(median {sn['median_confidence']:.2f})")
+    rs = rec.get("racket_state_error", {})
+    if rs.get("n"):
+        b = rs["vel_bias"]
+        lines.append(f"- racket_state_error: a racket velocity bias of ({b[0]:+.2f}, {b[1]:+.2f}, {b[2]:+.2f}) m/s "
+                     f"(spread {np.linalg.norm(rs['vel_spread']):.2f} m/s) would explain the racket-contact velocity "
+                     f"residuals: RMS {rs['rms_before']:.3f} -> {rs['rms_after']:.3f} m/s over {rs['n']} contacts")
+    lines += ["", "## How far it shrinks", ""]
+    if out.get("combined"):
+        c = out["combined"]
+        lines.append(f"With {c['name']} (held-out):")
+        lines.append("")
+        lines += ["| phase | RMS before | RMS after | reduction [%] |", "|---|---|---|---|"]
+        for p, h in c["heldout"].items():
+            unit, f = _show(p)
+            lines.append(f"| {p} | {h['before_rms'] * f:.3g} {unit} | {h['after_rms'] * f:.3g} {unit} | "
+                         f"{_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} |")
+        for p, ba in out["before_after"].items():
+            unit, f = _show(p)
+            lines += ["", f"{p}, mean error by regime before -> after [{unit}]:", ""]
+            for r, rows in ba["regimes"].items():
+                cells = ", ".join(f"{b['label']}: {b['before'] * f:.3g} -> {b['after'] * f:.3g}" for b in rows)
+                lines.append(f"- {r}: {cells}")
+    else:
+        lines.append("No candidate is significant: nothing to add to the model.")
+    lines += ["", f"![held-out errors before and after]({FIGURES['before_after']})"]
+    if out.get("landing"):
+        g = out["landing"]
+        lines += ["", f"Landing error (rollouts, {g['n']} contacts): median {g['before_median']:.3f} m"
+                  + (f" -> {g['after_median']:.3f} m with the effects (median {g['reduction_median_pct']:+.0f} % lower)"
+                     if "after_median" in g else "")]
+    lines += ["", f"Run time {out['seconds']:.0f} s. Every number is in diagnosis.json.", ""]
+    return "\n".join(lines)
+
+
+def write_report(out: dict, out_dir, data: str = "", model: str = "") -> dict:
+    """Writes ``report.md``, ``diagnosis.json`` and the figures to ``out_dir``; returns {name: path}."""
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    paths = {"where": plot_where(out["where"], d / FIGURES["where"]),
+             "effects": plot_effects(out["candidates"], d / FIGURES["effects"]),
+             "before_after": plot_before_after(out["arrays"], d / FIGURES["before_after"])}
+    body = {k: v for k, v in out.items() if k not in ("arrays", "histories")}
+    body["loss_history"] = {k: np.asarray(v).tolist() for k, v in out.get("histories", {}).items()}
+    js = d / "diagnosis.json"
+    js.write_text(json.dumps(jsonable(body), indent=1))
+    md = d / "report.md"
+    md.write_text(markdown(out, data, model))
+    return dict(paths, json=js, report=md)

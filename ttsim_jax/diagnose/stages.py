@@ -1,0 +1,174 @@
+"""Per-item errors of a model plus candidate effects on each phase, in JAX (differentiable in the
+effects' parameters).
+
+Each phase uses the cheapest function that contains the physics it checks:
+
+* *flight*: the flight stage (:func:`ttsim_jax.physics.aero.flight_step`, RK4 from sample to
+  sample on absolute session time, spin integrated with the effects' ``spin_derivative``). Per
+  segment the initial position and velocity are fitted (Gauss-Newton) with the effects' parameters
+  held fixed; the gradient in those parameters is then taken at the fitted state, which is the
+  gradient of the minimised error (envelope theorem). A segment's measured spin is the mean of its
+  samples' estimates, so when an effect changes spin in flight the initial spin is set so that the
+  flight's mean spin matches it (one fixed-point step).
+* *table*: the kernel's contact response (:func:`ttsim_jax.kernel.step.respond`) applied to the
+  estimated pre-bounce state, minus the estimated post-bounce state.
+* *racket*: the racket contact in the racket frame
+  (:func:`ttsim_jax.physics.racket.base_response`, plus the model's residual network's correction
+  held fixed), minus the observation.
+
+Contact errors are (v error, r * spin error) (N, 6) in m/s, the spin part 0 where the spin is not
+measured on both sides; flight errors are (S, T, 3) position residuals [m].
+
+Effects are given as ``specs`` (static, :class:`~ttsim_jax.diagnose.candidates.Spec`) and their
+free values ``u`` (a tuple of dicts of arrays with a leading session axis; the actual parameter is
+``start + scale * u``); every item uses the parameters of its session.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ttsim_jax.fit.aero import _spd_solve
+from ttsim_jax.physics import hooks
+from ttsim_jax.physics.aero import flight_step
+
+#: Gauss-Newton iterations of the initial state at the start (later calls warm-start).
+GN_START = 6
+
+
+def effects_of(specs, consts, u, session):
+    """The effects of one item (its session's parameters) as a tuple of effect instances."""
+    out = []
+    for spec, c, uk in zip(specs, consts, u):
+        i = session if spec.per_session else 0
+        vals = {k: c["start"][k] + (c["scale"][k] * uk[k][i] if k in uk else 0.0) for k in spec.cls.PARAMS}
+        out.append(spec.cls(**vals))
+    return tuple(out)
+
+
+def _ball(model, effects):
+    return hooks.apply(effects, "ball_properties", (model.ball.radius, model.ball.mass))
+
+
+# ---------------------------------------------------------------------------------------------- flight
+def _path(model, effects, p0, v0, w0, t0, tau):
+    """(T, 3) positions and spins along one padded segment (padding: zero steps)."""
+    radius, mass = _ball(model, effects)
+    dts = tau[1:] - tau[:-1]
+
+    def step(y, k):
+        y = flight_step(model.aero, radius, mass, y[0], y[1], y[2], t0 + tau[k], dts[k], effects)
+        return y, (y[0], y[2])
+
+    _, (ps, ws) = jax.lax.scan(step, (p0, v0, w0), jnp.arange(tau.shape[0] - 1))
+    return jnp.concatenate([p0[None], ps]), jnp.concatenate([w0[None], ws])
+
+
+def _segment_residual(model, effects, x, spin, t0, tau, pos, mask, spin_changes: bool):
+    w0 = spin
+    if spin_changes:
+        _, ws = _path(model, effects, x[:3], x[3:], spin, t0, tau)
+        mean = jnp.sum(ws * mask[:, None], 0) / jnp.maximum(jnp.sum(mask), 1.0)
+        w0 = spin + (spin - mean)
+    ps, _ = _path(model, effects, x[:3], x[3:], w0, t0, tau)
+    return (ps - pos) * mask[:, None]
+
+
+def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, iterations):
+    def res(z):
+        return _segment_residual(model, effects, z, spin, t0, tau, pos, mask, spin_changes).ravel()
+
+    def body(_, z):
+        eye = jnp.eye(6, dtype=z.dtype)
+        r, jac = jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
+        h = jac.T @ jac
+        cand = z - _spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
+        return jnp.where(jnp.all(jnp.isfinite(cand)), cand, z)
+
+    return jax.lax.fori_loop(0, iterations, body, x)
+
+
+def initial_state(tau, pos, mask):
+    """(S, 6) start of the Gauss-Newton fit: position and velocity at tau[0] from a parabola."""
+    def one(t, p, m):
+        a = jnp.stack([jnp.ones_like(t), t, t**2], -1) * m[:, None]
+        coef = _spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (p * m[:, None]))
+        return jnp.concatenate([coef[0], coef[1]])
+
+    return jax.vmap(one)(tau, pos, mask)
+
+
+def _spin_changes(model, specs) -> bool:
+    return any(callable(getattr(s.cls, "spin_derivative", None)) for s in specs) or any(
+        callable(getattr(e, "spin_derivative", None)) for e in model.effects)
+
+
+def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
+    """(S, 6) initial states of every segment after ``iterations`` Gauss-Newton steps from ``x``
+    (effects' parameters held fixed; no gradient flows through the result).
+
+    Arguments:
+        model: the model (its own effects kept); specs, consts, u: the candidate effects.
+        fl: dict of arrays ``t0`` (S,), ``tau`` (S, T), ``pos`` (S, T, 3), ``mask`` (S, T),
+            ``spin`` (S, 3), ``session`` (S,).
+        x: (S, 6) initial states to start from.
+    """
+    changes = _spin_changes(model, specs)
+    u = jax.lax.stop_gradient(u)
+
+    def one(xi, t0, tau, pos, mask, spin, s):
+        fx = model.effects + effects_of(specs, consts, u, s)
+        return _gauss_newton(model, fx, xi, spin, t0, tau, pos, mask, changes, iterations)
+
+    return jax.lax.stop_gradient(jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"]))
+
+
+def flight_errors(model, specs, consts, u, fl: dict, x):
+    """(S, T, 3) position residuals of every segment flown from the states ``x`` (differentiable in
+    ``u``; see :func:`flight_states` for the arguments)."""
+    changes = _spin_changes(model, specs)
+
+    def one(xi, t0, tau, pos, mask, spin, s):
+        fx = model.effects + effects_of(specs, consts, u, s)
+        return _segment_residual(model, fx, xi, spin, t0, tau, pos, mask, changes)
+
+    return jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
+
+
+# ---------------------------------------------------------------------------------------------- contacts
+def table_errors(model, specs, consts, u, c: dict):
+    """(N, 6) table-contact errors (see the module docstring) of the contacts in ``c``
+    (``pos``, ``x``, ``y_obs``, ``known``, ``session``)."""
+    from ttsim_jax.kernel.step import respond
+    from ttsim_jax.physics.events import TABLE
+    from ttsim_jax.state import Ball
+
+    r = model.ball.radius
+
+    def one(p, x, y, known, s):
+        m = model.replace(effects=model.effects + effects_of(specs, consts, u, s))
+        post, _, _ = respond(m, Ball(p, x[:3], x[3:6]), TABLE, None)
+        return jnp.concatenate([post.vel - y[:3], r * (post.spin - y[3:]) * known])
+
+    return jax.vmap(one)(c["pos"], c["x"], c["y_obs"], c["known"], c["session"])
+
+
+def racket_errors(model, specs, consts, u, c: dict):
+    """(N, 6) racket-contact errors in the racket frame (see the module docstring) of the contacts
+    in ``c`` (``x``, ``y_obs``, ``correction``, ``known``, ``session``)."""
+    from ttsim_jax.physics.racket import base_response
+
+    r = model.ball.radius
+
+    def one(x, y, corr, known, s):
+        fx = model.effects + effects_of(specs, consts, u, s)
+        radius, mass = _ball(model, fx)
+        v, w = base_response(model.racket, x[:3], x[3:6], x[6:8], radius, mass, fx)
+        e = jnp.concatenate([v, w]) + corr - y
+        return jnp.concatenate([e[:3], r * e[3:] * known])
+
+    return jax.vmap(one)(c["x"], c["y_obs"], c["correction"], c["known"], c["session"])
+
+
+ERRORS = {"table": table_errors, "racket": racket_errors}
