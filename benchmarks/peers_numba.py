@@ -24,7 +24,12 @@ import math
 
 import numpy as np
 import numba
-from numba import cuda, njit, prange
+# Some numba-cuda releases overload np.row_stack, which numpy 2.5 removed; their first CUDA
+# compilation then fails (seen with numba 0.68 and numpy 2.5.2). row_stack was vstack.
+if "row_stack" not in dir(np):
+    np.row_stack = np.vstack
+
+from numba import cuda, njit, prange  # noqa: E402
 
 F = np.float32
 ZERO, ONE, TWO, HALF, THREE, SIX = F(0.0), F(1.0), F(2.0), F(0.5), F(3.0), F(6.0)

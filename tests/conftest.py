@@ -24,7 +24,7 @@ if "TTSIM_TEST_JAX_CACHE" not in os.environ:  # the controller makes it; workers
     os.environ["TTSIM_TEST_JAX_CACHE_OWNED"] = os.environ["TTSIM_TEST_JAX_CACHE"]
 # environment variables as well as the config, so subprocesses started by tests use the cache too
 for _name, _value in (("jax_compilation_cache_dir", os.environ["TTSIM_TEST_JAX_CACHE"]),
-                      ("jax_persistent_cache_min_compile_time_secs", 0.5),
+                      ("jax_persistent_cache_min_compile_time_secs", 0.0),
                       ("jax_persistent_cache_min_entry_size_bytes", 0)):
     os.environ[_name.upper()] = str(_value)
     jax.config.update(_name, _value)

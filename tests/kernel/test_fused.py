@@ -1,7 +1,7 @@
 """The fused flight path (Pallas, interpret mode on CPU) equals the reference path.
 
 The comparison uses ``test_rollout``'s shots, racket schedule and compiled shape (64 balls, 400
-steps), four seeds of them, so that its reference rollouts are the ones that module compiles.
+steps), two seeds of them, so that its reference rollouts are the ones that module compiles.
 """
 
 import jax
@@ -15,7 +15,7 @@ from ttsim_jax.kernel.step import flight, may_have_event
 from ttsim_jax.physics.events import NET, RACKET, TABLE
 from test_rollout import B, N, shots, two_rackets
 
-SEEDS = (0, 1, 2, 3)
+SEEDS = (0, 1)
 
 
 @pytest.fixture(scope="module")
