@@ -24,13 +24,15 @@ DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 # marker name -> the benchmark JSON its table is written from
 TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json",
           "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json"}
-START, END = "<!-- peers-table:start -->", "<!-- peers-table:end -->"
 PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
 
 
 def markers(name: str = "peers-table") -> tuple[str, str]:
     """The start and end lines of the block named ``name``."""
     return f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+
+
+START, END = markers()
 
 
 def _rate(x: float) -> str:

@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from report_json import emit  # the scripts' folder is on sys.path when run as a script
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -110,13 +112,7 @@ def main(argv=None) -> int:
     report = dict(benchmark="sharded_scaling", unit="ball-steps/s", model=args.model, platform=args.platform,
                   cores=os.cpu_count(), host=platform.platform(), load_average=list(os.getloadavg()),
                   steps=args.steps, rackets="tracking_rackets (2)", **rows)
-    text = json.dumps(report, indent=2)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-        print(f"written {args.out}")
-    else:
-        print(text)
+    emit(report, args.out)
     return 0
 
 

@@ -13,7 +13,6 @@ run with an (untrained, same-cost) network, giving the network-on / network-off 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import sys
@@ -28,6 +27,8 @@ from ttsim_jax.physics.residual import init_model, load_residual_config
 from ttsim_jax.policies import tracking_rackets
 from ttsim_jax.shots import sample_shots
 from ttsim_jax.state import Ball
+
+from report_json import emit  # the scripts' folder is on sys.path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -101,13 +102,7 @@ def main(argv=None) -> int:
                   rackets=None if args.no_rackets else "tracking_rackets (2)",
                   device=str(jax.devices()[0]), platform=platform.platform(), jax=jax.__version__,
                   results=results)
-    text = json.dumps(report, indent=2)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-        print(f"written {args.out}")
-    else:
-        print(text)
+    emit(report, args.out)
     return 0
 
 

@@ -70,6 +70,11 @@ def _stats(x) -> dict:
     return dict(n=int(len(x)), median=float(np.median(x)), p75=float(np.percentile(x, 75)), mean=float(np.mean(x)))
 
 
+def _abs_stats(e) -> dict:
+    """:func:`_stats` of the signed errors' magnitudes ``|e|``, with their median ``bias``."""
+    return dict(_stats(np.abs(e)), bias=_stats(e)["median"])
+
+
 # ---------------------------------------------------------------------------------------------- summary
 def summarise(result: dict) -> dict:
     """The numbers of the report (JSON-ready): per stage and model, medians, 75th percentiles,
@@ -101,7 +106,7 @@ def summarise(result: dict) -> dict:
             per = {}
             for n in names:
                 e = t["error"][n]
-                per[n] = {c: dict(_stats(np.abs(e[:, k])), bias=_stats(e[:, k])["median"]) for k, c in enumerate(COMPONENTS)}
+                per[n] = {c: _abs_stats(e[:, k]) for k, c in enumerate(COMPONENTS)}
             for n in names:
                 for c in COMPONENTS:
                     per[n][c]["reduction_median_pct"] = reduction(per[ref][c]["median"], per[n][c]["median"])
@@ -119,8 +124,7 @@ def summarise(result: dict) -> dict:
             per = {}
             for n in names:
                 e = r["error"][n]
-                per[n] = {label: dict(n=int(sel.sum()), **{c: dict(_stats(np.abs(e[sel, k])), bias=_stats(e[sel, k])["median"])
-                                                             for k, c in enumerate(ERROR_NAMES)})
+                per[n] = {label: dict(n=int(sel.sum()), **{c: _abs_stats(e[sel, k]) for k, c in enumerate(ERROR_NAMES)})
                           for label, sel in bands}
             for n in names:
                 for label, _ in bands:
