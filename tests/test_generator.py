@@ -20,6 +20,7 @@ from ttsim_jax.data.generator import (
     load_truth,
     make_config,
     matrix_to_quat,
+    rerecord,
     sample_contact_points,
     write,
 )
@@ -37,10 +38,11 @@ def tiny(effects, seed=0):
 
 @pytest.fixture(scope="module")
 def runs():
-    """Generated once per module: every run shares one set of compiled kernels (same in-simulator effects)."""
+    """Generated once per module: every run shares one set of compiled kernels (same in-simulator
+    effects); the record effects, one at a time, are the "all" games recorded again."""
     out = {"all": tiny("all"), "all_again": tiny("all"), "seed1": tiny("all", seed=1), "sim": tiny(SIM)}
     for name in fx.names("record"):
-        out[name] = tiny(SIM + "," + name)
+        out[name] = rerecord(out["all"], SIM + "," + name)
     return out
 
 
@@ -106,6 +108,18 @@ def test_generated_data_passes_validation_and_round_trips(runs, tmp_path):
     assert truth.effect_params("air_flow", 1) == gen.truth["sessions"][1]["effects"]["air_flow"]
     with pytest.raises(FileExistsError):
         write(gen, out)
+
+
+def test_recording_again_equals_generating_with_those_effects(runs):
+    """rerecord skips the simulation and gives what generate gives with the same effects."""
+    direct, again = runs["sim"], rerecord(runs["all"], SIM)
+    assert tables_equal(direct.dataset, again.dataset) and truth_equal(direct, again)
+    for col in direct.truth_observations:
+        np.testing.assert_array_equal(direct.truth_observations[col], again.truth_observations[col])
+    assert direct.truth["effects"] == again.truth["effects"] and direct.truth["counts"] == again.truth["counts"]
+    assert not tables_equal(runs["all"].dataset, again.dataset)  # the source is left as it was
+    with pytest.raises(GeneratorError, match="only record effects may change"):
+        rerecord(runs["all"], "position_noise")
 
 
 # ------------------------------------------------------------------------ record effects, one each

@@ -33,9 +33,9 @@ SCRIPT = textwrap.dedent("""
     np.testing.assert_array_equal(np.asarray(o2.events.kind), np.asarray(o1.events.kind))
     np.testing.assert_array_equal(np.asarray(s2.status), np.asarray(s1.status))
     assert int((np.asarray(o1.events.kind) > 0).sum()) >= n // 2
-    # resumes from a sharded state
-    s3, _ = sharded_rollout(mb, s2, 100, 1e-3, model_axes=axes)
-    s4, _ = rollout(mb, s1, 100, 1e-3, model_axes=axes)
+    # resumes from a sharded state (same length: the compiled programs are reused)
+    s3, _ = sharded_rollout(mb, s2, 300, 1e-3, model_axes=axes)
+    s4, _ = rollout(mb, s1, 300, 1e-3, model_axes=axes)
     np.testing.assert_allclose(np.asarray(s3.ball.as_array()), np.asarray(s4.ball.as_array()), rtol=1e-12, atol=1e-12)
     print("SHARDED-OK", int((np.asarray(o1.events.kind) > 0).sum()))
 """)

@@ -69,6 +69,7 @@ Use :func:`load_truth` to read them back.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -998,6 +999,7 @@ class Generated:
     truth_rackets: dict
     truth_observations: dict | None
     wall_time_s: float = 0.0
+    _game: "_Game | None" = dataclasses.field(default=None, repr=False, compare=False)
 
 
 def _record(game: _Game, name: str, sid: int):
@@ -1181,7 +1183,8 @@ def _assemble(game: _Game, wall: float) -> Generated:
                       "effects": {n: e.to_dict() for n, e in game.session_effects[s.sid].items()}} for s in game.sessions],
         "counts": counts,
     }
-    return Generated(dataset=ds, truth=truth, truth_events=tev, truth_rackets=trk, truth_observations=tobs, wall_time_s=wall)
+    return Generated(dataset=ds, truth=truth, truth_events=tev, truth_rackets=trk, truth_observations=tobs, wall_time_s=wall,
+                     _game=game)
 
 
 def generate(config: GeneratorConfig | None = None, *, progress: bool = True, **overrides) -> Generated:
@@ -1199,6 +1202,38 @@ def generate(config: GeneratorConfig | None = None, *, progress: bool = True, **
     game = _Game(cfg, progress)
     game.run()
     return _assemble(game, time.perf_counter() - t0)
+
+
+def rerecord(gen: Generated, effects) -> Generated:
+    """The same simulated games recorded again under other record effects, without simulating again.
+
+    Record effects (sensor noise, missing frames, racket-state and spin-estimate errors) act only on
+    what is written, so the result equals :func:`generate` with ``gen``'s configuration and these
+    effects, at the cost of the writing alone: the way to study one physical truth under several
+    sensors.
+
+    Arguments:
+        gen: what :func:`generate` returned in this process.
+        effects: effect names (a list or a comma-separated string, ``"all"`` allowed); their
+            simulator effects must be ``gen``'s.
+
+    Returns:
+        A new :class:`Generated`; ``gen`` is unchanged.
+    """
+    if gen._game is None:
+        raise GeneratorError("rerecord: this Generated holds no simulated games (it was not made by generate "
+                             "in this process)")
+    old = gen._game.cfg
+    cfg = _check_config(old.replace(effects=effects), "rerecord")
+    physical = lambda c: [n for n in c.effects if fx.effect_class(n).WHERE == "simulator"]  # noqa: E731
+    if physical(cfg) != physical(old):
+        raise GeneratorError(f"rerecord: effects {list(cfg.effects)} change the simulator effects "
+                             f"{physical(old)} -> {physical(cfg)}; only record effects may change")
+    t0 = time.perf_counter()
+    game = copy.copy(gen._game)
+    game.cfg = cfg
+    game._draw_effects()
+    return _assemble(game, gen.wall_time_s + time.perf_counter() - t0)
 
 
 def _truth_parquet(table: dict, path: Path, dataset_id: str):
