@@ -3,14 +3,16 @@
 Fits 200 SpinDOE flight segments (those with a measured spin; initial position, initial velocity,
 C_D and C_M per segment) twice in one process:
 
-* batched: :func:`ttsim_jax.fit.aero.fit_segments`, one compiled vmapped Levenberg-Marquardt call;
-  timed from cold (tracing and compilation included: the first call of the process) and warm;
+* batched: :func:`ttsim_jax.fit.aero.fit_segments`, one compiled call of the vmapped
+  Levenberg-Marquardt solver over groups of similar length; timed from cold (tracing and
+  compilation included: the first call of the process) and warm;
 * scipy: ``scipy.optimize.least_squares(method="lm")`` per segment over the same residual function
   (:func:`ttsim_jax.fit.aero.residual`, jitted, the segment padded to the same capacity) from the
   same start, with the Jacobian either by scipy's finite differences (``jac="2-point"``, the plain
   use; the residual runs in float64 so that the differences mean something) or by the jitted
   forward-mode Jacobian :func:`ttsim_jax.fit.aero.jacobian` (``jac="jax"``, float32 like the
-  batched fit); timed with and without the compilation of those functions.
+  batched fit); timed with and without the compilation of those functions, which are compiled with
+  the batched fit's XLA options (``aero.COMPILER_OPTIONS``) so that the cold times compare alike.
 
 Prints JSON (times, the ratios scipy / batched from this one run, the agreement of the fitted
 coefficients, the machine and its load average: the machine may be shared, so compare ratios from
@@ -76,9 +78,10 @@ def main(argv=None) -> int:
     from ttsim_jax.params import load_model
 
     size = max(A.capacity(len(t)) for t in times)
-    res_jit = jax.jit(A.residual)
-    jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0])
-    guess_jit = jax.jit(A.initial_guess)
+    opts = dict(compiler_options=A.COMPILER_OPTIONS)
+    res_jit = jax.jit(A.residual, **opts)
+    jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0], **opts)
+    guess_jit = jax.jit(A.initial_guess, **opts)
 
     def run_scipy(jac_kind: str):
         dtype = np.float64 if jac_kind == "2-point" else np.float32
@@ -116,7 +119,8 @@ def main(argv=None) -> int:
         "segments": len(times),
         "samples": int(sum(len(t) for t in times)),
         "longest_segment": int(max(len(t) for t in times)),
-        "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm, "iterations": A.ITERATIONS, "batch": A.BATCH,
+        "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm, "iterations": A.ITERATIONS, "batch": A.BATCH, "group": A.GROUP, "tol": A.TOL,
+                    "compiler_options": A.COMPILER_OPTIONS,
                     "median_rmse_mm": float(np.nanmedian(warm.rmse) * 1e3),
                     "cold_equals_warm": bool(np.allclose(cold.theta, warm.theta, equal_nan=True))},
         "scipy_least_squares_lm": scipy,

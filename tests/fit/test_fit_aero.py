@@ -37,7 +37,7 @@ def tabulated(model):
     """256 segments flown with the paper's C_D and C_M tables, fitted per segment."""
     times, pos, spins, _ = A.synthetic_segments(model.aero, model.ball.radius, model.ball.mass, 256, seed=5,
                                                 speed=(3.0, 18.0), spin_rate=(20.0, 700.0), noise=NOISE)
-    return spins, A.fit_segments(times, pos, spins, batch=48)  # the compiled shape of `constant`
+    return spins, A.fit_segments(times, pos, spins)  # 16 groups of 16: the compiled shape of `constant`
 
 
 def test_constant_coefficients_recovered(constant):
