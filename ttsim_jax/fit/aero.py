@@ -25,12 +25,12 @@ whole batch is one compiled call:
 Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
 that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
 0), and the integration is a ``while_loop`` that stops at the longest segment of its group: the
-work follows the actual lengths while the compiled shape stays (groups, rows, capacity).
-Segments are sorted by length and split into groups of at most ``GROUP`` (16) of similar length;
-a compiled call runs ``BATCH // rows`` groups one after another (``lax.map``), each with its own
-integration length and its own stopping iteration. On CPU a step costs per segment (the tangent
-arithmetic is not vectorised across segments), so small groups waste little on padding and on
-waiting for a slow segment. One capacity means one compilation.
+work follows the actual lengths while the compiled shape stays (rows, capacity). Segments are
+sorted by length and split evenly into groups of at most ``GROUP`` (16) of similar length, one
+compiled call each (dispatched ``BATCH // rows`` at a time before the results are awaited), each
+with its own integration length and its own stopping iteration. On CPU a step costs per segment
+(the tangent arithmetic is not vectorised across segments), so small groups waste little on
+padding and on waiting for a slow segment. One capacity means one compilation.
 
 After the fit, each segment's effective speeds (the paper's force-averaged velocities) are computed
 along the fitted trajectory at the observation times:
@@ -323,7 +323,7 @@ def summarize(raw: dict, mask, spin) -> dict:
 
 
 def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
-    """Fits a padded batch of segments, in groups; compiled once per (groups, rows, capacity,
+    """Fits a padded batch of segments, group by group; compiled once per (rows, capacity,
     iterations, substeps).
 
     Arguments:
@@ -344,20 +344,19 @@ def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATION
         velocities at the sample times, ``iterations`` (G R,) taken (a group's loop runs until its slowest
         segment converges), ``ok``.
     """
-    raw = jax.device_get(_fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps))
-    flat = lambda a: np.reshape(a, (-1, *np.shape(a)[2:]))  # noqa: E731
+    # One call per group, all dispatched before any result is awaited; one call over all groups
+    # (lax.map) would cost more to compile than the calls cost to dispatch.
+    pending = [_fit_batch_jit(tau[g], pos[g], mask[g], spin[g], jnp.asarray(n_max[g]), air, iterations, substeps)
+               for g in range(len(n_max))]
     used = max(int(np.max(n_max)), 1)  # samples beyond every segment's end are padding
-    raw["velocity"] = raw["velocity"][:, :, :used]
-    return summarize({k: flat(v) for k, v in raw.items()}, flat(np.asarray(mask)[:, :, :used]), flat(spin))
+    raws = jax.device_get(pending)
+    raw = {k: np.concatenate([r[k][:, :used] if k == "velocity" else r[k] for r in raws]) for k in raws[0]}
+    flat = lambda a: np.reshape(a, (-1, *np.shape(a)[2:]))  # noqa: E731
+    return summarize(raw, flat(np.asarray(mask)[:, :, :used]), flat(spin))
 
 
 def _fit_batch_impl(tau, pos, mask, spin, n_max, air, iterations, substeps):
-    def group(args):
-        t, p, m, s, n = args
-        return jax.vmap(lambda a, b, c, d: fit_one(a, b, c, d, n, air, iterations, substeps))(t, p, m, s)
-
-    # Groups one after another: each group's loops stop at its own length and convergence.
-    return jax.lax.map(group, (tau, pos, mask, spin, n_max))
+    return jax.vmap(lambda a, b, c, d: fit_one(a, b, c, d, n_max, air, iterations, substeps))(tau, pos, mask, spin)
 
 
 #: XLA options of the fit's compilation: the legacy (elemental) CPU emitters compile this graph of
@@ -512,10 +511,8 @@ def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_s
 
 
 def grouped_batches(times, positions, spins, batch: int = BATCH, group: int = GROUP, dtype=np.float32):
-    """The groups of :func:`batches` (at most ``group`` rows each), ``batch // rows`` to a call.
-
-    Every call of one capacity has the same shape (the last one is filled with empty groups,
-    which cost nothing: their loops end at once), so one capacity means one compilation.
+    """The groups of :func:`batches` (at most ``group`` rows each), ``batch // rows`` to a
+    :func:`fit_batch` call. Every group of one capacity has the same shape: one compilation.
 
     Yields:
         (idx, rows, (tau, pos, mask, spin), n_max): the segments' indices and their rows in the
@@ -524,10 +521,9 @@ def grouped_batches(times, positions, spins, batch: int = BATCH, group: int = GR
     calls: list = []
 
     def flush():
-        rows_per, per_call = calls[0][1][0].shape[0], max(1, batch // calls[0][1][0].shape[0])
-        arrays = tuple(np.stack([c[1][k] for c in calls] + [np.zeros_like(calls[0][1][k])] * (per_call - len(calls)))
-                       for k in range(4))
-        n_max = np.array([c[2] for c in calls] + [0] * (per_call - len(calls)), np.int32)
+        rows_per = calls[0][1][0].shape[0]
+        arrays = tuple(np.stack([c[1][k] for c in calls]) for k in range(4))
+        n_max = np.array([c[2] for c in calls], np.int32)
         idx = [i for c in calls for i in c[0]]
         rows = [g * rows_per + r for g, c in enumerate(calls) for r in range(len(c[0]))]
         calls.clear()
