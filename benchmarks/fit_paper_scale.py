@@ -40,7 +40,8 @@ def _sample_load(stop: threading.Event, samples: list) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, required=True, help="dataset directory (e.g. from 'ttsim generate --preset paper')")
+    p.add_argument("--data", type=Path, required=True,
+                   help="dataset directory (e.g. from 'ttsim generate --preset paper')")
     p.add_argument("--model-out", type=Path, default=None,
                    help="model config the fit writes (default: a temporary folder's fitted.toml)")
     p.add_argument("--stages", default=None, help="passed to ttsim fit --stages (default: the command's default)")
