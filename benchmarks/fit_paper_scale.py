@@ -86,14 +86,15 @@ def main(argv=None) -> int:
     report = {
         "benchmark": "ttsim fit at the paper's scale",
         "command": "python benchmarks/fit_paper_scale.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "fit_command": " ".join(cmd[2:]).replace("ttsim_jax.cli", "ttsim", 1),
+        "fit_command": " ".join(["ttsim"] + ["OUT" if a == str(model_out) and args.model_out is None else a
+                                              for a in cmd[3:]]),
         "data": str(args.data),
         "wall_s": wall,
         "cpu_s": cpu,
         "idle_estimate_s": {"cpu_time": cpu, "cpu_time_over_cores": cpu / cores},
         "max_rss_mb": after.ru_maxrss / 1024.0,
         "stages": stages,
-        "stdout": proc.stdout.splitlines(),
+        "stdout": [line.replace(str(model_out.with_suffix("")), "OUT") for line in proc.stdout.splitlines()],
         "machine": {"platform": platform.platform(), "cpus": cores, "python": platform.python_version(),
                     "load_average_before": load_before, "load_average_after": load_after,
                     "load_average_1min_during": {"mean": sum(samples) / len(samples) if samples else None,

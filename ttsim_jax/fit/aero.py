@@ -436,15 +436,17 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
                  batch: int = BATCH, group: int = GROUP, iterations: int = ITERATIONS, substeps: int = 1,
                  dtype=np.float32, progress: Callable | None = None) -> SegmentFits:
     """Fits every segment: sorted by length, padded to its capacity, in groups of similar length
-    (at most ``group``), ``batch // rows`` groups per compiled call (:func:`grouped_batches`).
+    (at most ``group``), one compiled call per group, ``batch // rows`` groups dispatched before
+    their results are awaited (:func:`grouped_batches`, :func:`fit_batch`).
 
     Arguments:
         times: list of (T_i,) increasing sample times [s].
         positions: list of (T_i, 3) observed positions [m].
         spins: (S, 3) spins [rad/s] (default zeros).
         air: ball and air (default: those of the bundled conti2026 model).
-        batch: segments per compiled call; group: segments integrated side by side (see
-            :func:`grouped_batches`); iterations, substeps: see :func:`fit_batch`.
+        batch: segments dispatched together (and between ``progress`` calls); group: segments
+            integrated side by side (see :func:`grouped_batches`); iterations, substeps: see
+            :func:`fit_batch`.
         dtype: float type of the fit (float32 by default; float64 needs ``jax_enable_x64``).
         progress: optional callable ``progress(n_done)`` called after each batch.
 
@@ -490,8 +492,9 @@ def balanced_rows(count: int, batch: int) -> int:
 def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3):
     """Padded batches of segments: sorted by length, grouped by capacity, ``batch`` rows each.
 
-    A group is split into batches of equal size (:func:`balanced_rows`, one compilation per
-    group): a batch's work is its row count times its longest segment.
+    The segments of one capacity are split into batches of equal size (:func:`balanced_rows`: one
+    shape, one compilation, per capacity): a batch's work is its row count times its longest
+    segment.
 
     Yields:
         (idx, (tau, pos, mask, spin), n_max): the segments' indices (rows beyond ``len(idx)`` are
