@@ -3,14 +3,18 @@
 Fits 200 SpinDOE flight segments (those with a measured spin; initial position, initial velocity,
 C_D and C_M per segment) twice in one process:
 
-* batched: :func:`ttsim_jax.fit.aero.fit_segments`, one compiled vmapped Levenberg-Marquardt call;
-  timed from cold (tracing and compilation included: the first call of the process) and warm;
+* batched: :func:`ttsim_jax.fit.aero.fit_segments`, the vmapped Levenberg-Marquardt solver, one
+  compiled call per group of up to 16 segments of similar length; timed from cold (tracing and
+  compilation included: the first call of the process) and warm;
 * scipy: ``scipy.optimize.least_squares(method="lm")`` per segment over the same residual function
   (:func:`ttsim_jax.fit.aero.residual`, jitted, the segment padded to the same capacity) from the
   same start, with the Jacobian either by scipy's finite differences (``jac="2-point"``, the plain
   use; the residual runs in float64 so that the differences mean something) or by the jitted
   forward-mode Jacobian :func:`ttsim_jax.fit.aero.jacobian` (``jac="jax"``, float32 like the
-  batched fit); timed with and without the compilation of those functions.
+  batched fit); timed with and without the compilation of those functions, which are compiled with
+  the batched fit's XLA options (``aero.COMPILER_OPTIONS``) so that the cold times compare alike;
+* jaxopt (for the choice of solver): ``jaxopt.LevenbergMarquardt`` over the same residual,
+  vmapped over the same groups (forward-mode Jacobian, Cholesky), cold and warm.
 
 Prints JSON (times, the ratios scipy / batched from this one run, the agreement of the fitted
 coefficients, the machine and its load average: the machine may be shared, so compare ratios from
@@ -22,7 +26,6 @@ one run, not times across runs).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -30,6 +33,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from report_json import emit  # noqa: E402
 
 
 def _real_spindoe() -> Path:
@@ -76,14 +82,15 @@ def main(argv=None) -> int:
     from ttsim_jax.params import load_model
 
     size = max(A.capacity(len(t)) for t in times)
-    res_jit = jax.jit(A.residual)
-    jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0])
-    guess_jit = jax.jit(A.initial_guess)
+    opts = dict(compiler_options=A.COMPILER_OPTIONS)
+    res_jit = jax.jit(A.residual, **opts)
+    jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0], **opts)
+    guess_jit = jax.jit(A.initial_guess, **opts)
 
     def run_scipy(jac_kind: str):
         dtype = np.float64 if jac_kind == "2-point" else np.float32
         air = A.Air.from_model(load_model("conti2026"), dtype)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         theta, nfev = [], 0
         for i in range(len(times)):
             tau, pos, mask, spin = (jnp.asarray(a[0]) for a in A.pack(times, positions, spins, [i], size, 1, dtype))
@@ -96,19 +103,57 @@ def main(argv=None) -> int:
             sol = least_squares(fun, x0, jac=jac, method="lm")
             theta.append(sol.x)
             nfev += sol.nfev
-        return time.perf_counter() - t0, np.asarray(theta), nfev
+        return time.perf_counter() - t0, time.process_time() - c0, np.asarray(theta), nfev
 
     scipy = {}
     for kind in ("2-point", "jax"):
-        first, theta, nfev = run_scipy(kind)  # includes compiling the residual (and Jacobian) once
-        again, theta, _ = run_scipy(kind)
+        first, first_cpu, theta, nfev = run_scipy(kind)  # includes compiling the residual (and Jacobian) once
+        again, again_cpu, theta, _ = run_scipy(kind)
         d = np.abs(theta[:, 6:] - warm.theta[:, 6:])
         scipy[kind] = {
-            "total_s": first, "warm_s": again, "function_evaluations": int(nfev),
+            "total_s": first, "warm_s": again, "total_cpu_s": first_cpu, "warm_cpu_s": again_cpu,
+            "function_evaluations": int(nfev),
             "ratio_to_batched_cold": first / t_cold, "ratio_to_batched_warm": again / t_warm,
             "median_abs_diff_cd_cm": np.median(d, axis=0).tolist(),
             "p95_abs_diff_cd_cm": np.percentile(d, 95, axis=0).tolist(),
         }
+
+    # ---- jaxopt's LevenbergMarquardt over the same residual, vmapped over the same groups
+    from jaxopt import LevenbergMarquardt
+
+    # Forward-mode Jacobian (its default J^T r is reverse mode, which the integration's
+    # while_loop, stopping at the group's length, does not support).
+    solver = LevenbergMarquardt(residual_fun=A.residual, maxiter=A.ITERATIONS + 1, tol=A.TOL, materialize_jac=True,
+                                solver="cholesky")
+
+    def group_jaxopt(tau, pos, mask, spin, n, air):
+        x0 = jax.vmap(A.initial_guess)(tau, pos, mask)
+        sol = jax.vmap(lambda x, t, p, m, s: solver.run(x, t, p, m, s, n, air))(x0, tau, pos, mask, spin)
+        return sol.params, sol.state.iter_num
+
+    jaxopt_jit = jax.jit(group_jaxopt, compiler_options=A.COMPILER_OPTIONS)
+    air32 = A.default_air()
+
+    def run_jaxopt():
+        t0, c0 = time.perf_counter(), time.process_time()
+        pending = [(idx, jaxopt_jit(*(jnp.asarray(a) for a in arrays), jnp.asarray(n_max), air32))
+                   for idx, arrays, n_max in A.batches(times, positions, spins, A.GROUP)]
+        theta, iters = np.full((len(times), 8), np.nan), np.zeros(len(times), int)
+        for idx, (th, it) in pending:
+            theta[idx], iters[idx] = np.asarray(th)[: len(idx)], np.asarray(it)[: len(idx)]
+        return time.perf_counter() - t0, time.process_time() - c0, theta, iters
+
+    j_cold, j_cold_cpu, _, _ = run_jaxopt()
+    j_warm, j_warm_cpu, j_theta, j_iters = run_jaxopt()
+    d = np.abs(j_theta[:, 6:] - warm.theta[:, 6:])
+    jaxopt_result = {
+        "solver": "jaxopt.LevenbergMarquardt(materialize_jac=True, solver='cholesky'), vmapped over the same groups",
+        "cold_s": j_cold, "warm_s": j_warm, "cold_cpu_s": j_cold_cpu, "warm_cpu_s": j_warm_cpu,
+        "ratio_to_batched_cold": j_cold / t_cold, "ratio_to_batched_warm": j_warm / t_warm,
+        "segments_at_maxiter": int(np.sum(j_iters >= A.ITERATIONS + 1)),
+        "median_abs_diff_cd_cm": np.nanmedian(d, axis=0).tolist(),
+        "p95_abs_diff_cd_cm": np.nanpercentile(d, 95, axis=0).tolist(),
+    }
 
     result = {
         "benchmark": "aerodynamic identification speed",
@@ -116,19 +161,19 @@ def main(argv=None) -> int:
         "segments": len(times),
         "samples": int(sum(len(t) for t in times)),
         "longest_segment": int(max(len(t) for t in times)),
-        "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm, "iterations": A.ITERATIONS, "batch": A.BATCH,
+        "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm,
+                    "iterations": A.ITERATIONS, "batch": A.BATCH, "group": A.GROUP, "tol": A.TOL,
+                    "compiler_options": A.COMPILER_OPTIONS,
                     "median_rmse_mm": float(np.nanmedian(warm.rmse) * 1e3),
                     "cold_equals_warm": bool(np.allclose(cold.theta, warm.theta, equal_nan=True))},
         "scipy_least_squares_lm": scipy,
+        "jaxopt": jaxopt_result,
         "import_s": t_loaded - t_start,
         "import_cpu_s": c_loaded - c_start,
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
                     "load_average": os.getloadavg(), "jax": jax.__version__, "backend": jax.default_backend()},
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
+    emit(result, args.out)
     return 0
 
 

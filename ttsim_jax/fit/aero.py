@@ -16,16 +16,21 @@ whole batch is one compiled call:
   keeps float32 usable although the columns differ by orders of magnitude (metres, m/s,
   coefficients); standard errors and effective speeds are computed on the host afterwards;
 * a step is kept only if it lowers the cost, with the damping divided by 3 on success and
-  multiplied by 10 on failure; the loop ends when every segment of the batch has converged (a
-  step gains less than ``tol`` of the cost) or after ``ITERATIONS``. Every iteration is
-  one forward pass with tangents and no branch.
+  multiplied by 10 on failure. A segment has converged when the next step is predicted (by the
+  linearised model, from the normal equations in hand) to lower the cost by less than ``TOL`` of
+  it, or when a step gained less than that; deciding on the prediction saves the integration
+  that would only confirm convergence. Every iteration is one forward pass with tangents and no
+  branch; a group's loop ends when all its segments have converged, or after ``ITERATIONS``.
 
 Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
 that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
-0), and the integration is a ``while_loop`` that stops at the longest segment of the batch: the
-work follows the actual lengths while the compiled shape stays (``batch``, capacity). Segments
-are sorted by length so that a batch holds similar lengths. One capacity and one batch size mean
-one compilation.
+0), and the integration is a ``while_loop`` that stops at the longest segment of its group: the
+work follows the actual lengths while the compiled shape stays (rows, capacity). Segments are
+sorted by length and split evenly into groups of at most ``GROUP`` (16) of similar length, one
+compiled call each (dispatched ``BATCH // rows`` at a time before the results are awaited), each
+with its own integration length and its own stopping iteration. On CPU a step costs per segment
+(the tangent arithmetic is not vectorised across segments), so small groups waste little on
+padding and on waiting for a slow segment. One capacity means one compilation.
 
 After the fit, each segment's effective speeds (the paper's force-averaged velocities) are computed
 along the fitted trajectory at the observation times:
@@ -40,6 +45,7 @@ functional forms.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, Sequence
 
 import jax
@@ -55,6 +61,11 @@ CD_0, CM_0 = 0.54, 0.069
 CAPACITIES = (256, 1024, 4096)
 #: Segments per compiled call.
 BATCH = 256
+#: Segments integrated side by side within a call: a group's loops run until its slowest segment
+#: is done, so small groups of similar lengths waste little (each step's cost is per segment on CPU).
+GROUP = 16
+#: Convergence: the fit stops once the next step is predicted to lower the cost by less than this fraction.
+TOL = 1e-6
 #: Most Levenberg-Marquardt iterations (a batch stops earlier once every segment has converged).
 ITERATIONS = 8
 #: Names of the fitted parameters, in order.
@@ -90,6 +101,15 @@ class Air:
         """Flight parameters with constant coefficients ``cd``, ``cm``."""
         return AeroParams(rho_air=self.rho_air, nu=self.nu, gravity=self.gravity, buoyancy=self.buoyancy,
                           drag=ConstantCoefficient(cd), magnus=ConstantCoefficient(cm))
+
+
+@functools.lru_cache(maxsize=4)
+def default_air(dtype: str = "float32") -> Air:
+    """The ball and air of the bundled conti2026 model (loaded once per dtype: parsing the model
+    costs more than fitting a small batch)."""
+    from ttsim_jax.params import load_model
+
+    return Air.from_model(load_model("conti2026"), jnp.dtype(dtype))
 
 
 # --------------------------------------------------------------------------- one segment
@@ -226,34 +246,46 @@ def _scaled(h):
     return d, h / (d[:, None] * d[None, :])
 
 
-def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1, tol: float = 1e-4):
+def _lm_step(h, g, lam):
+    """Levenberg-Marquardt step of the normal equations (h, g) with damping ``lam`` on the scaled
+    columns, and the cost reduction the linearised model predicts for it."""
+    d, hs = _scaled(h)
+    step = -_spd_solve(hs + (lam + 1e-6) * jnp.eye(h.shape[0], dtype=h.dtype), g / d) / d
+    return step, -(2.0 * g @ step + step @ h @ step)
+
+
+def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1, tol: float = TOL):
     """Levenberg-Marquardt fit of one padded segment; see :func:`fit_batch`."""
 
     def normal(theta):
         return normal_equations(theta, tau, pos, mask, spin, n, air, substeps)
 
     theta0 = initial_guess(tau, pos, mask)
-    eye = jnp.eye(theta0.shape[0], dtype=theta0.dtype)
 
     def body(carry):
-        k, theta, lam, cost, h, g, vel, _ = carry
-        d, hs = _scaled(h)
-        # The first pass has g = 0 and cost = inf: it evaluates the start and always keeps it,
+        k, theta, step, lam, cost, h, g, vel, _ = carry
+        # The first pass has step = 0 and cost = inf: it evaluates the start and always keeps it,
         # so the Jacobian code is traced once.
-        cand = theta - _spd_solve(hs + (lam + 1e-6) * eye, g / d) / d
+        cand = theta + step
         c_new, h_new, g_new, v_new = normal(cand)
         ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
-        # Converged: a step, kept or not, that gains less than tol of the cost (a segment that
-        # cannot be fitted stops too: its RMSE tells).
-        done = (c_new >= cost * (1.0 - tol)) & (k > 0)
+        stalled = (c_new >= cost * (1.0 - tol)) & (k > 0)
         pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
-        return (k + 1, pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h),
-                pick(g_new, g), pick(v_new, vel), done)
+        theta, lam, cost, h, g, vel = (pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost),
+                                       pick(h_new, h), pick(g_new, g), pick(v_new, vel))
+        nxt, predicted = _lm_step(h, g, lam)
+        # Converged: the next step is predicted to gain less than tol of the cost (deciding on the
+        # prediction, from normal equations already in hand, saves the integration that would
+        # confirm it), or a step failed to gain that much (a segment that cannot be fitted stops
+        # too: its RMSE tells).
+        done = (predicted < tol * cost) | stalled
+        return k + 1, theta, nxt, lam, cost, h, g, vel, done
 
-    init = (jnp.asarray(0), theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype), eye,
-            jnp.zeros_like(theta0), jnp.zeros_like(pos), jnp.asarray(False))
+    init = (jnp.asarray(0), theta0, jnp.zeros_like(theta0), jnp.asarray(1e-3, theta0.dtype),
+            jnp.asarray(jnp.inf, theta0.dtype), jnp.eye(theta0.shape[0], dtype=theta0.dtype), jnp.zeros_like(theta0),
+            jnp.zeros_like(pos), jnp.asarray(False))
     # Under vmap the loop runs until every segment of the batch has converged.
-    k, theta, _, cost, h, _, vel, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
+    k, theta, _, _, cost, h, _, vel, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
 
     return dict(theta=theta, cost=cost, jtj=h, velocity=vel, iterations=k - 1)
 
@@ -291,34 +323,47 @@ def summarize(raw: dict, mask, spin) -> dict:
 
 
 def fit_batch(tau, pos, mask, spin, n_max, air: Air, iterations: int = ITERATIONS, substeps: int = 1):
-    """Fits a padded batch of segments; compiled once per (batch, capacity, iterations, substeps).
+    """Fits a padded batch of segments, group by group; compiled once per (rows, capacity,
+    iterations, substeps).
 
     Arguments:
-        tau: (S, T) times from each segment's first sample [s]; padding repeats the last time.
-        pos: (S, T, 3) observed positions [m]; mask: (S, T) 1 for samples, 0 for padding.
-        spin: (S, 3) spins [rad/s] (zeros when unknown: C_M then stays at its start value and its
-            standard error is huge).
-        n_max: longest segment of the batch (samples); integration stops there.
+        tau: (G, R, T) times from each segment's first sample [s], G groups of R segments;
+            padding repeats the last time.
+        pos: (G, R, T, 3) observed positions [m]; mask: (G, R, T) 1 for samples, 0 for padding.
+        spin: (G, R, 3) spins [rad/s] (zeros when unknown: C_M then stays at its start value and
+            its standard error is huge).
+        n_max: (G,) longest segment of each group (samples); a group's integration stops there.
         air: ball and air (:class:`Air`).
         iterations, substeps: Levenberg-Marquardt iterations, RK4 steps per interval (static).
 
     Returns:
-        dict of arrays: ``theta`` (S, 8) ``[p0, v0, C_D, C_M]`` (NaN where the fit failed),
-        ``stderr`` (S, 8) standard errors, ``rmse`` (S,) [m], ``v_eff_drag`` and ``v_eff_magnus``
-        (S,) effective speeds [m/s], ``mean_sin`` (S,) mean sine between velocity and spin,
-        ``velocity`` (S, T, 3) fitted velocities at the sample times, ``iterations`` (S,) taken
-        (the batch's loop runs until its slowest segment converges), ``ok``.
+        dict of arrays over the G * R rows (group by group): ``theta`` (G R, 8) ``[p0, v0, C_D,
+        C_M]`` (NaN where the fit failed), ``stderr`` (G R, 8) standard errors, ``rmse`` (G R,)
+        [m], ``v_eff_drag`` and ``v_eff_magnus`` (G R,) effective speeds [m/s], ``mean_sin``
+        (G R,) mean sine between velocity and spin, ``velocity`` (G R, max(n_max), 3) fitted
+        velocities at the sample times, ``iterations`` (G R,) taken (a group's loop runs until its slowest
+        segment converges), ``ok``.
     """
-    raw = jax.device_get(_fit_batch_jit(tau, pos, mask, spin, jnp.asarray(n_max), air, iterations, substeps))
-    return summarize(raw, mask, spin)
+    # One call per group, all dispatched before any result is awaited; one call over all groups
+    # (lax.map) would cost more to compile than the calls cost to dispatch.
+    pending = [_fit_batch_jit(tau[g], pos[g], mask[g], spin[g], jnp.asarray(n_max[g]), air, iterations, substeps)
+               for g in range(len(n_max))]
+    used = max(int(np.max(n_max)), 1)  # samples beyond every segment's end are padding
+    raws = jax.device_get(pending)
+    raw = {k: np.concatenate([r[k][:, :used] if k == "velocity" else r[k] for r in raws]) for k in raws[0]}
+    flat = lambda a: np.reshape(a, (-1, *np.shape(a)[2:]))  # noqa: E731
+    return summarize(raw, flat(np.asarray(mask)[:, :, :used]), flat(spin))
 
 
 def _fit_batch_impl(tau, pos, mask, spin, n_max, air, iterations, substeps):
-    fn = lambda a, b, c, d: fit_one(a, b, c, d, n_max, air, iterations, substeps)  # noqa: E731
-    return jax.vmap(fn)(tau, pos, mask, spin)
+    return jax.vmap(lambda a, b, c, d: fit_one(a, b, c, d, n_max, air, iterations, substeps))(tau, pos, mask, spin)
 
 
-_fit_batch_jit = jax.jit(_fit_batch_impl, static_argnames=("iterations", "substeps"))
+#: XLA options of the fit's compilation: the legacy (elemental) CPU emitters compile this graph of
+#: many small fusions in about half the time of the fusion emitters, and run it as fast.
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+_fit_batch_jit = jax.jit(_fit_batch_impl, static_argnames=("iterations", "substeps"), compiler_options=COMPILER_OPTIONS)
 
 
 # --------------------------------------------------------------------------- many segments
@@ -388,17 +433,20 @@ def pack(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins, ro
 
 
 def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins=None, *, air: Air | None = None,
-                 batch: int = BATCH, iterations: int = ITERATIONS, substeps: int = 1, dtype=np.float32,
-                 progress: Callable | None = None) -> SegmentFits:
-    """Fits every segment: sorted by length, padded to its capacity, in batches of ``batch``.
+                 batch: int = BATCH, group: int = GROUP, iterations: int = ITERATIONS, substeps: int = 1,
+                 dtype=np.float32, progress: Callable | None = None) -> SegmentFits:
+    """Fits every segment: sorted by length, padded to its capacity, in groups of similar length
+    (at most ``group``), one compiled call per group, ``batch // rows`` groups dispatched before
+    their results are awaited (:func:`grouped_batches`, :func:`fit_batch`).
 
     Arguments:
         times: list of (T_i,) increasing sample times [s].
         positions: list of (T_i, 3) observed positions [m].
         spins: (S, 3) spins [rad/s] (default zeros).
         air: ball and air (default: those of the bundled conti2026 model).
-        batch: segments per compiled call (fewer segments of one capacity: their count rounded up
-            to a multiple of 8); iterations, substeps: see :func:`fit_batch`.
+        batch: segments dispatched together (and between ``progress`` calls); group: segments
+            integrated side by side (see :func:`grouped_batches`); iterations, substeps: see
+            :func:`fit_batch`.
         dtype: float type of the fit (float32 by default; float64 needs ``jax_enable_x64``).
         progress: optional callable ``progress(n_done)`` called after each batch.
 
@@ -407,39 +455,46 @@ def fit_segments(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], s
     """
     n_seg = len(times)
     spins = np.zeros((n_seg, 3)) if spins is None else np.asarray(spins, np.float64).reshape(n_seg, 3)
-    if air is None:
-        from ttsim_jax.params import load_model
-
-        air = Air.from_model(load_model("conti2026"), dtype)
-    air = jax.tree.map(lambda x: jnp.asarray(x, dtype), air)
+    air = default_air(np.dtype(dtype).name) if air is None else jax.tree.map(lambda x: jnp.asarray(x, dtype), air)
     lengths = np.array([len(t) for t in times], int)
     out = SegmentFits(theta=np.full((n_seg, 8), np.nan), stderr=np.full((n_seg, 8), np.nan),
                       rmse=np.full(n_seg, np.nan), v_eff_drag=np.full(n_seg, np.nan),
                       v_eff_magnus=np.full(n_seg, np.nan), spin=spins, n=lengths, mean_sin=np.full(n_seg, np.nan),
                       velocities=[None] * n_seg)
     done = 0
-    for idx, arrays, n_max in batches(times, positions, spins, batch, dtype):
+    for idx, rows, arrays, n_max in grouped_batches(times, positions, spins, batch, group, dtype):
         res = fit_batch(*arrays, n_max, air, iterations, substeps)
-        k = len(idx)
-        out.theta[idx] = res["theta"][:k]
-        out.stderr[idx] = res["stderr"][:k]
-        out.rmse[idx] = res["rmse"][:k]
-        out.v_eff_drag[idx] = res["v_eff_drag"][:k]
-        out.v_eff_magnus[idx] = res["v_eff_magnus"][:k]
-        out.mean_sin[idx] = res["mean_sin"][:k]
-        for row, i in enumerate(idx):
+        out.theta[idx] = res["theta"][rows]
+        out.stderr[idx] = res["stderr"][rows]
+        out.rmse[idx] = res["rmse"][rows]
+        out.v_eff_drag[idx] = res["v_eff_drag"][rows]
+        out.v_eff_magnus[idx] = res["v_eff_magnus"][rows]
+        out.mean_sin[idx] = res["mean_sin"][rows]
+        for row, i in zip(rows, idx):
             out.velocities[i] = res["velocity"][row, : lengths[i]]
-        done += k
+        done += len(idx)
         if progress is not None:
             progress(done)
     return out
 
 
+def balanced_rows(count: int, batch: int) -> int:
+    """Rows per batch for ``count`` segments of one capacity: as few batches of at most ``batch``
+    rows as hold them, all of one size (one compilation), that size rounded up to a multiple of 8.
+
+    Equal batches rather than full ones and a remainder: the last batch holds the longest
+    segments, and its work is its row count times its longest segment, padding rows included.
+    """
+    n_batches = -(-count // batch)
+    return -(-(-(-count // n_batches)) // 8) * 8
+
+
 def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3):
     """Padded batches of segments: sorted by length, grouped by capacity, ``batch`` rows each.
 
-    A group that fits in one batch is padded only to a multiple of 8 rows (one compilation
-    either way); otherwise every batch of the group has ``batch`` rows.
+    The segments of one capacity are split into batches of equal size (:func:`balanced_rows`: one
+    shape, one compilation, per capacity): a batch's work is its row count times its longest
+    segment.
 
     Yields:
         (idx, (tau, pos, mask, spin), n_max): the segments' indices (rows beyond ``len(idx)`` are
@@ -451,10 +506,38 @@ def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_s
         if lengths[i] >= min_samples:
             groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
     for size, members in sorted(groups.items()):
-        rows = batch if len(members) > batch else -(-len(members) // 8) * 8
-        for start in range(0, len(members), rows):
-            idx = members[start : start + rows]
+        rows = balanced_rows(len(members), batch)
+        n_batches = -(-len(members) // rows)
+        for part in np.array_split(np.asarray(members), n_batches):
+            idx = part.tolist()
             yield idx, pack(times, positions, spins, idx, size, rows, dtype), int(lengths[idx].max())
+
+
+def grouped_batches(times, positions, spins, batch: int = BATCH, group: int = GROUP, dtype=np.float32):
+    """The groups of :func:`batches` (at most ``group`` rows each), ``batch // rows`` to a
+    :func:`fit_batch` call. Every group of one capacity has the same shape: one compilation.
+
+    Yields:
+        (idx, rows, (tau, pos, mask, spin), n_max): the segments' indices and their rows in the
+        call's flattened G * R rows, the arrays stacked to (G, R, ...) and (G,) longest lengths.
+    """
+    calls: list = []
+
+    def flush():
+        rows_per = calls[0][1][0].shape[0]
+        arrays = tuple(np.stack([c[1][k] for c in calls]) for k in range(4))
+        n_max = np.array([c[2] for c in calls], np.int32)
+        idx = [i for c in calls for i in c[0]]
+        rows = [g * rows_per + r for g, c in enumerate(calls) for r in range(len(c[0]))]
+        calls.clear()
+        return idx, rows, arrays, n_max
+
+    for item in batches(times, positions, spins, group, dtype):
+        if calls and (item[1][0].shape != calls[0][1][0].shape or len(calls) >= max(1, batch // len(item[1][0]))):
+            yield flush()
+        calls.append(item)
+    if calls:
+        yield flush()
 
 
 def dataset_segments(ds, min_samples: int = 5):
