@@ -18,7 +18,8 @@ from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.sensitivity import budgets
 from ttsim_jax.sensitivity.cases import contact_time, dataset_shots
 from ttsim_jax.sensitivity.jacobians import (STATE_GROUPS, finite_differences, flatten_inputs,
-                                             group_directions, jacobian, layout_of, local_flags, outcomes)
+                                             group_directions, horizon_plan, jacobian, layout_of, local_flags,
+                                             outcomes)
 from ttsim_jax.sensitivity.report import column_scales
 from ttsim_jax.sensitivity.study import StudyConfig, check_locality
 
@@ -111,6 +112,22 @@ def test_other_event_targets_match_central_differences(model, jac_all, cfg, targ
         assert np.all((jac.values[:, 0] > dist / shots.speed) & (jac.values[:, 0] < 1.5 * dist / shots.speed))
     else:
         assert np.all((jac.values[:, 0] > 1.0) & (jac.values[:, 0] < 2 * shots.speed))
+
+
+def test_shorter_horizon_gives_the_full_horizons_jacobian(model, jac_all, cfg):
+    """The shots run through a bucket's horizon, just past their landing, have the Jacobian, values
+    and events they have through the full horizon."""
+    shots, jac = jac_all
+    first = outcomes(model, shots, jac.nominal, target="landing", dt=cfg["dt"], n_steps=cfg["n_steps"], batch=BATCH)
+    (rows, horizon), = horizon_plan(first.steps, first.valid, cfg["n_steps"], len(shots), 3)
+    assert sorted(rows) == [0, 1, 2] and horizon < cfg["n_steps"] and (jac.horizon == horizon).all()
+    full = jacobian(model, shots, target="landing", dt=cfg["dt"], n_steps=cfg["n_steps"], buckets=1)
+    np.testing.assert_array_equal(full.valid, jac.valid)
+    np.testing.assert_array_equal(full.sequence, jac.sequence)
+    np.testing.assert_allclose(jac.values, full.values, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jac.jac, full.jac, rtol=1e-9, atol=1e-12 * np.abs(full.jac).max())
+    assert (full.horizon == cfg["n_steps"]).all()
+    assert np.abs(full.jac).max() > 0.1
 
 
 def test_forward_mode_agrees_with_reverse_mode(model, jac_all, cfg):
