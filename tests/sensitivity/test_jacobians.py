@@ -18,7 +18,8 @@ from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.sensitivity import budgets
 from ttsim_jax.sensitivity.cases import contact_time, dataset_shots
 from ttsim_jax.sensitivity.jacobians import (STATE_GROUPS, finite_differences, flatten_inputs,
-                                             group_directions, jacobian, layout_of, local_flags, outcomes)
+                                             group_directions, horizon_plan, jacobian, layout_of, local_flags,
+                                             outcomes)
 from ttsim_jax.sensitivity.report import column_scales
 from ttsim_jax.sensitivity.study import StudyConfig, check_locality
 
@@ -111,6 +112,24 @@ def test_other_event_targets_match_central_differences(model, jac_all, cfg, targ
         assert np.all((jac.values[:, 0] > dist / shots.speed) & (jac.values[:, 0] < 1.5 * dist / shots.speed))
     else:
         assert np.all((jac.values[:, 0] > 1.0) & (jac.values[:, 0] < 2 * shots.speed))
+
+
+def test_shorter_horizon_gives_the_full_horizons_jacobian(model, jac_all, cfg):
+    """Shots run through a horizon just past their landing (horizons of 50 steps, 0.1 s) have the
+    Jacobian, values and events they have through the full one (the module's shots land between
+    two thirds of the horizon and the end, so ``jac_all`` ran them through all of it)."""
+    shots, full = jac_all
+    assert (full.horizon == cfg["n_steps"]).all()
+    first = outcomes(model, shots, full.nominal, target="landing", dt=cfg["dt"], n_steps=cfg["n_steps"], batch=BATCH)
+    (rows, horizon), = horizon_plan(first.steps, first.valid, cfg["n_steps"], len(shots), 7)
+    assert sorted(rows.tolist()) == [0, 1, 2] and horizon < cfg["n_steps"]
+    short = jacobian(model, shots, target="landing", dt=cfg["dt"], n_steps=cfg["n_steps"], buckets=7)
+    assert (short.horizon == horizon).all()
+    np.testing.assert_array_equal(short.valid, full.valid)
+    np.testing.assert_array_equal(short.sequence, full.sequence)
+    np.testing.assert_allclose(short.values, full.values, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(short.jac, full.jac, rtol=1e-9, atol=1e-12 * np.abs(full.jac).max())
+    assert np.abs(full.jac).max() > 0.1
 
 
 def test_forward_mode_agrees_with_reverse_mode(model, jac_all, cfg):

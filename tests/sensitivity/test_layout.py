@@ -9,7 +9,8 @@ import pytest
 from ttsim_jax import load_model
 from ttsim_jax.params import config_dir
 from ttsim_jax.physics import residual as R
-from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, group_of, layout_of
+from ttsim_jax.sensitivity.cases import WINDOW
+from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, group_of, horizon_plan, horizons, layout_of
 from ttsim_jax.sensitivity.targets import COLUMNS, TARGETS, Outcome, columns_of, for_target
 
 
@@ -44,7 +45,7 @@ def test_targets_are_columns_of_the_one_program():
         assert tuple(COLUMNS[i] for i in columns_of(target)) == components
     values = np.arange(10.0).reshape(2, 5) + 1.0
     out = Outcome(values=values, sequence=np.array([[2, 1], [2, 1]]), valid=np.array([True, True]),
-                  crossed=np.array([True, False]))
+                  crossed=np.array([True, False]), steps=np.array([300, 400]))
     land = for_target(out, "landing")
     np.testing.assert_array_equal(land.values, values[:, :2])
     assert land.valid.tolist() == [True, True]
@@ -54,3 +55,20 @@ def test_targets_are_columns_of_the_one_program():
     np.testing.assert_array_equal(for_target(out, "bounce_speed").values, values[:, 3:4])
     with pytest.raises(ValueError, match="unknown target 'apex'"):
         columns_of("apex")
+
+
+def test_horizon_plan_groups_landed_shots_by_the_steps_they_need():
+    """Only the shots that land are differentiated, the shortest needs together, each group through
+    the shortest horizon (of the buckets) that holds its longest shot plus the margin."""
+    assert horizons(1200, 4) == (300, 600, 900, 1200) and horizons(350, 4) == (88, 175, 263, 350)
+    assert horizons(1200, 1) == (1200,)
+    # flight steps needed (after the racket window, margin of 2 included): 100 500 250 900 901 50
+    steps = np.array([98, 498, 248, 898, 899, 48, 30]) + WINDOW
+    valid = np.array([True, True, True, True, True, True, False])
+    plan = horizon_plan(steps, valid, 1200, 2, 4)
+    assert [r.tolist() for r, _ in plan] == [[5, 0], [2, 1], [3, 4]]
+    assert [h for _, h in plan] == [300, 600, 1200]
+    # a need of exactly a bucket stays in it; one step more goes to the next
+    assert [h for _, h in horizon_plan(steps, valid, 1200, 1, 4)] == [300, 300, 300, 600, 900, 1200]
+    assert [h for _, h in horizon_plan(steps, valid, 1200, 6, 1)] == [1200]
+    assert horizon_plan(steps, np.zeros(7, bool), 1200, 2, 4) == []

@@ -11,7 +11,11 @@ reverse-mode pass gives every shot its own gradient. Columns carry a group name
 
 :func:`jacobian` uses ``jax.jacrev`` (two backward passes, as many as the widest target has
 components, so that every target shares one compiled program; any number of columns) or forward
-mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's batch axis).
+mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's batch axis). A
+forward run of every shot first finds the shots that land and how many steps each outcome needs;
+only those are differentiated, sorted by that need, each chunk through the shortest of a few
+horizon buckets that holds it (:func:`horizon_plan`): the full horizon's Jacobian for a fraction of
+its steps.
 :func:`finite_differences` gives central differences along directions, batched the same way;
 :func:`local_flags` marks shots whose gradient holds only very locally (the event
 sequence flips within the probe, or differences at two step sizes disagree).
@@ -26,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.sensitivity.cases import ShotSet, rotation
+from ttsim_jax.sensitivity.cases import WINDOW, ShotSet, rotation
 from ttsim_jax.sensitivity.targets import (COLUMNS, TARGETS, Outcome, check_target, columns_of, for_target,
                                           program_outcome)
 from ttsim_jax.state import Ball, Racket
@@ -161,10 +165,10 @@ def flatten_inputs(model, shots: ShotSet, layout: Layout) -> np.ndarray:
     return np.concatenate(cols, 1)
 
 
-def _outcome(flat, rot0, face, dt, layout: Layout, n_steps: int) -> Outcome:
+def _outcome(flat, rot0, face, dt, layout: Layout, n_steps: int, buffering: str | None = None) -> Outcome:
     model, ball, rpos, rvec, rvel, rang = layout.unflatten(flat)
     racket = Racket(pos=rpos, rot=rotation(rvec) @ rot0, vel=rvel, ang_vel=rang, face=face)
-    return program_outcome(model, ball, racket, dt, n_steps=n_steps)
+    return program_outcome(model, ball, racket, dt, n_steps=n_steps, buffering=buffering)
 
 
 @partial(jax.jit, static_argnames=("layout", "n_steps"))
@@ -179,7 +183,7 @@ def _jac_rev(flat, rot0, face, dt, weights, *, layout, n_steps):
     """(B, K, C) d (columns @ weights.T) / d inputs: K = ``weights``' rows (traced, so that every
     target shares this compilation; a row of zeros costs a backward pass too)."""
     def total(x):
-        out = _outcome(x, rot0, face, dt, layout, n_steps)
+        out = _outcome(x, rot0, face, dt, layout, n_steps, buffering="single")
         return (out.values @ weights.T).sum(0), out  # shots are independent: row b of the gradient is shot b's
 
     jac, out = jax.jacrev(total, has_aux=True)(flat)
@@ -209,6 +213,8 @@ class Jacobian:
         jac: (B, k, C) d target / d input (0 for invalid shots).
         nominal: (B, C) the inputs.
         columns: (C,) input names; groups: (C,) their groups.
+        horizon: (B,) flight steps each shot was differentiated through (0: not differentiated, it
+            does not land), or None.
     """
 
     target: str
@@ -220,6 +226,7 @@ class Jacobian:
     nominal: np.ndarray
     columns: list
     groups: np.ndarray
+    horizon: np.ndarray | None = None
 
     def group(self, name: str) -> np.ndarray:
         """(B, k, n) the columns of one group."""
@@ -228,7 +235,8 @@ class Jacobian:
     def take(self, index) -> "Jacobian":
         """The shots at ``index`` (any numpy index)."""
         return Jacobian(self.target, self.components, self.values[index], self.valid[index], self.sequence[index],
-                        self.jac[index], self.nominal[index], self.columns, self.groups)
+                        self.jac[index], self.nominal[index], self.columns, self.groups,
+                        None if self.horizon is None else self.horizon[index])
 
 
 def _chunks(n: int, chunk: int | None):
@@ -248,9 +256,46 @@ def _racket_arrays(shots: ShotSet, dtype):
     return np.asarray(shots.racket.rot, dtype), np.asarray(shots.racket.face, dtype)
 
 
+def horizons(n_steps: int, buckets: int) -> tuple:
+    """The flight horizons a Jacobian is compiled for: ``n_steps * j / buckets`` steps rounded up,
+    j = 1 ... ``buckets`` (each one compilation)."""
+    return tuple(sorted({-(-n_steps * j // buckets) for j in range(1, max(1, buckets) + 1)}))
+
+
+def horizon_plan(steps, valid, n_steps: int, size: int, buckets: int, margin: int = 2) -> list:
+    """Which shots go together through which horizon: only the shots ``valid`` for the target (the
+    others have no gradient), sorted by the steps their outcome needs, ``size`` at a time, each
+    group through the shortest of :func:`horizons` that holds the longest of its shots.
+
+    Arguments:
+        steps: (B,) the rollout steps each shot's outcome needs (:class:`Outcome` ``steps``, racket
+            window included); ``margin`` more are run (the landing step is read from a float time).
+        valid: (B,) shots to differentiate. n_steps: the full flight horizon.
+        size: shots per group (the compiled batch). buckets: as :func:`horizons`.
+
+    Returns:
+        [(rows, horizon), ...]: the shots' indices (at most ``size``) and the flight steps to run.
+    """
+    need = np.asarray(steps) - WINDOW + margin
+    rows = np.flatnonzero(valid)
+    rows = rows[np.argsort(need[rows], kind="stable")]
+    sizes = horizons(n_steps, buckets)
+    plan = []
+    for lo in range(0, len(rows), size):
+        part = rows[lo:lo + size]
+        plan.append((part, next((h for h in sizes if h >= need[part].max()), n_steps)))
+    return plan
+
+
 def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3, n_steps: int = 1500,
-             mode: str = "rev", chunk: int | None = None, progress: bool = False) -> Jacobian:
+             mode: str = "rev", chunk: int | None = None, buckets: int = 3, progress: bool = False) -> Jacobian:
     """d target / d every input for each shot, through the rally kernel.
+
+    A forward run of every shot at the full horizon first gives each its outcome and the steps
+    that outcome depends on (the landing, the net crossing); only the shots that land are then
+    differentiated, grouped by those steps, each group through a horizon just long enough for it
+    (:func:`horizon_plan`): the same Jacobian as through the full horizon, for a fraction of the
+    steps.
 
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` (its float dtype is the computation's).
@@ -261,6 +306,8 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
             target: every target shares one compilation) or ``"fwd"`` (forward mode, one tangent
             column per copy of a shot: cost ~ C forward passes; for few columns or checks).
         chunk: shots per compiled call (the last chunk is padded); default all at once.
+        buckets: how many horizons (fractions of ``n_steps``, :func:`horizons`) the differentiated
+            shots may be run through, each one compilation of the Jacobian; 1: the full horizon.
         progress: show a tqdm bar over the chunks.
 
     Returns:
@@ -269,6 +316,8 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
     components = check_target(target)
     if mode not in ("rev", "fwd"):
         raise ValueError(f"mode must be 'rev' or 'fwd', got {mode!r}")
+    if buckets < 1:
+        raise ValueError(f"buckets must be at least 1, got {buckets!r}")
     dtype = np.dtype(model.ball.radius.dtype)
     layout = layout_of(model)
     nominal = flatten_inputs(model, shots, layout)
@@ -279,37 +328,37 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
     # target then shares one compilation)
     weights = np.zeros((max(map(len, TARGETS.values())), len(COLUMNS)), dtype)
     weights[np.arange(len(cols)), cols] = 1.0
-    size, spans = _chunks(len(shots), min(chunk, len(shots)) if chunk else None)
-    jac, vals, valid, seq = [], [], [], []
-    bar = spans
+    size, _ = _chunks(len(shots), min(chunk, len(shots)) if chunk else None)
+    first = outcomes(model, shots, nominal, target=target, dt=dt, n_steps=n_steps, batch=size)
+    values, valid, sequence = np.array(first.values), np.array(first.valid), np.array(first.sequence)
+    jac = np.zeros((len(shots), len(cols), c), dtype)
+    run = np.zeros(len(shots), np.int64)
+    plan = horizon_plan(first.steps, valid, n_steps, size, buckets)
+    bar = plan
     if progress:
         from tqdm import tqdm
-        bar = tqdm(spans, desc=f"jacobian ({mode}) of {target}", unit="chunk")
-    for lo, hi in bar:
-        x, r, f = (_pad(a[lo:hi], size) for a in (nominal, rot0, face))
+        bar = tqdm(plan, desc=f"jacobian ({mode}) of {target}", unit="chunk")
+    for rows, horizon in bar:
+        x, r, f = (_pad(a[rows], size) for a in (nominal, rot0, face))
         if mode == "rev":
             j, out = _jac_rev(jnp.asarray(x, dtype), jnp.asarray(r), jnp.asarray(f), dt, jnp.asarray(weights),
-                              layout=layout, n_steps=n_steps)
+                              layout=layout, n_steps=horizon)
             j = np.asarray(j)[:, :len(cols)]
         else:
             # each shot repeated C times on the batch axis, copy i with tangent e_i
             xs = np.repeat(x, c, 0)
             tan = np.tile(np.eye(c, dtype=dtype), (size, 1))
             out, t = evaluate_jvp(jnp.asarray(xs, dtype), jnp.asarray(tan), jnp.asarray(np.repeat(r, c, 0)),
-                                  jnp.asarray(np.repeat(f, c, 0)), dt, layout=layout, n_steps=n_steps)
+                                  jnp.asarray(np.repeat(f, c, 0)), dt, layout=layout, n_steps=horizon)
             j = np.asarray(t)[:, list(cols)].reshape(size, c, len(cols)).transpose(0, 2, 1)
             out = jax.tree.map(lambda a: a[::c], out)
-        n = hi - lo
+        n = len(rows)
         out = for_target(jax.tree.map(lambda a: np.asarray(a)[:n], out), target)
-        jac.append(j[:n])
-        vals.append(out.values)
-        valid.append(out.valid)
-        seq.append(out.sequence)
-    valid = np.concatenate(valid)
-    jac = np.where(valid[:, None, None], np.concatenate(jac), 0.0)
-    return Jacobian(target=target, components=components, values=np.concatenate(vals), valid=valid,
-                    sequence=np.concatenate(seq), jac=jac, nominal=nominal, columns=layout.columns(),
-                    groups=layout.groups())
+        jac[rows], run[rows] = j[:n], horizon
+        values[rows], valid[rows], sequence[rows] = out.values, out.valid, out.sequence
+    jac = np.where(valid[:, None, None], jac, 0.0)
+    return Jacobian(target=target, components=components, values=values, valid=valid, sequence=sequence, jac=jac,
+                    nominal=nominal, columns=layout.columns(), groups=layout.groups(), horizon=run)
 
 
 def outcomes(model, shots: ShotSet, flat: np.ndarray, *, target: str, dt: float, n_steps: int,
