@@ -118,3 +118,15 @@ def test_drawn_magnitudes_are_valid_parameters_in_the_upper_realistic_range(name
 def test_cases_plan():
     plan = SC.cases(("spin_decay",), (("air_flow", "buckling"),), "racket_edge")
     assert plan == [("single", ("spin_decay",)), ("pair", ("air_flow", "buckling")), ("outside", ("racket_edge",))]
+
+
+def test_a_candidate_that_worsens_another_phase_is_not_significant():
+    """A gain in one phase bought with a significant loss in another (the signature of a fit to a
+    bias of the racket contact estimates) does not explain the data; an insignificant loss does not
+    matter."""
+    from ttsim_jax.diagnose.candidates import explains
+
+    gain = held(10.0, before=0.3)
+    assert explains({"racket": gain, "table": held(0.2, lo=-0.5)})
+    assert not explains({"racket": gain, "table": dict(held(-1.1), ci95=[-1.5, -0.6]),
+                         "flight": held(0.0, before=0.003, lo=-0.3)})

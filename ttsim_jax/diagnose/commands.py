@@ -100,8 +100,8 @@ def register(subparsers) -> None:
     s.add_argument("--effects", metavar="NAMES", type=effect_list, default=None,
                    help="single effects to withhold in turn (default: every simulator effect; with --quick "
                    "spin_decay,air_flow,table_tilt,buckling)")
-    s.add_argument("--quick", action="store_true", help="four single effects, one pair and the outside case, on "
-                   "smaller datasets, diagnosed with 'ttsim diagnose --quick' on at most 512 flight segments "
+    s.add_argument("--quick", action="store_true", help="four single effects and the outside case, on smaller "
+                   "datasets, diagnosed with 'ttsim diagnose --quick' on at most 384 flight segments "
                    "(default: every effect, four pairs, at most 2000 segments, the full diagnosis without landing)")
     s.add_argument("--games", type=positive_int, default=None, help="games per generated dataset (default: 14, with "
                    "--quick 8)")
@@ -159,11 +159,11 @@ def cmd_selfcheck(args) -> int:
 
     from ttsim_jax.diagnose.candidates import candidate_names
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.diagnose.selfcheck import GAMES, PAIRS, QUICK, QUICK_PAIRS, SEGMENTS, cases, selfcheck, table
+    from ttsim_jax.diagnose.selfcheck import GAMES, PAIRS, QUICK, SEGMENTS, cases, selfcheck, table
 
     size = "quick" if args.quick else "full"
     if args.quick:
-        plan = cases(args.effects or QUICK, QUICK_PAIRS)
+        plan = cases(args.effects or QUICK)
         settings = Settings.quick(max_segments=SEGMENTS[size])
     else:
         plan = cases(args.effects or candidate_names(), PAIRS)

@@ -49,8 +49,7 @@ from ttsim_jax.diagnose import stages as S
 NOISE = (0.0015, 0.0015, 0.001)
 #: Effects of ``--quick`` (one per phase, and one that acts in a narrow regime).
 QUICK = ("spin_decay", "air_flow", "table_tilt", "buckling")
-#: Pair cases of ``--quick`` and of the full run.
-QUICK_PAIRS = (("air_flow", "buckling"),)
+#: Pair cases of the full run.
 PAIRS = (("spin_decay", "table_tilt"), ("air_flow", "buckling"), ("ball_variation", "racket_edge"),
          ("worn_ball", "table_unevenness"))
 #: The outside case's effect: generated, but not a candidate.
@@ -58,7 +57,7 @@ OUTSIDE = "racket_edge"
 #: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
 #: and flight segments diagnosed at most, per case: full run and ``--quick``.
 GAMES = {"full": 14, "quick": 8}
-SEGMENTS = {"full": 2000, "quick": 512}
+SEGMENTS = {"full": 2000, "quick": 384}
 #: Tries of successive seeds when the generator refuses its own data.
 TRIES = 4
 
@@ -215,7 +214,7 @@ def summary(rows: list) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- cases
-def cases(names=QUICK, pairs=QUICK_PAIRS, outside: str | None = OUTSIDE) -> list:
+def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE) -> list:
     """[(kind, names)] of a selfcheck: every single effect, then the pairs, then the outside one."""
     return ([("single", (n,)) for n in names] + [("pair", tuple(p)) for p in pairs] +
             ([("outside", (outside,))] if outside else []))
