@@ -59,7 +59,7 @@ def register(subparsers) -> None:
         "mean. WHICH EFFECT: every simulator effect of the catalogue ('python -m ttsim_jax.effects') is fitted by "
         "gradient descent through the phase it acts in on a training split and scored by the reduction of the "
         f"held-out RMS error (significant: 95 % interval above {MIN_REDUCTION:g} % and a fall above the phase's "
-        "resolution); effects on the record (noise, "
+        "resolution, and no phase it acts in significantly worse); effects on the record (noise, "
         "missing frames, racket-state error) are sized instead. When no candidate is significant, the report says "
         "'unexplained' and where the gap is. HOW FAR: the significant effects fitted together, before and after. "
         "Writes report.md, diagnosis.json and PNG figures to --out.")
@@ -102,7 +102,8 @@ def register(subparsers) -> None:
                    "spin_decay,air_flow,table_tilt,buckling)")
     s.add_argument("--quick", action="store_true", help="four single effects and the outside case, on smaller "
                    "datasets, diagnosed with 'ttsim diagnose --quick' on at most 384 flight segments "
-                   "(default: every effect, four pairs, at most 2000 segments, the full diagnosis without landing)")
+                   "(default: every effect, four pairs and the outside case, at most 2000 segments, the full diagnosis "
+                   "without landing, with --quick's descent steps)")
     s.add_argument("--games", type=positive_int, default=None, help="games per generated dataset (default: 14, with "
                    "--quick 8)")
     s.add_argument("--seed", type=seed, default=0, help="seed of the generated datasets (default: %(default)s)")
@@ -167,7 +168,7 @@ def cmd_selfcheck(args) -> int:
         settings = Settings.quick(max_segments=SEGMENTS[size])
     else:
         plan = cases(args.effects or candidate_names(), PAIRS)
-        settings = Settings(landing=False, max_segments=SEGMENTS[size])
+        settings = Settings(landing=False, steps=Settings.quick().steps, max_segments=SEGMENTS[size])
     with tqdm(total=len(plan), desc="selfcheck", unit="case", disable=args.quiet) as bar:
         result = selfcheck(plan, settings, seed=args.seed, progress=lambda name: bar.update(1),
                            games=args.games or GAMES[size])
