@@ -21,7 +21,8 @@ one capacity per phase.
 Held-out score (:func:`score`): per phase, the reduction of the held-out RMS error against the
 model's, 100 (1 - RMS_after / RMS_before) [%], with a 95 % paired bootstrap interval over held-out
 segments / contacts. A candidate is *significant* when in some phase the interval's lower end is
-above :data:`MIN_REDUCTION` % and the RMS error falls by more than that phase's :data:`MIN_GAIN`;
+above :data:`MIN_REDUCTION` % and the RMS error falls by more than that phase's :data:`MIN_GAIN`,
+and in no phase it acts in is the held-out error significantly worse (:func:`explains`);
 candidates are ranked by their largest held-out reduction, significant ones first.
 
 A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
@@ -317,7 +318,7 @@ class Candidate:
 
     @property
     def significant(self) -> bool:
-        return any(significant(p, h) for p, h in self.heldout.items())
+        return explains(self.heldout)
 
 
 def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 0.1, ridge: float = 1e-4,
@@ -390,6 +391,20 @@ def score(pb: Problem, errors: dict, seed: int = 0) -> dict:
 def significant(phase: str, h: dict) -> bool:
     """Whether a held-out score ``h`` of :func:`score` is significant (see the module docstring)."""
     return bool(h["ci95"][0] > MIN_REDUCTION and h["before_rms"] - h["after_rms"] > MIN_GAIN[phase])
+
+
+def worse(h: dict) -> bool:
+    """Whether a held-out score ``h`` of :func:`score` is significantly worse than the model's (the
+    whole 95 % interval of the reduction below 0)."""
+    return bool(h["ci95"][1] < 0.0)
+
+
+def explains(heldout: dict) -> bool:
+    """Whether a candidate's held-out scores {phase: score} make it significant: significant in some
+    phase and significantly worse in none. An effect acting in several phases is fitted to all of
+    them at once; one that buys a gain in one phase with a loss in another is fitting something
+    else there (e.g. a bias of the contact state estimates), not a physical effect."""
+    return any(significant(p, h) for p, h in heldout.items()) and not any(worse(h) for h in heldout.values())
 
 
 def rank(cands: list) -> list:

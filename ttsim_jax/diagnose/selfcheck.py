@@ -1,26 +1,43 @@
 """Withheld-effect validation of the diagnosis (``ttsim diagnose selfcheck``).
 
-For each simulator effect of a list, the reality generator makes a dataset with conti2026 plus
-that effect at a random magnitude (its ``sample`` draw: a realistic range) and position noise; the
-diagnosis runs with the effect hidden from the model, and the case is scored:
+Each *case* generates a dataset with the reality generator (conti2026 plus the case's effects at
+random magnitudes drawn by :func:`draw`, plus paper-like position noise :data:`NOISE`), diagnoses it
+with conti2026 (the effects hidden from the model) and scores the result against the truth. Kinds:
 
-* *rank 1*: the true effect is the first candidate and significant;
-* *phase*: the first candidate is significant and its best held-out phase is one the true effect
-  acts in;
-* *shrink*: the held-out RMS reduction the diagnosis found in that phase, as a fraction of the
-  oracle's (the model given the true effect with its true parameters, on the same held-out split;
-  the oracle's best phase when nothing is significant, the diagnosis then recovering 0).
+* *single*: one catalogue effect;
+* *pair*: two catalogue effects at once;
+* *outside*: an effect the diagnosis's catalogue lacks (the candidates are every simulator effect
+  but it): the right answer is "unexplained", with the gap located in the phase it acts in.
 
-The generator's truth is read here, and only here: the diagnosis itself never sees it.
+Scores (:func:`score`, a pure function of the diagnosis's JSON, the oracle's held-out scores and the
+truth, so that it is testable without simulation):
+
+* *oracle*: the model given the true effects with their true parameters, scored on the same
+  held-out split (:func:`oracle_scores`). A case is **detectable** when the oracle itself passes the
+  diagnosis's significance rule (:func:`ttsim_jax.diagnose.candidates.significant`) in a phase the
+  effects act in. An undetectable case (the effect, at its drawn magnitude, changes the held-out
+  errors by less than the data resolves) cannot be found by any method; it is reported apart, and
+  scored right when nothing is significant ("nothing found") and as a false alarm otherwise;
+* *rank 1*: the first candidate is significant and is the true effect (pairs: one of the two;
+  *both*: the two true effects are the two first candidates and significant);
+* *phase*: the located phase, the phase where the first candidate's held-out reduction is largest
+  among its significant ones, is one the true effects act in. For an *outside* case the located
+  phases are those where the "where" analysis flags a regime; right when the true phase is among
+  them;
+* *shrink recovered*: in the oracle's best phase, the largest held-out reduction of a significant
+  candidate as a fraction of the oracle's (0 when nothing is significant).
+
+The summary's rates are over the detectable single-effect cases. The generator's truth is read
+here, and only here: the diagnosis itself never sees it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import Callable
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,97 +45,258 @@ from ttsim_jax import effects as fx
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import stages as S
 
+#: Paper-like triangulation noise: per-axis standard deviation [m] (the catalogue's typical value).
+NOISE = (0.0015, 0.0015, 0.001)
 #: Effects of ``--quick`` (one per phase, and one that acts in a narrow regime).
 QUICK = ("spin_decay", "air_flow", "table_tilt", "buckling")
+#: Pair cases of the full run.
+PAIRS = (("spin_decay", "table_tilt"), ("air_flow", "buckling"), ("ball_variation", "racket_edge"),
+         ("worn_ball", "table_unevenness"))
+#: The outside case's effect: generated, but not a candidate.
+OUTSIDE = "racket_edge"
+#: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
+#: and flight segments diagnosed at most, per case: full run and ``--quick``.
+GAMES = {"full": 14, "quick": 8}
+SEGMENTS = {"full": 2000, "quick": 384}
 #: Tries of successive seeds when the generator refuses its own data.
 TRIES = 4
 
 
-def oracle_scores(pb, model, name: str, truth: dict) -> dict:
+def _direction(rng, n: int = 2) -> np.ndarray:
+    u = rng.normal(size=n)
+    return u / np.linalg.norm(u)
+
+
+def _signed(rng, lo: float, hi: float) -> float:
+    return float(rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi))
+
+
+#: Magnitudes of the selfcheck, per effect: the upper part of each effect's realistic range (its
+#: ``sample`` draw, :mod:`ttsim_jax.effects.physical`), where it changes the data by more than
+#: paper-like noise resolves on a case's data; parameters not drawn here come from ``sample``.
+#:
+#: * spin_decay: rate 0.15-0.3 1/s, quadratic 1e-4-2e-4 s/rad (measured decay times of 40+ balls are
+#:   seconds; the catalogue's range is 0.05-0.3 and 0-2e-4);
+#: * air_flow: steady wind 0.2-0.4 m/s, horizontal, any heading (ventilation in a hall; catalogue
+#:   0.05-0.4), the same in every game, with the catalogue's gusts;
+#: * table_tilt: slope 0.004-0.009 (0.23-0.5 degrees, a table levelled by eye), any direction, the
+#:   surface's height at the centre unchanged;
+#: * table_unevenness: bump heights 1-2 mm, either sign (catalogue: normal, 1.2 mm spread);
+#: * ball_variation: radius +0.15 to +0.3 mm, mass +-0.025 to 0.05 g (ITTF tolerances);
+#: * worn_ball: restitution loss 2-4 %; buckling: table loss 6-10 %, racket loss 10-15 %;
+#: * racket_logo: grip loss 35-50 %, restitution -0.03 to -0.06; racket_edge: rim restitution loss
+#:   12-20 %, grip loss 10-20 %; rubber_anisotropy: 6-12 % either sign.
+DRAWS = {
+    "spin_decay": lambda r: {"rate": r.uniform(0.15, 0.3), "quadratic": r.uniform(1e-4, 2e-4)},
+    "air_flow": lambda r: {"wind": np.append(r.uniform(0.2, 0.4) * _direction(r), 0.0)},
+    "table_tilt": lambda r: {"slope": r.uniform(0.004, 0.009) * _direction(r), "offset": 0.0},
+    "table_unevenness": lambda r: {"amplitude": [_signed(r, 0.001, 0.002) for _ in range(6)]},
+    "ball_variation": lambda r: {"d_radius": r.uniform(1.5e-4, 3e-4), "d_mass": _signed(r, 2.5e-5, 5e-5)},
+    "worn_ball": lambda r: {"loss": r.uniform(0.02, 0.04)},
+    "buckling": lambda r: {"table_depth": r.uniform(0.06, 0.1), "racket_depth": r.uniform(0.1, 0.15)},
+    "racket_logo": lambda r: {"grip_loss": r.uniform(0.35, 0.5), "d_restitution": r.uniform(-0.06, -0.03)},
+    "racket_edge": lambda r: {"dead": r.uniform(0.12, 0.2), "grip_loss": r.uniform(0.1, 0.2)},
+    "rubber_anisotropy": lambda r: {"anisotropy": _signed(r, 0.06, 0.12)},
+}
+
+
+def draw(name: str, rng: np.random.Generator) -> dict:
+    """Fixed parameter values of ``name`` for a case (:data:`DRAWS`; {} for an effect without a
+    selfcheck range: the generator's ``sample`` draws it)."""
+    f = DRAWS.get(name)
+    return {k: np.asarray(v, np.float64).tolist() for k, v in f(rng).items()} if f else {}
+
+
+# ---------------------------------------------------------------------------------------------- oracle
+def oracle_scores(pb, model, names, truth: dict) -> dict:
     """Held-out scores (:func:`ttsim_jax.diagnose.candidates.score`) of the model with the true
-    effect ``name`` at its true parameters (``truth``: the generator's ``truth.json`` dict)."""
-    cls = fx.effect_class(name)
-    per_session = cls.SCOPE == "session"
-    sp = C.Spec(name, cls, tuple(cls.PARAMS), per_session)
-    consts = dict(start={k: np.zeros(p.shape) for k, p in cls.PARAMS.items()},
-                  scale={k: np.float64(1.0) for k in cls.PARAMS})
-    if per_session:
-        values = [truth["sessions"][int(s)]["effects"][name] for s in pb.sessions]
-    else:
-        values = [truth["effects"][name]["params"]]
-    u = ({k: jnp.asarray(np.stack([np.broadcast_to(np.asarray(v[k], np.float64), p.shape) for v in values]), jnp.float32)
-          for k, p in cls.PARAMS.items()},)
-    phases = tuple(p for p in pb.phases if p in sp.phases)
-    errors, _ = C.evaluate(model, (sp,), (consts,), u, pb, S.GN_START, phases)
+    effects ``names`` (one name or several) at their true parameters (``truth``: the generator's
+    ``truth.json`` dict), in the phases they act in."""
+    names = (names,) if isinstance(names, str) else tuple(names)
+    specs, consts, us = [], [], []
+    for name in names:
+        cls = fx.effect_class(name)
+        per_session = cls.SCOPE == "session"
+        specs.append(C.Spec(name, cls, tuple(cls.PARAMS), per_session))
+        consts.append(dict(start={k: np.zeros(p.shape) for k, p in cls.PARAMS.items()},
+                           scale={k: np.float64(1.0) for k in cls.PARAMS}))
+        if per_session:
+            values = [truth["sessions"][int(s)]["effects"][name] for s in pb.sessions]
+        else:
+            values = [truth["effects"][name]["params"]]
+        us.append({k: jnp.asarray(np.stack([np.broadcast_to(np.asarray(v[k], np.float64), p.shape) for v in values]),
+                                  jnp.float32) for k, p in cls.PARAMS.items()})
+    phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
+    errors, _ = C.evaluate(model, tuple(specs), tuple(consts), tuple(us), pb, S.GN_START, phases)
     return C.score(pb, errors)
 
 
-def run_case(name: str, seed: int, settings, games: int = 2, rallies: int = 6) -> dict:
-    """One withheld-effect case (see the module docstring)."""
+# ---------------------------------------------------------------------------------------------- scoring
+def _phases(names) -> tuple:
+    out = set()
+    for n in names:
+        out.update(C.phases_of(fx.effect_class(n)))
+    return tuple(p for p in C.PHASES if p in out)
+
+
+def located_phase(cand: dict) -> str | None:
+    """The phase of a candidate's largest significant held-out reduction (None: not significant)."""
+    sig = [p for p, h in cand["heldout"].items() if C.significant(p, h)]
+    return max(sig, key=lambda p: cand["heldout"][p]["pct"]) if sig else None
+
+
+def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict:
+    """The scores of one case (module docstring).
+
+    Arguments:
+        kind: "single", "pair" or "outside"; names: the true effects.
+        candidates: the diagnosis's ranked candidates (its JSON ``candidates``: name, significant,
+            heldout {phase: {pct, ci95, before_rms, after_rms}}).
+        where: the diagnosis's ``where`` ({phase: {"flagged": [(regime, label)], ...}}).
+        oracle: :func:`oracle_scores`.
+
+    Returns:
+        dict: detectable, top, rank1, both (pairs), phase, phase_right, located (outside: flagged
+        phases), unexplained, found_pct, oracle_pct, shrink, outcome (one word for the table).
+    """
+    names = tuple(names)
+    true_phases = _phases(names)
+    sig = [c for c in candidates if c["significant"]]
+    oracle = {p: h for p, h in oracle.items() if p in true_phases}
+    detectable = any(C.significant(p, h) for p, h in oracle.items())
+    best = max(oracle, key=lambda p: oracle[p]["pct"]) if oracle else None
+    ref = oracle[best]["pct"] if best else math.nan
+    found = max([c["heldout"][best]["pct"] for c in sig if best in c["heldout"]], default=0.0)
+    top = sig[0]["name"] if sig else None
+    phase = located_phase(sig[0]) if sig else None
+    out = dict(detectable=bool(detectable), top=top or "none significant", rank1=bool(top in names),
+               phase=phase, phase_right=bool(phase in true_phases), unexplained=not sig,
+               found_pct=float(found), oracle_pct=float(ref), oracle_phase=best,
+               shrink=float(found / ref) if detectable and ref > 0 else math.nan)
+    if kind == "pair":
+        out["both"] = bool(len(sig) >= 2 and {sig[0]["name"], sig[1]["name"]} == set(names))
+    if kind == "outside":
+        located = [p for p in C.PHASES if where.get(p, {}).get("flagged")]
+        out.update(located=located, phase=located[0] if located else None,
+                   phase_right=bool(set(located) & set(true_phases)), rank1=False)
+        out["outcome"] = ("unexplained" if not sig else f"explained by {top}") + \
+            (", located in " + "+".join(located) if located else ", not located")
+        return out
+    if not detectable:
+        out["outcome"] = "undetectable: nothing found" if not sig else f"undetectable: false alarm ({top})"
+    elif kind == "pair":
+        out["outcome"] = "both found" if out["both"] else "one found" if out["rank1"] else "missed"
+    else:
+        out["outcome"] = "found" if out["rank1"] else "missed"
+    return out
+
+
+def summary(rows: list) -> dict:
+    """Rates of a selfcheck's cases: over detectable single-effect cases rank 1, phase and median
+    shrink recovered; counts of undetectable ones (and of them, nothing found); pairs; outside."""
+    ok = [r for r in rows if "error" not in r]
+    single = [r for r in ok if r["kind"] == "single" and r["detectable"]]
+    undet = [r for r in ok if r["kind"] != "outside" and not r["detectable"]]
+    pairs = [r for r in ok if r["kind"] == "pair" and r["detectable"]]
+    outside = [r for r in ok if r["kind"] == "outside"]
+    shrink = [r["shrink"] for r in single if math.isfinite(r["shrink"])]
+
+    def rate(rs, key):
+        return float(np.mean([r[key] for r in rs])) if rs else math.nan
+
+    return dict(n_single=len(single), rank1_rate=rate(single, "rank1"), phase_rate=rate(single, "phase_right"),
+                median_shrink=float(np.median(shrink)) if shrink else math.nan,
+                n_undetectable=len(undet), undetectable_nothing_found=sum(r["unexplained"] for r in undet),
+                n_pairs=len(pairs), pair_rank1_rate=rate(pairs, "rank1"), pair_both_rate=rate(pairs, "both"),
+                outside_unexplained=[bool(r["unexplained"]) for r in outside],
+                outside_located=[bool(r["phase_right"]) for r in outside],
+                errors=len(rows) - len(ok))
+
+
+# ---------------------------------------------------------------------------------------------- cases
+def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE) -> list:
+    """[(kind, names)] of a selfcheck: every single effect, then the pairs, then the outside one."""
+    return ([("single", (n,)) for n in names] + [("pair", tuple(p)) for p in pairs] +
+            ([("outside", (outside,))] if outside else []))
+
+
+def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"], present=()) -> dict:
+    """One case (module docstring): generate, diagnose, oracle, :func:`score`.
+
+    ``present``: further effects switched on in the generator at their neutral values (exactly no
+    effect): cases with the same effects present share the generator's compiled programs."""
     from ttsim_jax import load_model
     from ttsim_jax.data import generator as G
     from ttsim_jax.data.errors import DataError
     from ttsim_jax.diagnose.diagnosis import diagnose
 
+    names = tuple(names)
+    rng = np.random.default_rng(seed)
+    params = {n: draw(n, rng) for n in names}
+    for n in present:
+        params.setdefault(n, {k: np.broadcast_to(p.neutral, p.shape).tolist()
+                              for k, p in fx.effect_class(n).PARAMS.items()})
+    params["position_noise"] = {"std": list(NOISE)}
+    on = [n for n in fx.names() if n in params]
     gen, error = None, ""
     for k in range(TRIES):
-        cfg = G.make_config(games=games, rallies_per_game=(rallies, rallies), seed=seed + k, effects=[name, "position_noise"],
-                            max_flight_time=1.5, truth_observations=False)
+        cfg = G.make_config(games=games, seed=seed + k, effects=on,
+                            effect_params=params, max_flight_time=1.5, truth_observations=False)
         try:
             gen = G.generate(cfg, progress=False)
             break
         except DataError as e:  # the generator refuses its own data for some seeds
             error = str(e)
+    row = dict(kind=kind, effects=list(names), seed=int(seed))
     if gen is None:
-        return dict(effect=name, error=f"generator refused {TRIES} seeds: {error}")
+        return dict(row, error=f"generator refused {TRIES} seeds: {error}")
+    if kind == "outside":
+        settings = dataclasses.replace(settings, effects=tuple(n for n in C.candidate_names() if n not in names))
     model = load_model("conti2026", dtype=jnp.float32)
     keep = {}
     out = diagnose(gen.dataset, model, settings, keep=keep)
-    pb = keep["problem"]
-    top = out["candidates"][0] if out["candidates"] else None
-    true_phases = C.phases_of(fx.effect_class(name))
-    oracle = oracle_scores(pb, model, name, gen.truth)
-    located = top is not None and top["significant"]
-    phase = max(top["heldout"], key=lambda p: top["heldout"][p]["pct"]) if located else None
-    found = top["heldout"][phase]["pct"] if located and top["name"] == name else 0.0
-    best_oracle = max(oracle, key=lambda p: oracle[p]["pct"])
-    ref = oracle[phase if phase in oracle else best_oracle]["pct"]
-    return dict(effect=name, seed=int(cfg.seed), rank1=bool(located and top["name"] == name),
-                top=top["name"] if located else "none significant", phase=phase, phase_right=bool(phase in true_phases),
-                found_pct=found, oracle_pct=ref, shrink=found / ref if ref and ref > 0 else math.nan,
-                seconds=out["seconds"])
+    oracle = oracle_scores(keep["problem"], model, names, gen.truth)
+    row.update(score(kind, names, out["candidates"], out["where"], oracle), counts=out["counts"],
+               seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names})
+    return row
 
 
-def selfcheck(names=QUICK, settings=None, seed: int = 0, progress: Callable | None = None, **case) -> dict:
-    """Every case of ``names`` and the summary: rank-1 rate, located-phase rate, median shrink."""
+def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None = None,
+              games: int = GAMES["quick"]) -> dict:
+    """Every case of ``plan`` (:func:`cases`; default the quick one) and the :func:`summary`."""
     from ttsim_jax.diagnose.diagnosis import Settings
 
-    settings = settings or Settings.quick()
-    t0 = time.perf_counter()
+    settings = settings or Settings.quick(max_segments=SEGMENTS["quick"])
+    plan = plan if plan is not None else cases()
+    t0, c0 = time.perf_counter(), time.process_time()
+    present = tuple(sorted({n for _, names in plan for n in names}))
     rows = []
-    for i, name in enumerate(names):
-        rows.append(run_case(name, seed + 100 * i, settings, **case))
+    for i, (kind, names) in enumerate(plan):
+        rows.append(run_case(kind, names, seed + 100 * i, settings, games, present))
         if progress:
-            progress(name)
-        jax.clear_caches()  # every case compiles its own shapes
-    ok = [r for r in rows if "error" not in r]
-    shrink = [r["shrink"] for r in ok if math.isfinite(r["shrink"])]
-    return dict(cases=rows, rank1_rate=float(np.mean([r["rank1"] for r in ok])) if ok else math.nan,
-                phase_rate=float(np.mean([r["phase_right"] for r in ok])) if ok else math.nan,
-                median_shrink=float(np.median(shrink)) if shrink else math.nan, seconds=time.perf_counter() - t0)
+            progress("+".join(names))
+    return dict(cases=rows, summary=summary(rows), seconds=time.perf_counter() - t0,
+                cpu_seconds=time.process_time() - c0)
 
 
 def table(result: dict) -> str:
-    """The per-effect Markdown table of a selfcheck."""
-    lines = ["| effect | top candidate | rank 1 | phase | found [%] | oracle [%] | shrink recovered |",
-             "|---|---|---|---|---|---|---|"]
+    """The per-case Markdown table of a selfcheck and its summary."""
+    lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | shrink recovered |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in result["cases"]:
+        effects = " + ".join(r["effects"])
         if "error" in r:
-            lines.append(f"| {r['effect']} | {r['error'][:60]} | | | | | |")
+            lines.append(f"| {r['kind']} | {effects} | {r['error'][:60]} | | | | | |")
             continue
         phase = f"{r['phase']} ({'right' if r['phase_right'] else 'wrong'})" if r["phase"] else "-"
-        lines.append(f"| {r['effect']} | {r['top']} | {'yes' if r['rank1'] else 'no'} | {phase} | {r['found_pct']:.1f} | "
-                     f"{r['oracle_pct']:.1f} | {r['shrink']:.2f} |")
-    lines.append(f"\nrank-1 rate {result['rank1_rate']:.2f}, located phase {result['phase_rate']:.2f}, median shrink "
-                 f"recovered {result['median_shrink']:.2f}; {result['seconds']:.0f} s")
+        shrink = f"{r['shrink']:.2f}" if math.isfinite(r["shrink"]) else "-"
+        lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
+                     f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} |")
+    s = result["summary"]
+    lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f}, phase right "
+                 f"{s['phase_rate']:.2f}, median shrink recovered {s['median_shrink']:.2f}; undetectable cases "
+                 f"{s['n_undetectable']} (nothing found in {s['undetectable_nothing_found']}); pairs {s['n_pairs']}, "
+                 f"one true effect first {s['pair_rank1_rate']:.2f}, both {s['pair_both_rate']:.2f}; outside the "
+                 f"catalogue: unexplained {s['outside_unexplained']}, located {s['outside_located']}; "
+                 f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU")
     return "\n".join(lines)

@@ -1,0 +1,132 @@
+"""The selfcheck's scoring rules on hand-made diagnosis results (no simulation): detectable and
+undetectable cases, rank 1, the located phase, the shrink recovered, pairs, the outside case, the
+summary's rates, and the magnitudes drawn per effect."""
+
+import math
+
+import numpy as np
+import pytest
+
+from ttsim_jax import effects as fx
+from ttsim_jax.diagnose import selfcheck as SC
+
+
+def held(pct, before=0.1, lo=None):
+    """A held-out score: ``pct`` % lower RMS, its interval's lower end ``lo`` (default pct - 2)."""
+    return dict(pct=pct, ci95=[pct - 2.0 if lo is None else lo, pct + 2.0], before_rms=before,
+                after_rms=before * (1.0 - pct / 100.0), n=200)
+
+
+def cand(name, significant=True, **heldout):
+    return dict(name=name, significant=significant, heldout=heldout)
+
+
+NO_WHERE = {"flight": {"flagged": []}, "table": {"flagged": []}, "racket": {"flagged": []}}
+
+
+def test_true_effect_first_is_found_with_its_phase_and_shrink():
+    oracle = {"table": held(40.0)}
+    cands = [cand("table_tilt", table=held(30.0)), cand("worn_ball", table=held(5.0), racket=held(1.0, lo=-1.0))]
+    r = SC.score("single", ["table_tilt"], cands, NO_WHERE, oracle)
+    assert r["detectable"] and r["rank1"] and r["outcome"] == "found"
+    assert r["phase"] == "table" and r["phase_right"]
+    assert r["shrink"] == pytest.approx(30.0 / 40.0)
+
+
+def test_wrong_first_candidate_is_a_miss_but_its_shrink_counts():
+    oracle = {"flight": held(20.0, before=0.003)}
+    cands = [cand("air_flow", flight=held(12.0, before=0.003)), cand("spin_decay", flight=held(10.0, before=0.003))]
+    r = SC.score("single", ["spin_decay"], cands, NO_WHERE, oracle)
+    assert not r["rank1"] and r["outcome"] == "missed" and r["top"] == "air_flow"
+    assert r["phase"] == "flight" and r["phase_right"]
+    assert r["shrink"] == pytest.approx(12.0 / 20.0)  # the best significant reduction in the oracle's phase
+
+
+def test_located_phase_is_the_largest_significant_one():
+    # ball_variation acts in all phases: its racket reduction is larger but not significant
+    c = cand("ball_variation", flight=held(8.0, before=0.003), racket=held(15.0, lo=-3.0))
+    assert SC.located_phase(c) == "flight"
+    r = SC.score("single", ["spin_decay"], [c], NO_WHERE, {"flight": held(10.0, before=0.003)})
+    assert r["phase"] == "flight" and r["phase_right"] and not r["rank1"]
+
+
+def test_undetectable_case_nothing_found_is_right_and_kept_out_of_the_rates():
+    # the oracle's own reduction is inside the noise: interval's lower end below the rule's 1 %
+    weak = SC.score("single", ["spin_decay"], [cand("spin_decay", False, flight=held(0.5, before=0.003))], NO_WHERE,
+                    {"flight": held(0.8, before=0.003, lo=-0.5)})
+    assert not weak["detectable"] and weak["unexplained"] and weak["outcome"] == "undetectable: nothing found"
+    assert math.isnan(weak["shrink"])
+    alarm = SC.score("single", ["spin_decay"], [cand("air_flow", flight=held(3.0, before=0.003))], NO_WHERE,
+                     {"flight": held(0.8, before=0.003, lo=-0.5)})
+    assert alarm["outcome"] == "undetectable: false alarm (air_flow)"
+    found = SC.score("single", ["table_tilt"], [cand("table_tilt", table=held(30.0))], NO_WHERE, {"table": held(40.0)})
+    missed = SC.score("single", ["buckling"], [cand("buckling", False, table=held(1.0, lo=-1.0))], NO_WHERE,
+                      {"table": held(20.0)})
+    rows = [dict(r, kind="single") for r in (weak, alarm, found, missed)]
+    s = SC.summary(rows)
+    assert s["n_single"] == 2 and s["rank1_rate"] == 0.5 and s["phase_rate"] == 0.5
+    assert s["median_shrink"] == pytest.approx(0.5 * (30.0 / 40.0 + 0.0))
+    assert s["n_undetectable"] == 2 and s["undetectable_nothing_found"] == 1
+
+
+def test_an_insignificant_gain_below_the_phase_resolution_is_not_detectable():
+    # 20 % of a 1e-5 m/s error is far below the table's 0.01 m/s resolution
+    r = SC.score("single", ["table_tilt"], [], NO_WHERE, {"table": held(20.0, before=1e-5)})
+    assert not r["detectable"]
+
+
+def test_pair_scores_both_effects():
+    oracle = {"flight": held(10.0, before=0.003), "table": held(30.0), "racket": held(5.0)}
+    both = [cand("buckling", table=held(25.0)), cand("air_flow", flight=held(9.0, before=0.003))]
+    r = SC.score("pair", ["air_flow", "buckling"], both, NO_WHERE, oracle)
+    assert r["rank1"] and r["both"] and r["outcome"] == "both found"
+    assert r["oracle_phase"] == "table" and r["shrink"] == pytest.approx(25.0 / 30.0)
+    one = SC.score("pair", ["air_flow", "buckling"], both[:1] + [cand("worn_ball", table=held(3.0))], NO_WHERE, oracle)
+    assert one["rank1"] and not one["both"] and one["outcome"] == "one found"
+
+
+def test_outside_case_is_unexplained_and_located_by_the_flagged_phase():
+    where = {"flight": {"flagged": []}, "table": {"flagged": []}, "racket": {"flagged": [("distance", "0.07-0.1 m")]}}
+    nothing = [cand("racket_logo", False, racket=held(0.5, lo=-2.0))]
+    r = SC.score("outside", ["racket_edge"], nothing, where, {"racket": held(15.0)})
+    assert r["unexplained"] and r["located"] == ["racket"] and r["phase_right"]
+    assert r["outcome"] == "unexplained, located in racket"
+    wrong = SC.score("outside", ["racket_edge"], nothing, dict(where, racket={"flagged": []},
+                     table={"flagged": [("speed", "5-9 m/s")]}), {"racket": held(15.0)})
+    assert wrong["unexplained"] and not wrong["phase_right"]
+    absorbed = SC.score("outside", ["racket_edge"], [cand("worn_ball", racket=held(4.0))], where, {"racket": held(15.0)})
+    assert not absorbed["unexplained"] and absorbed["outcome"].startswith("explained by worn_ball")
+    s = SC.summary([dict(r, kind="outside"), dict(absorbed, kind="outside")])
+    assert s["outside_unexplained"] == [True, False] and s["n_single"] == 0
+
+
+@pytest.mark.parametrize("name", sorted(SC.DRAWS))
+def test_drawn_magnitudes_are_valid_parameters_in_the_upper_realistic_range(name):
+    cls = fx.effect_class(name)
+    rng = np.random.default_rng(3)
+    draws = [SC.draw(name, rng) for _ in range(50)]
+    for d in draws:
+        cls.from_dict(d)  # raises naming the parameter when a draw has the wrong shape
+    if name == "table_tilt":
+        slope = np.linalg.norm([d["slope"] for d in draws], axis=1)
+        assert slope.min() >= 0.004 and slope.max() <= 0.009
+    if name == "air_flow":
+        wind = np.array([d["wind"] for d in draws])
+        assert np.all(wind[:, 2] == 0.0) and 0.2 <= np.linalg.norm(wind, axis=1).min() <= 0.4
+
+
+def test_cases_plan():
+    plan = SC.cases(("spin_decay",), (("air_flow", "buckling"),), "racket_edge")
+    assert plan == [("single", ("spin_decay",)), ("pair", ("air_flow", "buckling")), ("outside", ("racket_edge",))]
+
+
+def test_a_candidate_that_worsens_another_phase_is_not_significant():
+    """A gain in one phase bought with a significant loss in another (the signature of a fit to a
+    bias of the racket contact estimates) does not explain the data; an insignificant loss does not
+    matter."""
+    from ttsim_jax.diagnose.candidates import explains
+
+    gain = held(10.0, before=0.3)
+    assert explains({"racket": gain, "table": held(0.2, lo=-0.5)})
+    assert not explains({"racket": gain, "table": dict(held(-1.1), ci95=[-1.5, -0.6]),
+                         "flight": held(0.0, before=0.003, lo=-0.3)})
