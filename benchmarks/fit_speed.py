@@ -46,6 +46,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=_real_spindoe(), help="SpinDOE folder (default: %(default)s)")
     p.add_argument("--segments", type=int, default=200, help="segments to fit (default: %(default)s)")
+    p.add_argument("--repeats", type=int, default=3,
+                   help="warm runs of the batched fit and of each scipy configuration; medians are reported (default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = p.parse_args(argv)
 
@@ -74,9 +76,12 @@ def main(argv=None) -> int:
     t0, c0 = time.perf_counter(), time.process_time()
     cold = A.fit_segments(times, positions, spins)
     t_cold, c_cold = time.perf_counter() - t0, time.process_time() - c0
-    t0, c0 = time.perf_counter(), time.process_time()
-    warm = A.fit_segments(times, positions, spins)
-    t_warm, c_warm = time.perf_counter() - t0, time.process_time() - c0
+    warm_runs = []
+    for _ in range(args.repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        warm = A.fit_segments(times, positions, spins)
+        warm_runs.append((time.perf_counter() - t0, time.process_time() - c0))
+    t_warm, c_warm = np.median(warm_runs, axis=0)
 
     # ---- scipy over the same residual
     from ttsim_jax.params import load_model
@@ -108,7 +113,9 @@ def main(argv=None) -> int:
     scipy = {}
     for kind in ("2-point", "jax"):
         first, first_cpu, theta, nfev = run_scipy(kind)  # includes compiling the residual (and Jacobian) once
-        again, again_cpu, theta, _ = run_scipy(kind)
+        runs = [run_scipy(kind) for _ in range(args.repeats)]
+        again, again_cpu = np.median([r[:2] for r in runs], axis=0)
+        theta = runs[-1][2]
         d = np.abs(theta[:, 6:] - warm.theta[:, 6:])
         scipy[kind] = {
             "total_s": first, "warm_s": again, "total_cpu_s": first_cpu, "warm_cpu_s": again_cpu,
@@ -162,7 +169,7 @@ def main(argv=None) -> int:
         "samples": int(sum(len(t) for t in times)),
         "longest_segment": int(max(len(t) for t in times)),
         "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm,
-                    "iterations": A.ITERATIONS, "batch": A.BATCH, "group": A.GROUP, "tol": A.TOL,
+                    "iterations": A.ITERATIONS, "warm_repeats_median_of": args.repeats, "batch": A.BATCH, "group": A.GROUP, "tol": A.TOL,
                     "compiler_options": A.COMPILER_OPTIONS,
                     "median_rmse_mm": float(np.nanmedian(warm.rmse) * 1e3),
                     "cold_equals_warm": bool(np.allclose(cold.theta, warm.theta, equal_nan=True))},
