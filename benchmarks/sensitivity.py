@@ -6,13 +6,14 @@ input).
     python benchmarks/sensitivity.py --shots 4096 --out benchmarks/results/sensitivity_cpu.json
 
 The Jacobian is timed twice in one process: the first call compiles (the forward run and one
-reverse pass per horizon bucket used), the second reuses them. Both include the forward run of
-every shot at the full horizon that picks the shots that land and their horizons
-(``jacobians.horizon_plan``). Finite differences are timed on ``--fd-columns`` inputs (each a
-batched forward run of all shots at +h and -h, full horizon) and scaled to all inputs: the cost of
-a forward run does not depend on which input moved; ``fd_planned_*`` scales that by the share of
-shot-steps the Jacobian's plan runs (finite differences over only the landed shots, each through
-its bucket: an estimate, not timed). Each phase records wall time and the process's CPU time (all
+reverse pass per horizon bucket used: one by default), the second reuses them. Both include the
+forward run of every shot at the full horizon that picks the shots that land and groups them by
+their landing step (``jacobians.horizon_plan``); each shot stops at its landing and a chunk's
+steps after its last landing are skipped. Finite differences are timed on ``--fd-columns`` inputs (each a
+batched forward run of all shots at +h and -h, until the last shot stops) and scaled to all
+inputs: the cost of a forward run does not depend on which input moved; ``fd_planned_*`` scales
+that by the share of shot-steps the Jacobian's plan runs (finite differences over only the landed
+shots, in the plan's chunks, each until its last landing: an estimate, not timed). Each phase records wall time and the process's CPU time (all
 threads), and the load average at its end: the machine may be shared.
 """
 
@@ -33,8 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from report_json import emit  # noqa: E402  (the scripts' folder is on sys.path when run as a script)
 from ttsim_jax import load_model  # noqa: E402
-from ttsim_jax.sensitivity.cases import WINDOW, sampled_shots  # noqa: E402
-from ttsim_jax.sensitivity.jacobians import flatten_inputs, jacobian, layout_of, outcomes  # noqa: E402
+from ttsim_jax.sensitivity.cases import sampled_shots  # noqa: E402
+from ttsim_jax.sensitivity.jacobians import flatten_inputs, horizon_plan, jacobian, layout_of, outcomes  # noqa: E402
 
 
 def main(argv=None):
@@ -45,7 +46,7 @@ def main(argv=None):
     p.add_argument("--fd-columns", type=int, default=4)
     p.add_argument("--chunk", type=int, default=512,
                    help="shots per compiled Jacobian call, as `ttsim sensitivity --chunk` (0: all at once)")
-    p.add_argument("--buckets", type=int, default=3, help="horizon buckets, as `jacobian(buckets=...)`")
+    p.add_argument("--buckets", type=int, default=1, help="horizon buckets, as `jacobian(buckets=...)`")
     p.add_argument("--no-fd", action="store_true", help="time the Jacobian only")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -83,7 +84,8 @@ def main(argv=None):
 
     nominal = flatten_inputs(model, shots, layout)
     h = 1e-3 * np.maximum(np.abs(nominal).mean(0), 1e-3)
-    timed("forward_first", lambda: outcomes(model, shots, nominal, target="landing", dt=args.dt, n_steps=n_steps))
+    first = timed("forward_first",
+                  lambda: outcomes(model, shots, nominal, target="landing", dt=args.dt, n_steps=n_steps))
 
     def differences():
         fd = []
@@ -101,17 +103,21 @@ def main(argv=None):
     fd_all = per_column * layout.n_columns
     ok = jac.valid
     chunk = args.chunk or args.shots
-    # shot-steps the plan runs (padded chunks) against all shots through the whole horizon
-    run = jac.horizon[jac.horizon > 0]
-    planned = sum(-(-int((run == h).sum()) // chunk) * chunk * (h + WINDOW) for h in np.unique(run))
-    share = planned / (-(-args.shots // chunk) * chunk * (n_steps + WINDOW))
+    # shot-steps the Jacobian's plan runs (landed shots in chunks sorted by their last step, each
+    # chunk until its last shot stops) against the timed differences' (all shots in one batch,
+    # until the last stops)
+    steps = np.asarray(first.steps)
+    plan = horizon_plan(steps, first.valid, n_steps, chunk, args.buckets)
+    planned = sum(chunk * int(steps[rows].max()) for rows, _ in plan)
+    share = planned / (args.shots * int(steps.max()))
     fd = np.stack(fd, -1)[ok]
     ad = jac.jac[ok][:, :, :args.fd_columns]
     rel = np.abs(ad - fd) / (np.abs(fd).max((0, 1), keepdims=True) + 1e-9)
     result = dict(
         shots=args.shots, chunk=chunk, landed=int(ok.sum()), inputs=layout.n_columns,
         n_steps=n_steps, dt=args.dt, buckets=args.buckets,
-        horizons={str(int(h)): int((run == h).sum()) for h in np.unique(run)}, planned_shot_step_share=share,
+        horizons={str(int(h)): int((jac.horizon == h).sum()) for h in np.unique(jac.horizon[jac.horizon > 0])},
+        planned_shot_step_share=share,
         jacobian_first_includes="compilation (forward run + one reverse pass per bucket used) and the forward run",
         jacobian_second_includes="the forward run at the full horizon (compiled), no compilation",
         dtype=str(model.ball.radius.dtype), backend=jax.default_backend(), cpus=os.cpu_count(),

@@ -382,6 +382,9 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from ttsim_jax.cache import enable_compilation_cache
+
+    enable_compilation_cache()  # a command run again loads its compiled programs
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit

@@ -133,6 +133,28 @@ def test_single_buffer_equals_loop_of_buffers(model, whole):
         rollout(model, init_state(shots()), N, 1e-3, buffering="sometimes")
 
 
+def test_until_events_freezes_each_ball_at_its_event(model, whole):
+    """A ball stops advancing at its first event (``until_events=1``): its log holds that event as
+    the full rollout logs it and nothing after; balls without an event run as before."""
+    s1, o1 = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), until_events=1)
+    s, o = whole
+    count, full = np.asarray(o1.events.count), np.asarray(o.events.count)
+    assert (full >= 2).sum() > B // 4  # most balls would have gone on to a second event
+    np.testing.assert_array_equal(count, np.minimum(full, 1))
+    np.testing.assert_array_equal(np.asarray(o1.events.kind[:, 0]), np.asarray(o.events.kind[:, 0]))
+    np.testing.assert_allclose(np.asarray(o1.events.time[:, 0]), np.asarray(o.events.time[:, 0]), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(o1.events.post.vel[:, 0]), np.asarray(o.events.post.vel[:, 0]),
+                               atol=1e-12)
+    none = full == 0
+    np.testing.assert_array_equal(np.asarray(s1.ball.pos)[none], np.asarray(s.ball.pos)[none])
+    # a frozen ball is where its event step left it: within one step's flight of its logged event
+    hit = full > 0
+    gap = np.linalg.norm(np.asarray(s1.ball.pos)[hit] - np.asarray(o.events.post.pos[:, 0])[hit], axis=-1)
+    assert gap.max() < 0.03 and not np.allclose(np.asarray(s1.ball.pos)[hit], np.asarray(s.ball.pos)[hit])
+    with pytest.raises(ValueError, match="until_events"):
+        rollout(model, init_state(shots()), N, 1e-3, max_events=2, until_events=3)
+
+
 def test_lean_step_equals_reference_on_thousands_of_shots():
     """Event sequences of 4,096 random shots with two rackets, float32: the lean step (exact
     detection only where a gap changes sign, in a small buffer that overflows on busy steps) and the

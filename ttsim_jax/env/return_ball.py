@@ -130,10 +130,9 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     """
     import hashlib
     import inspect
-    import os
-    from pathlib import Path
 
     from ttsim_jax import shots as shots_module
+    from ttsim_jax.cache import cache_root
 
     c = config.shots
     path = None
@@ -142,8 +141,7 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
         for leaf in jax.tree.leaves(model):
             digest.update(np.asarray(leaf).tobytes())
         digest.update(inspect.getsource(shots_module).encode())
-        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ttsim_jax"
-        path = root / f"shots-{digest.hexdigest()[:20]}.npz"
+        path = cache_root() / f"shots-{digest.hexdigest()[:20]}.npz"
         if path.is_file():
             with np.load(path) as f:
                 return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]

@@ -169,7 +169,7 @@ def _split_per_ball(model, axes):
 
 @partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
                                    "sample", "rackets_batched", "remat", "reference", "block",
-                                   "buffering", "fused"))
+                                   "buffering", "fused", "until"))
 def _rollout(model, state: RallyState, schedule, policy, dt, key, *, fused, **static):
     """The jitted rollout; on the fused path (``fused`` > 0, its sub-steps per launch) a
     ``custom_jvp`` whose derivative is the reference path's, so reverse mode never meets the kernel."""
@@ -185,7 +185,7 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, fused, **st
 
 
 def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
-         max_events, capacity, sample, rackets_batched, remat, reference, block, buffering, fused):
+         max_events, capacity, sample, rackets_batched, remat, reference, block, buffering, fused, until):
     axes = axes.tree()
     b = state.batch
     dtype = state.ball.pos.dtype
@@ -212,8 +212,20 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
                 rackets = jax.tree.map(lambda a: a.astype(dtype), rackets)  # python-float params may be wider
                 batched = True
             sub = jax.random.fold_in(key, k) if sample else None
-            ball, alive, status, log = stepper(model, axes, ball, alive, status, ball_id, log, rackets, t, dt,
-                                               rackets_batched=batched, key=sub)
+            if not until:
+                ball, alive, status, log = stepper(model, axes, ball, alive, status, ball_id, log, rackets, t, dt,
+                                                   rackets_batched=batched, key=sub)
+                return (ball, alive, status, log, k + 1), None
+            # balls whose log holds ``until`` events are frozen (treated as out of play for the step,
+            # still alive); a step with none to advance is skipped whole
+            moving = alive & (log.count < until)
+
+            def advance():
+                nb, na, ns, nl = stepper(model, axes, ball, moving, status, ball_id, log, rackets, t, dt,
+                                         rackets_batched=batched, key=sub)
+                return nb, jnp.where(moving, na, alive), ns, nl
+
+            ball, alive, status, log = jax.lax.cond(jnp.any(moving), advance, lambda: (ball, alive, status, log))
             return (ball, alive, status, log, k + 1), None
 
         if remat:
@@ -341,7 +353,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
             contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
             reference: bool = False, block_size: int | None = None, buffering: str | None = None,
-            fused: bool | str = False,
+            fused: bool | str = False, until_events: int = 0,
             memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
@@ -380,6 +392,13 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             (default), or ``"auto"`` (on a GPU wherever it covers the rollout). Pallas runs
             compiled (Triton) on a GPU and in interpret mode elsewhere (slow: for testing).
             ``jax.grad`` always differentiates the reference path.
+        until_events: each ball stops advancing once this rollout's event log has counted that many
+            of its events (its state is frozen there, still ``alive``; a later rollout, with a fresh
+            log, moves it on), and a step where no ball advances is skipped whole: a branch per step,
+            which pays where most of a batch finishes early (a shot's flight to its landing, through
+            a horizon long enough for the slowest; forward or reverse mode) and costs a
+            device-to-host copy per step on a GPU. 0 (default): balls run to the end. At most
+            ``max_events``; not on the fused path.
         memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
             need more is refused before compiling, with the sizes.
 
@@ -411,11 +430,15 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     elif racket is not None:
         schedule, batched = normalise_schedule(racket, n_steps, batch)
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
+    if not isinstance(until_events, int) or not 0 <= until_events <= max_events:
+        raise ValueError(f"until_events must be an int in [0, max_events={max_events}], got {until_events!r}")
     if fused not in (True, False, "auto"):
         raise ValueError(f"fused must be True, False or 'auto', got {fused!r}")
     if fused:
         why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched,
                                      sample=sample_residual)
+        if why is None and until_events:
+            why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         fused = why is None and not reference and (fused is True or jax.default_backend() == "gpu")
@@ -429,7 +452,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
                     sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference,
-                    block=block, buffering=buffering, fused=fused_path.SUBSTEPS if fused else 0)
+                    block=block, buffering=buffering, fused=fused_path.SUBSTEPS if fused else 0,
+                    until=until_events)
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",

@@ -13,9 +13,11 @@ reverse-mode pass gives every shot its own gradient. Columns carry a group name
 components, so that every target shares one compiled program; any number of columns) or forward
 mode (``jax.jvp`` with one tangent column per copy of a shot on the kernel's batch axis). A
 forward run of every shot first finds the shots that land and how many steps each outcome needs;
-only those are differentiated, sorted by that need, each chunk through the shortest of a few
-horizon buckets that holds it (:func:`horizon_plan`): the full horizon's Jacobian for a fraction of
-its steps.
+only those are differentiated, sorted by that need (:func:`horizon_plan`). Each shot stops at its
+landing and the kernel skips steps where every shot of a chunk has stopped
+(``targets.program_outcome``), so a chunk of early landings costs little more than its flights,
+forward and backward, through the one compiled horizon; ``buckets`` > 1 also compiles shorter
+horizons (each a compilation of minutes for a few per cent of the run time).
 :func:`finite_differences` gives central differences along directions, batched the same way;
 :func:`local_flags` marks shots whose gradient holds only very locally (the event
 sequence flips within the probe, or differences at two step sizes disagree).
@@ -288,14 +290,13 @@ def horizon_plan(steps, valid, n_steps: int, size: int, buckets: int, margin: in
 
 
 def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3, n_steps: int = 1500,
-             mode: str = "rev", chunk: int | None = None, buckets: int = 3, progress: bool = False) -> Jacobian:
+             mode: str = "rev", chunk: int | None = None, buckets: int = 1, progress: bool = False) -> Jacobian:
     """d target / d every input for each shot, through the rally kernel.
 
     A forward run of every shot at the full horizon first gives each its outcome and the steps
     that outcome depends on (the landing, the net crossing); only the shots that land are then
-    differentiated, grouped by those steps, each group through a horizon just long enough for it
-    (:func:`horizon_plan`): the same Jacobian as through the full horizon, for a fraction of the
-    steps.
+    differentiated, grouped by those steps (:func:`horizon_plan`), so that a group's steps after its
+    last landing are skipped.
 
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` (its float dtype is the computation's).
@@ -307,7 +308,8 @@ def jacobian(model, shots: ShotSet, *, target: str = "landing", dt: float = 1e-3
             column per copy of a shot: cost ~ C forward passes; for few columns or checks).
         chunk: shots per compiled call (the last chunk is padded); default all at once.
         buckets: how many horizons (fractions of ``n_steps``, :func:`horizons`) the differentiated
-            shots may be run through, each one compilation of the Jacobian; 1: the full horizon.
+            shots may be run through, each one compilation of the Jacobian; 1 (default): the full
+            horizon only (the steps after a chunk's last landing are skipped anyway).
         progress: show a tqdm bar over the chunks.
 
     Returns:

@@ -131,7 +131,10 @@ def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int, buff
     """Runs shots through the kernel and reads every column of :data:`COLUMNS`.
 
     One rollout records the ball at every step (the net crossing is read from it); in reverse mode
-    the kernel then rematerialises each step once (its chunks are single steps).
+    the kernel then rematerialises each step once (its chunks are single steps). Each ball stops at
+    its second event (``rollout(until_events=2)``: the landing, for a shot that lands), and steps
+    where every ball has stopped are skipped: a batch of shots that land early costs little more
+    than its flights to the landing, whatever the horizon.
 
     Arguments:
         model: a :class:`~ttsim_jax.params.Model` with a leading (B,) axis on every leaf (per shot,
@@ -153,7 +156,7 @@ def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int, buff
     total = WINDOW + n_steps
     schedule = racket_schedule(racket, total, dt)
     _, out = rollout(model, init_state(ball), total, dt, schedule, model_axes=0, max_events=2, record_every=1,
-                     buffering=buffering)
+                     buffering=buffering, until_events=2)
     log = out.events
     sequence = log.kind[:, :2]
     valid = (sequence[:, 0] == ev.RACKET) & (sequence[:, 1] == ev.TABLE)

@@ -1,0 +1,47 @@
+"""Where ttsim-jax keeps what is slow to make: aimed shot banks and compiled programs.
+
+Everything lives under ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache/ttsim_jax``); deleting it
+only costs the time to make it again.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+
+def cache_root() -> Path:
+    """``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache/ttsim_jax``); not created here."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ttsim_jax"
+
+
+def enable_compilation_cache() -> str | None:
+    """Turns on JAX's persistent compilation cache for the ``ttsim`` commands, so that a command run
+    again (a sensitivity study, a fit, training) loads its compiled programs instead of compiling
+    them for minutes.
+
+    The folder is ``$TTSIM_COMPILE_CACHE`` if set (``off`` turns the cache off), else
+    ``cache_root()/xla/<host name>``: one per machine, since an executable compiled for one CPU may
+    not load on another that shares the home folder. A cache JAX was already given (its
+    ``JAX_COMPILATION_CACHE_DIR``, or the config) is left as it is. The folder must be trusted: JAX
+    runs what it loads from there.
+
+    Returns:
+        The folder in use, or None when the cache stays off.
+    """
+    import jax
+
+    chosen = os.environ.get("TTSIM_COMPILE_CACHE", "")
+    if chosen.lower() in ("off", "0", "false", "no"):
+        return None
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return current
+    folder = Path(chosen) if chosen else cache_root() / "xla" / (platform.node() or "local")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:  # a read-only home: compile every time, as without the cache
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    return str(folder)
