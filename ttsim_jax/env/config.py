@@ -40,9 +40,9 @@ class ControlConfig:
 @dataclass(frozen=True)
 class InterceptConfig:
     x_hit: float = 1.45
-    flight_time: tuple = (0.35, 0.75)
-    offset_y: float = 0.15
-    offset_z: float = 0.15
+    flight_time: tuple = (0.3, 0.7)
+    offset_y: float = 0.03
+    offset_z: float = 0.03
     pitch: float = 0.3
     yaw: float = 0.3
     swing_time: float = 0.15

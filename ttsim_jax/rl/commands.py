@@ -91,6 +91,13 @@ def cmd_play(args) -> int:
                                            jax.random.PRNGKey(0)), payload, args.policy)
     env, params = (train_env, train_params) if args.episodes == train_env.num_envs else build(
         config, args.episodes, args.task)
+    trained, asked = train_env.config.control.action, env.config.control.action
+    if trained != asked:
+        from ttsim_jax.cli import UsageError
+
+        raise UsageError(f"--task {args.task}: its [control] action = {asked!r}, but {args.policy} was trained with "
+                         f"action = {trained!r} (for the professional shots of an intercept policy: "
+                         "--task return_ball_pro_intercept)")
     record = min(args.episodes, 12) if args.plot else 0
     result = ppo.make_evaluate(env, config, record=record)(runner.params, runner.stats, params,
                                                           jax.random.PRNGKey(args.seed))
