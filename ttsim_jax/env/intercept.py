@@ -34,6 +34,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
+# Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
+MIRROR_STEPS = 8
 # Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
 MIN_SPEED = 0.2
 
@@ -137,8 +139,8 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     The kernel's racket contact (point contact, face moving along its normal, not turning) changes
     the ball's velocity by ``n (1 + e) (V - v_in.n) - grip * P (v_in + r n x spin)``, P the projection
     onto the face and ``grip = (1 + et0) / (1 + kappa)``; the normal n along
-    ``v_out - v_in + grip * P (...)`` is found by three fixed-point steps (exact for a spinless ball
-    after the first), then the normal speed V from the restitution.
+    ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS`` fixed-point steps,
+    then the normal speed V from the restitution.
 
     Arguments:
         p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
@@ -158,7 +160,7 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
         return u - jnp.sum(u * n, -1, keepdims=True) * n
 
     n = unit(v_out - v_in)
-    for _ in range(3):
+    for _ in range(MIRROR_STEPS):
         n = unit(v_out - v_in + p.grip * tangential(n))
     push = jnp.sum((v_out - v_in + p.grip * tangential(n)) * n, -1)
     speed = push / (1.0 + p.e_racket) + jnp.sum(v_in * n, -1)
