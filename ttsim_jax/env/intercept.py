@@ -17,16 +17,17 @@ As in robot table tennis systems (a hitting-point predictor plus a stroke), each
    return's flight time (``flight_time`` range: short is fast and flat), offsets of the hit point
    in y and z (``offset_y``, ``offset_z``), and offsets of the face's pitch and yaw (``pitch``,
    ``yaw``). Action 0 is the mirror law's stroke with the middle flight time;
-3. :func:`track` turns that target into the acceleration command of the kinematic racket
+3. :func:`track` turns that stroke into the acceleration command of the kinematic racket
    (:mod:`.racket`, whose speed, acceleration and workspace limits still apply): a critically
    damped PD (natural frequency ``omega``) with velocity feed-forward on a reference that waits
-   ``swing_speed * swing_time`` behind the hit point and, in the last ``swing_time`` before the
-   predicted hit, moves along -x at the swing speed through it (so the racket arrives at the
-   predicted time moving forward); the face angles are driven by the same PD to the stroke's
-   angles. Before a prediction exists, when the ball has passed the plane, and after the contact,
-   the racket returns to its start position with a level face.
+   ``swing_time`` of the stroke's velocity behind the hit point and, in the last ``swing_time``
+   before the predicted hit, moves through it at that velocity (so the racket arrives at the
+   predicted time moving with the stroke); the face angles are driven by the same PD to the
+   stroke's angles. Before a prediction exists, when the ball has passed the plane, and after the
+   contact, the racket returns to its start position with a level face.
 
-Everything is elementwise over the batch, branch-free and closed-form (no loop, no root finding).
+Everything is elementwise over the batch, branch-free and closed-form (a fixed, unrolled number
+of fixed-point steps; no data-dependent loop).
 """
 
 from __future__ import annotations
