@@ -1,6 +1,6 @@
 """Legal-return rate of the "intercept" mode's scripted tracker alone: constant actions (action 0, a
-grid over the return's flight time and the pitch offset, and random constant actions), one episode per environment against
-the task's shot bank (JSON out).
+grid over the return's flight time and the pitch offset, and random constant actions), one episode
+per environment against the task's shot bank (JSON out).
 
     python benchmarks/intercept_tracker.py --envs 512 --random 16 --out benchmarks/results/intercept_tracker_cpu.json
 """
@@ -63,7 +63,8 @@ def main() -> None:
     p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE", help="task overrides (TOML values)")
     p.add_argument("--out", default=None, help="JSON file to write")
     args = p.parse_args()
-    env = ReturnBall(load_task_config(args.task, dict({"control.action": "intercept"}, **{k: tomllib.loads(f"v = {v}")["v"] for k, v in (kv.split("=", 1) for kv in args.set)})), args.envs)
+    overrides = {k: tomllib.loads(f"v = {v}")["v"] for k, v in (kv.split("=", 1) for kv in args.set)}
+    env = ReturnBall(load_task_config(args.task, {"control.action": "intercept", **overrides}), args.envs)
     params = env.default_params()
     play = make_play(env)
     key = jax.random.PRNGKey(args.seed)

@@ -135,7 +135,8 @@ def episode():
         flight, _, _ = intercept.stroke(p.intercept, jnp.zeros((N, 5)))
         _, swing = intercept.mirror(p.intercept, point, v_hit, state.rally.ball.spin, p.target, flight)
         out = jit_step_env(env, jax.random.fold_in(key, i), state, jnp.zeros((N, 5)), p)
-        rows.append(dict(racket=state.racket, point=np.asarray(point), swing=np.asarray(swing), t=np.asarray(t), valid=np.asarray(valid),
+        rows.append(dict(racket=state.racket, point=np.asarray(point), swing=np.asarray(swing), t=np.asarray(t),
+                         valid=np.asarray(valid),
                          contact=np.asarray(out[5]["contact"]), done=done.copy(), obs=np.asarray(out[0]),
                          reward=np.asarray(out[2])))
         state = out[1]
@@ -167,7 +168,8 @@ def test_tracked_racket_meets_the_ball_at_the_predicted_point_and_time_within_it
     for r in rows:
         rk = r["racket"]
         assert (np.abs(np.asarray(rk.vel)) <= np.asarray(lim.max_speed) + 1e-4).all()
-        assert (np.asarray(rk.pos) >= np.asarray(lim.lo) - 1e-5).all() and (np.asarray(rk.pos) <= np.asarray(lim.hi) + 1e-5).all()
+        pos = np.asarray(rk.pos)
+        assert (pos >= np.asarray(lim.lo) - 1e-5).all() and (pos <= np.asarray(lim.hi) + 1e-5).all()
         assert (np.abs(np.asarray(rk.rate)) <= np.asarray(lim.max_rate) + 1e-4).all()
 
 

@@ -113,8 +113,8 @@ def predict(p: InterceptParams, pos, vel, bounced):
     valid = (speed > MIN_SPEED) & (th >= 0.0) & jnp.isfinite(th + tb)
     th = jnp.where(valid, th, 0.0)
     point, v_hit = _fly(pb, vb, p.gravity, th)
-    return (jnp.where(valid[:, None], point, pos), jnp.where(valid[:, None], v_hit, vel), jnp.where(valid, tb + th, 0.0),
-            valid)
+    keep = valid[:, None]
+    return jnp.where(keep, point, pos), jnp.where(keep, v_hit, vel), jnp.where(valid, tb + th, 0.0), valid
 
 
 def stroke(p: InterceptParams, action):

@@ -190,7 +190,8 @@ def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptPar
         x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
         angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
         e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
-        grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)), gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
+        grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
 
 
 def _set_leaf(model, path: str, value):
