@@ -256,6 +256,10 @@ def test_angular_velocity_is_the_rotation_rate():
     ({"reward.bogus": 1.0}, "bogus"),
     ({"shots.types": ["serve", "tomahawk"]}, "tomahawk"),
     ({"randomisation.table.e0": [0.9, 0.8]}, "low must not exceed high"),
+    ({"control.action": "torque"}, r"\[control\] action = 'torque': expected one of \['accel', 'intercept'\]"),
+    ({"control.action": 1}, r"\[control\] action = 1: expected a string"),
+    ({"intercept.flight_time": [0.8, 0.3]}, r"\[intercept\] flight_time"),
+    ({"intercept.omega": 0.0}, r"\[intercept\] omega = 0.0: must be positive"),
 ])
 def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
     with pytest.raises(ConfigError, match=message) as info:

@@ -141,3 +141,6 @@ def test_cli_refuses_to_overwrite_and_resumes(files, runs, capsys):
     with pytest.raises(CheckpointError, match="bad.msgpack"):
         read_checkpoint(files / "bad.msgpack")
     assert main(["play", "--policy", str(files / "bad.msgpack")]) == 2
+    # a policy of racket accelerations is not played on a task of the intercept mode
+    assert main(["play", "--policy", str(out / CHECKPOINT), "--task", "return_ball_intercept"]) == 2
+    assert "action = 'intercept'" in capsys.readouterr().err

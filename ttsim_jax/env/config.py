@@ -25,11 +25,28 @@ class ShotsConfig:
     aim: bool = True
 
 
+# The action modes of ``[control] action`` (see :mod:`ttsim_jax.env.intercept`).
+ACTION_MODES = ("accel", "intercept")
+
+
 @dataclass(frozen=True)
 class ControlConfig:
     rate_hz: float = 100.0
     physics_dt: float = 1e-3
     max_time: float = 2.0
+    action: str = "accel"
+
+
+@dataclass(frozen=True)
+class InterceptConfig:
+    x_hit: float = 1.45
+    flight_time: tuple = (0.3, 0.7)
+    offset_y: float = 0.03
+    offset_z: float = 0.03
+    pitch: float = 0.3
+    yaw: float = 0.3
+    swing_time: float = 0.15
+    omega: float = 40.0
 
 
 @dataclass(frozen=True)
@@ -74,7 +91,7 @@ class TaskConfig:
 
     Attributes:
         model: bundled model name or model .toml path.
-        shots, control, racket, observation, reward: the sections of the file.
+        shots, control, racket, observation, reward, intercept: the sections of the file.
         randomisation: ((dotted model path, low, high), ...) per-environment uniform ranges.
         source: the file it was read from ("" for the defaults).
     """
@@ -85,6 +102,7 @@ class TaskConfig:
     racket: RacketConfig = field(default_factory=RacketConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
+    intercept: InterceptConfig = field(default_factory=InterceptConfig)
     randomisation: tuple = ()
     source: str = ""
 
@@ -100,11 +118,12 @@ class TaskConfig:
 
 
 _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketConfig,
-             "observation": ObservationConfig, "reward": RewardConfig}
+             "observation": ObservationConfig, "reward": RewardConfig, "intercept": InterceptConfig}
 # keys that must be positive
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
-             "max_angle_accel", "target_scale"}
-_NON_NEGATIVE = {"noise_pos", "noise_vel", "motion", "approach"}
+             "max_angle_accel", "target_scale",
+             "x_hit", "swing_time", "omega", "flight_time"}
+_NON_NEGATIVE = {"noise_pos", "noise_vel", "motion", "approach", "offset_y", "offset_z", "pitch", "yaw"}
 
 
 def default_task_path(name: str = "return_ball") -> Path:
@@ -117,6 +136,10 @@ def convert_value(where: str, default, value):
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise ConfigError(f"{where} = {value!r}: expected true or false")
+        return value
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} = {value!r}: expected a string")
         return value
     if isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
@@ -216,6 +239,11 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
         raise ConfigError(f"{source}: [control] rate_hz = {control.rate_hz} and physics_dt = {control.physics_dt}: "
                           "a control period must be a whole number of physics steps")
+    if control.action not in ACTION_MODES:
+        raise ConfigError(f"{source}: [control] action = {control.action!r}: expected one of {list(ACTION_MODES)}")
+    flight = out["intercept"].flight_time
+    if flight[0] > flight[1]:
+        raise ConfigError(f"{source}: [intercept] flight_time = {list(flight)}: low must not exceed high")
     ranges = []
     rand = raw.get("randomisation", {})
     if not isinstance(rand, dict):

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import TaskConfig, load_task_config
 from ttsim_jax.env.spaces import OBS_BOUND
@@ -102,6 +103,7 @@ class EnvParams:
         limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start, start_jitter: (3,) racket start.
         noise: (2,) std of the observed ball position [m] and velocity [m/s].
         reward: dict of reward weights (see the module docstring); target: (2,) target point.
+        intercept: :class:`~ttsim_jax.env.intercept.InterceptParams` (read in "intercept" mode).
     """
 
     model: Model
@@ -115,6 +117,7 @@ class EnvParams:
     noise: jnp.ndarray
     reward: dict
     target: jnp.ndarray
+    intercept: intercept.InterceptParams
 
 
 def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
@@ -174,6 +177,19 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
         except OSError:  # a read-only home: no cache, same bank
             pass
     return bank, types
+
+
+def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptParams:
+    """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
+    nominal ``table.e0`` and ``racket.e0``)."""
+    c = config.intercept
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return intercept.InterceptParams(
+        x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
+        angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
+        e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
+        grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
 
 
 def _set_leaf(model, path: str, value):
@@ -247,7 +263,7 @@ class ReturnBall:
                 rand_lo=f32([lo for _, lo, _ in c.randomisation]), rand_hi=f32([hi for _, _, hi in c.randomisation]),
                 limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
                 noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
-                target=f32(w.target_point))
+                target=f32(w.target_point), intercept=intercept_params(model, c))
         return self._params
 
     def model_for(self, params: EnvParams, values):
@@ -312,8 +328,9 @@ class ReturnBall:
         """One control step of every environment, without the automatic reset.
 
         Arguments:
-            key: PRNG key; state: :class:`EnvState`; action: (B, 5) (see
-            :func:`~ttsim_jax.env.racket.command`); params: :class:`EnvParams`.
+            key: PRNG key; state: :class:`EnvState`; action: (B, 5) in [-1, 1]: in "accel" mode the
+            racket's accelerations (:func:`~ttsim_jax.env.racket.command`), in "intercept" mode the
+            stroke (:func:`~ttsim_jax.env.intercept.stroke`); params: :class:`EnvParams`.
 
         Returns:
             (obs, state, reward (B,), terminated (B,), truncated (B,), info): info holds
@@ -322,6 +339,15 @@ class ReturnBall:
         """
         k_phys, k_obs = jax.random.split(key)
         action = jnp.asarray(action, jnp.float32).reshape(self.num_envs, self.action_dim)
+        if self.config.control.action == "intercept":
+            # the tracker reads the ball as the policy sees it (observation noise included)
+            ball = state.rally.ball
+            k_p, k_v = jax.random.split(jax.random.fold_in(k_obs, 1))
+            pos = ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32)
+            vel = ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32)
+            spin = ball.spin if self.config.observation.spin else jnp.zeros_like(ball.spin)
+            action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket, pos,
+                                     vel, spin, state.progress.bounced, state.progress.hit, action)
         rk, schedule, effort = jax.vmap(racket_kin.command, in_axes=(None, 0, 0, None, None))(
             params.limits, state.racket, action, self.period, self.substeps)
         model, axes = self.model_for(params, state.model_values)

@@ -79,13 +79,21 @@ def cmd_play(args) -> int:
     import jax
     import numpy as np
 
+    from ttsim_jax.cli import UsageError
+    from ttsim_jax.env.config import load_task_config
     from ttsim_jax.rl import ppo
     from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner
     from ttsim_jax.rl.config import parse_ppo_config
-    from ttsim_jax.rl.train import build
+    from ttsim_jax.rl.train import build, task_path
 
     payload = read_checkpoint(args.policy)
     config = parse_ppo_config(payload["config"], payload["config_source"])
+    trained = load_task_config(task_path(config)).control.action
+    asked = load_task_config(args.task).control.action if args.task else trained
+    if trained != asked:
+        raise UsageError(f"--task {args.task}: its [control] action = {asked!r}, but {args.policy} was trained with "
+                         f"action = {trained!r} (for the professional shots of an intercept policy: "
+                         "--task return_ball_pro_intercept)")
     train_env, train_params = build(config, config.ppo.num_envs, args.task)
     runner = restore_runner(jax.eval_shape(lambda k: ppo.init_runner(train_env, train_params, config, k),
                                            jax.random.PRNGKey(0)), payload, args.policy)

@@ -1,0 +1,197 @@
+"""The "intercept" action mode: the hit-point predictor against closed forms and the kernel's own
+drag-free flight, the mirror law against the kernel's racket contact, the tracked racket meeting the
+ball at the predicted point within its limits, extreme actions, the spaces and gymnasium's checker.
+
+One compiled environment shape: 8 environments in intercept mode (module fixture), plus the
+single-environment checker; the predictor and the mirror law run eagerly on small arrays.
+"""
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import ttsim_jax  # noqa: F401  (registers the environments)
+from ttsim_jax import Ball, init_state, load_model, rollout
+from ttsim_jax.env import intercept
+from ttsim_jax.env import racket as racket_kin
+from ttsim_jax.env.config import load_task_config
+from ttsim_jax.env.return_ball import ReturnBall, intercept_params, jit_reset, jit_step_env
+from ttsim_jax.physics.racket import racket_contact
+from ttsim_jax.state import Racket
+
+N = 8
+OVERRIDES = {"shots.bank": 64, "shots.aim": True, "control.action": "intercept"}
+G = 9.81
+
+
+@pytest.fixture(scope="module")
+def params():
+    model = load_model("conti2026", dtype=jnp.float32)
+    return intercept_params(model, load_task_config("return_ball_intercept"))
+
+
+def _closed_form(p0, v0, x_hit, e, r, bounces):
+    """Crossing of x = x_hit after ``bounces`` drag-free bounces at z = r (numpy, scalar maths)."""
+    p, v, t = np.array(p0, float), np.array(v0, float), 0.0
+    for _ in range(bounces):
+        dt = (v[2] + np.sqrt(v[2] ** 2 + 2 * G * (p[2] - r))) / G
+        p = p + v * dt + [0, 0, -0.5 * G * dt * dt]
+        v = np.array([v[0], v[1], -e * (v[2] - G * dt)])
+        t += dt
+    dt = (x_hit - p[0]) / v[0]
+    return p + v * dt + [0, 0, -0.5 * G * dt * dt], t + dt
+
+
+def test_predictor_matches_the_closed_form_with_one_and_two_bounces(params):
+    # a drive bouncing on the agent's half, a serve bouncing first on its own half, a ball already bounced
+    pos = jnp.array([[-1.0, 0.1, 0.35], [-1.3, -0.2, 0.25], [0.6, 0.0, 0.1]], jnp.float32)
+    vel = jnp.array([[6.0, 0.3, 0.5], [3.5, 0.4, -0.5], [4.0, -0.2, 1.5]], jnp.float32)
+    point, v_hit, t, valid = intercept.predict(params, pos, vel, jnp.array([False, False, True]))
+    x, e, r = float(params.x_hit), float(params.e_table), float(params.radius)
+    assert np.asarray(valid).all()
+    for i, bounces in enumerate((1, 2, 0)):
+        want_p, want_t = _closed_form(pos[i], vel[i], x, e, r, bounces)
+        np.testing.assert_allclose(point[i], want_p, atol=2e-5)
+        np.testing.assert_allclose(t[i], want_t, atol=2e-6)
+    # a serve's first bounce lies on its own half (x < 0), the drive's on the agent's
+    first = [float(pos[i, 0] + vel[i, 0] * (vel[i, 2] + np.sqrt(vel[i, 2] ** 2 + 2 * G * (pos[i, 2] - r))) / G)
+             for i in range(2)]
+    assert first[1] < 0 < first[0]
+    np.testing.assert_allclose(v_hit[2], vel[2] - np.array([0, 0, G]) * float(t[2]), atol=2e-5)
+
+
+def test_predictor_agrees_with_the_kernels_drag_free_flight(params):
+    """Air off (rho_air = 0): the kernel's flight is pure gravity; its 1 ms integrator places the
+    ball within g dt t / 2 ~ 2 mm of the parabola after 0.4 s, so 3 mm and 1 ms are the tolerances."""
+    model = load_model("conti2026")
+    model = model.replace(aero=model.aero.replace(rho_air=jnp.zeros_like(model.aero.rho_air)))
+    pos = np.array([[0.5, 0.1, 0.2], [0.3, -0.3, 0.25]])
+    vel = np.array([[3.0, 0.2, 1.8], [3.5, 0.1, 1.2]])  # both above the table until the plane
+    point, _, t, valid = intercept.predict(params, jnp.asarray(pos, jnp.float32), jnp.asarray(vel, jnp.float32),
+                                           jnp.array([True, True]))
+    dt, n = 1e-3, 500
+    _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=np.zeros_like(pos))), n, dt,
+                     max_events=2, record_every=1)
+    traj = np.swapaxes(np.asarray(out.trajectory.pos), 0, 1)  # (n, B, 3)
+    times = np.asarray(out.times)
+    for b in range(2):
+        k = int(np.argmax(traj[:, b, 0] >= float(params.x_hit)))  # first sample past the plane
+        f = (float(params.x_hit) - traj[k - 1, b, 0]) / (traj[k, b, 0] - traj[k - 1, b, 0])
+        crossing = traj[k - 1, b] + f * (traj[k, b] - traj[k - 1, b])
+        when = times[k - 1] + f * (times[k] - times[k - 1])
+        assert valid[b]
+        np.testing.assert_allclose(point[b], crossing, atol=3e-3)
+        np.testing.assert_allclose(t[b], when, atol=1e-3)
+
+
+def test_predictor_flags_balls_going_away_or_past_the_plane(params):
+    pos = jnp.array([[0.5, 0.0, 0.2], [1.6, 0.0, 0.2], [0.5, 0.0, 0.2]], jnp.float32)
+    vel = jnp.array([[-3.0, 0.0, 1.0], [3.0, 0.0, 1.0], [jnp.nan, 0.0, 1.0]], jnp.float32)
+    point, v_hit, t, valid = intercept.predict(params, pos, vel, jnp.array([True, True, True]))
+    assert not np.asarray(valid).any()
+    assert np.isfinite(np.asarray(t)).all() and np.isfinite(np.asarray(point)[:2]).all()
+
+
+@pytest.mark.parametrize("spin", [(0.0, 0.0, 0.0), (0.0, 150.0, 40.0)])
+def test_mirror_law_sends_the_ball_on_the_planned_arc_through_the_kernels_contact(params, spin):
+    """With the racket contact's speed-dependent terms off (e1 = et1 = 0), the kernel's contact turns
+    the incoming ball into the planned outgoing velocity, within 0.2 % of its speed (the fixed-point
+    iteration's residual)."""
+    model = load_model("conti2026")
+    rp = model.racket.replace(e1=jnp.zeros_like(model.racket.e1), et1=jnp.zeros_like(model.racket.et1))
+    point = jnp.array([[1.45, 0.2, 0.25]], jnp.float32)
+    v_in = jnp.array([[5.0, -0.4, -1.5]], jnp.float32)
+    w = jnp.array([spin], jnp.float32)
+    target, flight = jnp.array([-0.9, 0.0], jnp.float32), jnp.array([0.5], jnp.float32)
+    angle, v_racket = intercept.mirror(params, point, v_in, w, target, flight)
+    rot = racket_kin.rotation(angle[0])
+    n = rot[:, 0]
+    np.testing.assert_allclose(np.cross(v_racket[0], n), 0.0, atol=1e-5)  # the face moves along its normal
+    racket = Racket(pos=point[0] - params.radius * n, rot=rot, vel=v_racket[0], ang_vel=jnp.zeros(3),
+                    face=jnp.array([0.0775, 0.0755]))
+    v_out, _, _ = racket_contact(rp, racket, model.ball.radius, model.ball.mass, point[0], v_in[0], w[0])
+    tau = 0.5
+    want = (np.array([-0.9, 0.0, float(params.radius)]) - np.asarray(point[0])) / tau + [0, 0, 0.5 * G * tau]
+    tol = 2e-3 * np.linalg.norm(want)
+    np.testing.assert_allclose(np.asarray(v_out), want, atol=tol)
+
+
+@pytest.fixture(scope="module")
+def episode():
+    """8 environments in intercept mode played with action 0 until every one finished, with the
+    prediction made before each step."""
+    env = ReturnBall(load_task_config("return_ball_intercept", OVERRIDES), N)
+    p = env.default_params()
+    key = jax.random.PRNGKey(3)
+    _, state = jit_reset(env, key, p)
+    rows = []
+    done = np.zeros(N, bool)
+    for i in range(env.max_steps):
+        point, v_hit, t, valid = intercept.predict(p.intercept, state.rally.ball.pos, state.rally.ball.vel,
+                                                   state.progress.bounced)
+        flight, _, _ = intercept.stroke(p.intercept, jnp.zeros((N, 5)))
+        _, swing = intercept.mirror(p.intercept, point, v_hit, state.rally.ball.spin, p.target, flight)
+        out = jit_step_env(env, jax.random.fold_in(key, i), state, jnp.zeros((N, 5)), p)
+        rows.append(dict(racket=state.racket, point=np.asarray(point), swing=np.asarray(swing), t=np.asarray(t),
+                         valid=np.asarray(valid),
+                         contact=np.asarray(out[5]["contact"]), done=done.copy(), obs=np.asarray(out[0]),
+                         reward=np.asarray(out[2])))
+        state = out[1]
+        done |= np.asarray(out[3]) | np.asarray(out[4])
+        if done.all():
+            break
+    return env, p, rows
+
+
+def test_tracked_racket_meets_the_ball_at_the_predicted_point_and_time_within_its_limits(episode):
+    env, p, rows = episode
+    lim = p.limits
+    met = 0
+    for b in range(N):
+        hits = [i for i, r in enumerate(rows) if r["contact"][b]]
+        if not hits:
+            continue
+        met += 1
+        i = hits[0]
+        # the step before the contact: the predicted hit lies within this control period or the next
+        before = rows[i]
+        assert before["valid"][b] and before["t"][b] <= 2.5 * env.period
+        rk = before["racket"]
+        gap = np.asarray(rk.pos[b]) + np.asarray(rk.vel[b]) * before["t"][b] - before["point"][b]
+        assert np.abs(gap[1:]).max() < 0.05  # within the face (semi-axes 7.6 cm) across and in height
+        # moving with the planned stroke (a PD's lag behind its ramp of swing_time)
+        assert np.linalg.norm(np.asarray(rk.vel[b]) - before["swing"][b]) < 0.75
+    assert met >= 3  # of 8 shots with this seed; a third of the bank bounces twice before the workspace
+    for r in rows:
+        rk = r["racket"]
+        assert (np.abs(np.asarray(rk.vel)) <= np.asarray(lim.max_speed) + 1e-4).all()
+        pos = np.asarray(rk.pos)
+        assert (pos >= np.asarray(lim.lo) - 1e-5).all() and (pos <= np.asarray(lim.hi) + 1e-5).all()
+        assert (np.abs(np.asarray(rk.rate)) <= np.asarray(lim.max_rate) + 1e-4).all()
+
+
+def test_extreme_and_non_finite_actions_stay_finite(episode):
+    env, p, _ = episode
+    key = jax.random.PRNGKey(9)
+    _, state = jit_reset(env, key, p)
+    actions = jnp.array([[1e9, -1e9, 1e9, -1e9, 1e9], [jnp.nan] * 5, [jnp.inf, -jnp.inf, 0, 0, 0],
+                         [-1, -1, -1, -1, -1], [1, 1, 1, 1, 1], [0.5] * 5, [-0.5] * 5, [0] * 5], jnp.float32)
+    for i in range(60):
+        obs, state, reward, *_ = jit_step_env(env, jax.random.fold_in(key, i), state, actions, p)
+        assert np.isfinite(np.asarray(obs)).all() and np.isfinite(np.asarray(reward)).all()
+        assert np.isfinite(np.asarray(state.racket.pos)).all() and np.isfinite(np.asarray(state.racket.angle)).all()
+
+
+def test_spaces_are_those_of_the_accel_mode():
+    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides=OVERRIDES)
+    plain = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides={"shots.bank": 64, "shots.aim": False})
+    assert vec.single_observation_space == plain.single_observation_space
+    assert vec.single_action_space == plain.single_action_space
+
+
+def test_single_env_in_intercept_mode_passes_gymnasiums_checker():
+    env = gymnasium.make("ttsim/ReturnBall-v0", overrides=dict(OVERRIDES, **{"shots.bank": 32, "shots.aim": False}))
+    check_env(env.unwrapped, skip_render_check=True)

@@ -1,0 +1,200 @@
+"""The "intercept" action mode of ReturnBall: a scripted tracker moves the racket to the ball, the
+policy chooses the stroke.
+
+As in robot table tennis systems (a hitting-point predictor plus a stroke), each control step
+
+1. :func:`predict` extrapolates the observed ball to the hitting plane ``x = x_hit`` (``[intercept]``
+   of the task file): drag-free ballistic flight to the table, a bounce with the task model's
+   nominal ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first,
+   is followed to the next one), then flight to the plane. Spin, drag and the bounce's friction are
+   left out; re-predicting every 10 ms from the current ball makes those errors shrink as the ball
+   nears, and after the bounce on the agent's half only the short last flight is extrapolated;
+2. :func:`mirror` gives the stroke that sends that ball to the task's target point: the face
+   normal and normal speed that turn the predicted incoming velocity (and the observed spin) into
+   the drag-free arc of a chosen flight time, through the kernel's racket contact model with the
+   nominal ``racket.e0`` / ``et0`` (the "mirror law" of robot table tennis, with the face's grip);
+   :func:`stroke` maps the policy's action (5,) in [-1, 1] linearly onto adjustments of it: the
+   return's flight time (``flight_time`` range: short is fast and flat), offsets of the hit point
+   in y and z (``offset_y``, ``offset_z``), and offsets of the face's pitch and yaw (``pitch``,
+   ``yaw``). Action 0 is the mirror law's stroke with the middle flight time;
+3. :func:`track` turns that stroke into the acceleration command of the kinematic racket
+   (:mod:`.racket`, whose speed, acceleration and workspace limits still apply): a critically
+   damped PD (natural frequency ``omega``) with velocity feed-forward on a reference that waits
+   ``swing_time`` of the stroke's velocity behind the hit point and, in the last ``swing_time``
+   before the predicted hit, moves through it at that velocity (so the racket arrives at the
+   predicted time moving with the stroke); the face angles are driven by the same PD to the
+   stroke's angles. Before a prediction exists, when the ball has passed the plane, and after the
+   contact, the racket returns to its start position with a level face.
+
+Everything is elementwise over the batch, branch-free and closed-form (a fixed, unrolled number
+of fixed-point steps; no data-dependent loop).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+# Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
+MIRROR_STEPS = 8
+# Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
+MIN_SPEED = 0.2
+
+
+@struct.dataclass
+class InterceptParams:
+    """The tracker's settings (``[intercept]`` of the task file, arrays).
+
+    Attributes:
+        x_hit: hitting plane [m]; flight: (2,) range of the return's flight time [s]; offset: (2,)
+        largest y and z offsets of the hit point [m]; angle: (2,) largest pitch and yaw offsets
+        [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; e_table,
+        e_racket: restitutions of the predicted bounce and stroke; grip: tangential grip of the
+        face (:func:`mirror`); gravity: [m/s^2] (positive);
+        radius: ball [m].
+    """
+
+    x_hit: jnp.ndarray
+    flight: jnp.ndarray
+    offset: jnp.ndarray
+    angle: jnp.ndarray
+    swing_time: jnp.ndarray
+    omega: jnp.ndarray
+    e_table: jnp.ndarray
+    e_racket: jnp.ndarray
+    grip: jnp.ndarray
+    gravity: jnp.ndarray
+    radius: jnp.ndarray
+
+
+def _fall(pos, vel, g, z):
+    """(time until the centre falls to height z, position, velocity then) of drag-free flight; (B,),
+    (B, 3), (B, 3). A ball already below z lands at once."""
+    disc = jnp.maximum(vel[:, 2] ** 2 + 2.0 * g * (pos[:, 2] - z), 0.0)
+    t = jnp.maximum((vel[:, 2] + jnp.sqrt(disc)) / g, 0.0)
+    return t, _fly(pos, vel, g, t)
+
+
+def _fly(pos, vel, g, t):
+    """(position, velocity) after drag-free flight for times t (B,)."""
+    down = jnp.array([0.0, 0.0, 1.0], pos.dtype)
+    tt = t[:, None]
+    return pos + vel * tt - 0.5 * g * down * tt * tt, vel - g * down * tt
+
+
+def _bounce(vel, e):
+    return vel * jnp.array([1.0, 1.0, 0.0], vel.dtype) - e * vel * jnp.array([0.0, 0.0, 1.0], vel.dtype)
+
+
+def predict(p: InterceptParams, pos, vel, bounced):
+    """Where and when the ball crosses the hitting plane after its bounce on the agent's half.
+
+    Arguments:
+        p: :class:`InterceptParams`; pos, vel: (B, 3) ball state; bounced: (B,) the ball already
+            bounced on the agent's half.
+
+    Returns:
+        (point (B, 3) [m], velocity there (B, 3) [m/s], time from now (B,) [s], valid (B,): the ball
+        flies towards the agent and has not passed the plane; elsewhere the others are finite but
+        meaningless).
+    """
+    z = p.radius
+    t1, (p1, v1) = _fall(pos, vel, p.gravity, z)
+    v1 = _bounce(v1, p.e_table)
+    # a bounce on the opponent's half (a serve's first) is followed to the next one, on the agent's
+    t2, (p2, v2) = _fall(p1, v1, p.gravity, z)
+    v2 = _bounce(v2, p.e_table)
+    serve = (p1[:, 0] < 0.0)[:, None]
+    pb, vb, tb = jnp.where(serve, p2, p1), jnp.where(serve, v2, v1), jnp.where(serve[:, 0], t1 + t2, t1)
+    after = bounced[:, None]
+    pb, vb, tb = jnp.where(after, pos, pb), jnp.where(after, vel, vb), jnp.where(bounced, 0.0, tb)
+    speed = vb[:, 0]
+    th = (p.x_hit - pb[:, 0]) / jnp.where(speed > MIN_SPEED, speed, 1.0)
+    valid = (speed > MIN_SPEED) & (th >= 0.0) & jnp.isfinite(th + tb)
+    th = jnp.where(valid, th, 0.0)
+    point, v_hit = _fly(pb, vb, p.gravity, th)
+    keep = valid[:, None]
+    return jnp.where(keep, point, pos), jnp.where(keep, v_hit, vel), jnp.where(valid, tb + th, 0.0), valid
+
+
+def stroke(p: InterceptParams, action):
+    """The stroke settings of a policy action.
+
+    Arguments:
+        p: :class:`InterceptParams`; action: (B, 5) in [-1, 1] (non-finite entries count as 0).
+
+    Returns:
+        (return flight time (B,) [s], hit point offset (B, 3) [m] (x offset 0), face angle offsets
+        (B, 2) [rad] from the mirror law's).
+    """
+    a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0)
+    flight = p.flight[0] + 0.5 * (a[:, 0] + 1.0) * (p.flight[1] - p.flight[0])
+    offset = jnp.stack([jnp.zeros_like(a[:, 1]), a[:, 1] * p.offset[0], a[:, 2] * p.offset[1]], -1)
+    return flight, offset, a[:, 3:5] * p.angle
+
+
+def mirror(p: InterceptParams, point, v_in, spin, target, flight):
+    """The racket's face normal and velocity that send a ball meeting it at ``point`` with velocity
+    ``v_in`` and spin ``spin`` to land (drag-free) on ``target`` after ``flight`` seconds.
+
+    The kernel's racket contact (point contact, face moving along its normal, not turning) changes
+    the ball's velocity by ``n (1 + e) (V - v_in.n) - grip * P (v_in + r n x spin)``, P the projection
+    onto the face and ``grip = (1 + et0) / (1 + kappa)``; the normal n along
+    ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS`` fixed-point steps,
+    then the normal speed V from the restitution.
+
+    Arguments:
+        p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
+        flight: (B,) [s].
+
+    Returns:
+        (face angles (pitch, yaw) (B, 2) [rad] of :func:`~ttsim_jax.env.racket.rotation`, racket
+        velocity (B, 3) [m/s]).
+    """
+    tau = flight[:, None]
+    land = jnp.concatenate([jnp.broadcast_to(target, point[:, :2].shape), jnp.full_like(point[:, 2:], p.radius)], -1)
+    v_out = (land - point) / tau + 0.5 * p.gravity * tau * jnp.array([0.0, 0.0, 1.0], point.dtype)
+    unit = lambda d: d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-6)  # noqa: E731
+
+    def tangential(n):
+        u = v_in + p.radius * jnp.cross(n, spin)
+        return u - jnp.sum(u * n, -1, keepdims=True) * n
+
+    n = unit(v_out - v_in)
+    for _ in range(MIRROR_STEPS):
+        n = unit(v_out - v_in + p.grip * tangential(n))
+    push = jnp.sum((v_out - v_in + p.grip * tangential(n)) * n, -1)
+    speed = push / (1.0 + p.e_racket) + jnp.sum(v_in * n, -1)
+    # rotation(angle)[:, 0] = (-cos p cos y, -cos p sin y, sin p)
+    angle = jnp.stack([jnp.arcsin(jnp.clip(n[:, 2], -1.0, 1.0)), jnp.arctan2(-n[:, 1], -n[:, 0])], -1)
+    return angle, speed[:, None] * n
+
+
+def track(p: InterceptParams, limits, start, target, racket, ball_pos, ball_vel, ball_spin, bounced, hit, action):
+    """The racket's acceleration command (as :func:`~ttsim_jax.env.racket.command` reads it) for a
+    policy action in intercept mode.
+
+    Arguments:
+        p: :class:`InterceptParams`; limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start: (3,)
+        the racket's rest position; target: (2,) the return's target point (x, y);
+        racket: :class:`~ttsim_jax.env.racket.RacketState` (B, ...); ball_pos, ball_vel, ball_spin:
+        (B, 3) observed ball (spin 0 where it is not observed); bounced, hit: (B,) rally flags; action: (B, 5).
+
+    Returns:
+        (B, 5) accelerations of the face centre and angles as fractions of their limits, in [-1, 1].
+    """
+    point, v_in, t_hit, valid = predict(p, ball_pos, ball_vel, bounced)
+    flight, offset, angle_offset = stroke(p, action)
+    angle, swing = mirror(p, point, v_in, ball_spin, target, flight)
+    swing = jnp.clip(swing, -limits.max_speed, limits.max_speed)
+    go = (valid & ~hit)[:, None]
+    # the swing: at the racket's velocity through the hit point during the last swing_time
+    lead = jnp.minimum(t_hit, p.swing_time)[:, None]
+    ref = jnp.clip(jnp.where(go, point + offset - swing * lead, start), limits.lo, limits.hi)
+    ref_v = jnp.where(go & (t_hit < p.swing_time)[:, None], swing, 0.0)
+    k, c = p.omega ** 2, 2.0 * p.omega  # critically damped
+    accel = k * (ref - racket.pos) + c * (ref_v - racket.vel)
+    angle = jnp.clip(jnp.where(go, angle + angle_offset, 0.0), limits.angle_lo, limits.angle_hi)
+    angle_accel = k * (angle - racket.angle) - c * racket.rate
+    out = jnp.concatenate([accel / limits.max_accel, angle_accel / limits.max_angle_accel], -1)
+    return jnp.clip(jnp.nan_to_num(out), -1.0, 1.0)
