@@ -260,6 +260,8 @@ def test_angular_velocity_is_the_rotation_rate():
     ({"control.action": 1}, r"\[control\] action = 1: expected a string"),
     ({"intercept.flight_time": [0.8, 0.3]}, r"\[intercept\] flight_time"),
     ({"intercept.omega": 0.0}, r"\[intercept\] omega = 0.0: must be positive"),
+    ({"observation.latency_steps": -1}, r"\[observation\] latency_steps = -1: must not be negative"),
+    ({"observation.latency_steps": 1.5}, r"\[observation\] latency_steps = 1.5: expected an integer"),
 ])
 def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
     with pytest.raises(ConfigError, match=message) as info:
@@ -273,3 +275,26 @@ def test_unknown_randomised_parameter_is_refused():
     config = load_task_config(None, dict(OVERRIDES, **{"randomisation.table.bounciness": [0.1, 0.2]}))
     with pytest.raises(ConfigError, match="bounciness"):
         ReturnBall(config, 2).default_params()
+
+
+def test_latency_shows_the_ball_as_it_was_that_many_steps_ago():
+    """With ``latency_steps = 2`` the observed ball (position, velocity, spin) is the true ball two
+    control steps earlier (the reset's ball until then), while the racket part is current."""
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    env = ReturnBall(load_task_config(None, dict(OVERRIDES, **{"observation.latency_steps": 2})), N)
+    params = env.default_params()
+    key = jax.random.PRNGKey(3)
+    obs, state = jit_reset(env, key, params)
+    balls, racket_obs = [state.rally.ball], []
+    action = jnp.tile(jnp.array([[-0.5, 0.3, 0.2, 0.1, -0.1]]), (N, 1))
+    for i in range(4):
+        obs, state, *_ = jit_step(env, jax.random.fold_in(key, i), state, action, params)
+        balls.append(state.rally.ball)
+        np.testing.assert_allclose(np.asarray(obs[:, 9:12]), np.asarray(state.racket.pos), atol=1e-6)
+        racket_obs.append(obs)
+    for i, o in enumerate(racket_obs, start=1):  # observation after step i shows the ball after step i - 2
+        seen = balls[max(i - 2, 0)]
+        want = np.concatenate([seen.pos, np.asarray(seen.vel) / 10.0, np.asarray(seen.spin) / 300.0], -1)
+        np.testing.assert_allclose(np.asarray(o[:, :9]), want, rtol=1e-6, atol=1e-6)
+    assert not np.allclose(np.asarray(balls[4].pos), np.asarray(balls[2].pos))  # the ball moved meanwhile

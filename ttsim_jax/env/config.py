@@ -69,6 +69,7 @@ class ObservationConfig:
     spin: bool = True
     noise_pos: float = 0.0
     noise_vel: float = 0.0
+    latency_steps: int = 0
 
 
 @dataclass(frozen=True)
@@ -123,7 +124,7 @@ _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketCon
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
              "max_angle_accel", "target_scale",
              "x_hit", "swing_time", "omega", "flight_time"}
-_NON_NEGATIVE = {"noise_pos", "noise_vel", "motion", "approach", "offset_y", "offset_z", "pitch", "yaw"}
+_NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch", "yaw"}
 
 
 def default_task_path(name: str = "return_ball") -> Path:

@@ -80,6 +80,9 @@ class EnvState:
         shot: (B,) index of the incoming shot in the bank.
         t: (B,) control steps taken in the episode.
         distance: (B,) ball-racket distance after the last step [m].
+        seen: :class:`Ball` with (B, L + 1, 3) fields: the ball as measured (observation noise
+            included) at the end of each of the last L + 1 control steps, oldest first, L the
+            configured ``latency_steps``; the policy (and the intercept tracker) see the oldest.
     """
 
     rally: RallyState
@@ -89,6 +92,7 @@ class EnvState:
     shot: jnp.ndarray
     t: jnp.ndarray
     distance: jnp.ndarray
+    seen: Ball
 
 
 @struct.dataclass
@@ -230,6 +234,7 @@ class ReturnBall:
         self.period = 1.0 / self.config.control.rate_hz
         self.paths = tuple(p for p, _, _ in self.config.randomisation)
         self.obs_dim = 25 if self.config.observation.spin else 22
+        self.latency = self.config.observation.latency_steps
         self._params = None
 
     # ------------------------------------------------------------------ parameters
@@ -295,26 +300,33 @@ class ReturnBall:
         values = params.rand_lo + u * (params.rand_hi - params.rand_lo)
         progress = Rally(bounced=jnp.zeros(b, bool), hit=jnp.zeros(b, bool), outcome=jnp.zeros(b, jnp.int32),
                          landing=jnp.zeros((b, 2), jnp.float32))
+        # nothing older than the first measurement exists: the history starts filled with it
+        seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
         state = EnvState(rally=init_state(ball), racket=rk, progress=progress, model_values=values, shot=shot,
-                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk))
-        return self.observe(k_obs, state, params), state
+                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen)
+        return self.observe(state), state
 
     @staticmethod
     def _distance(ball: Ball, rk):
         return jnp.minimum(jnp.linalg.norm(ball.pos - rk.pos, axis=-1), APPROACH_CAP)
 
     # ------------------------------------------------------------------ observation
-    def observe(self, key, state: EnvState, params: EnvParams):
-        """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300], racket position,
-        velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced, hit.
+    def seen_ball(self, state: EnvState) -> Ball:
+        """(B, 3) fields: the ball as the agent sees it now: measured ``latency_steps`` control
+        steps ago, with the observation noise (spin zero when it is not observed)."""
+        ball = jax.tree.map(lambda a: a[:, 0], state.seen)
+        return ball if self.config.observation.spin else ball.replace(spin=jnp.zeros_like(ball.spin))
 
-        Position and velocity carry the configured Gaussian noise; every entry is finite (a
-        non-finite state reads 0) and within +-1e3."""
-        ball, rk = state.rally.ball, state.racket
-        k_p, k_v = jax.random.split(key)
-        pos = ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32)
-        vel = ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32)
-        parts = [pos, vel / 10.0]
+    def observe(self, state: EnvState):
+        """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300] (as
+        :meth:`seen_ball`: noisy and ``latency_steps`` control steps old), racket position,
+        velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced,
+        hit (the racket's state and the rally's progress are current).
+
+        Every entry is finite (a non-finite state reads 0) and within +-1e3."""
+        ball, rk = self.seen_ball(state), state.racket
+        pos = ball.pos
+        parts = [pos, ball.vel / 10.0]
         if self.config.observation.spin:
             parts.append(ball.spin / 300.0)
         parts += [rk.pos, rk.vel / 10.0, rk.angle, rk.rate / 10.0, pos - rk.pos,
@@ -340,14 +352,11 @@ class ReturnBall:
         k_phys, k_obs = jax.random.split(key)
         action = jnp.asarray(action, jnp.float32).reshape(self.num_envs, self.action_dim)
         if self.config.control.action == "intercept":
-            # the tracker reads the ball as the policy sees it (observation noise included)
-            ball = state.rally.ball
-            k_p, k_v = jax.random.split(jax.random.fold_in(k_obs, 1))
-            pos = ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32)
-            vel = ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32)
-            spin = ball.spin if self.config.observation.spin else jnp.zeros_like(ball.spin)
-            action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket, pos,
-                                     vel, spin, state.progress.bounced, state.progress.hit, action)
+            # the tracker reads the ball as the policy sees it (noise and latency included)
+            seen = self.seen_ball(state)
+            action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket,
+                                     seen.pos, seen.vel, seen.spin, state.progress.bounced, state.progress.hit,
+                                     action)
         rk, schedule, effort = jax.vmap(racket_kin.command, in_axes=(None, 0, 0, None, None))(
             params.limits, state.racket, action, self.period, self.substeps)
         model, axes = self.model_for(params, state.model_values)
@@ -382,12 +391,14 @@ class ReturnBall:
         t = state.t + 1
         terminated = progress.outcome != RUNNING
         truncated = ~terminated & (t >= self.max_steps)
+        seen = jax.tree.map(lambda h, now: jnp.concatenate([h[:, 1:], now[:, None]], 1), state.seen,
+                            measure(k_obs, rally.ball, params))
         state = EnvState(rally=rally, racket=rk, progress=progress, model_values=state.model_values,
-                         shot=state.shot, t=t, distance=distance)
+                         shot=state.shot, t=t, distance=distance, seen=seen)
         info = {"outcome": progress.outcome, "legal": legal, "contact": contact,
                 "landing_error": jnp.where(legal, err, -1.0), "shot_type": params.shot_type[state.shot]}
         reward = jnp.nan_to_num(reward.astype(jnp.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        return self.observe(k_obs, state, params), state, reward, terminated, truncated, info
+        return self.observe(state), state, reward, terminated, truncated, info
 
     def step(self, key, state: EnvState, action, params: EnvParams):
         """:meth:`step_env`, then finished environments (terminated or truncated) start afresh.
@@ -412,6 +423,14 @@ class ReturnBall:
         merged = merged.replace(rally=merged.rally.replace(step=nxt.rally.step, t0=nxt.rally.t0, dt=nxt.rally.dt))
         info = dict(info, final_obs=obs)
         return jnp.where(done[:, None], obs_r, obs), merged, reward, terminated, truncated, info
+
+
+def measure(key, ball: Ball, params: EnvParams) -> Ball:
+    """The ball as the sensors measure it: position and velocity with the configured Gaussian noise
+    (``params.noise``), spin as it is."""
+    k_p, k_v = jax.random.split(key)
+    return ball.replace(pos=ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32),
+                        vel=ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32))
 
 
 def _advance(p: Rally, kind, pos, valid) -> Rally:
