@@ -212,20 +212,19 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
                 rackets = jax.tree.map(lambda a: a.astype(dtype), rackets)  # python-float params may be wider
                 batched = True
             sub = jax.random.fold_in(key, k) if sample else None
-            if not until:
-                ball, alive, status, log = stepper(model, axes, ball, alive, status, ball_id, log, rackets, t, dt,
-                                                   rackets_batched=batched, key=sub)
-                return (ball, alive, status, log, k + 1), None
-            # balls whose log holds ``until`` events are frozen (treated as out of play for the step,
-            # still alive); a step with none to advance is skipped whole
-            moving = alive & (log.count < until)
-
-            def advance():
+            def advance(moving):
                 nb, na, ns, nl = stepper(model, axes, ball, moving, status, ball_id, log, rackets, t, dt,
                                          rackets_batched=batched, key=sub)
-                return nb, jnp.where(moving, na, alive), ns, nl
+                return nb, (jnp.where(moving, na, alive) if until else na), ns, nl
 
-            ball, alive, status, log = jax.lax.cond(jnp.any(moving), advance, lambda: (ball, alive, status, log))
+            if not until:
+                ball, alive, status, log = advance(alive)
+            else:
+                # balls whose log holds ``until`` events are frozen (out of play for the step, still
+                # alive); a step with none to advance is skipped whole
+                moving = alive & (log.count < until)
+                ball, alive, status, log = jax.lax.cond(jnp.any(moving), lambda: advance(moving),
+                                                        lambda: (ball, alive, status, log))
             return (ball, alive, status, log, k + 1), None
 
         if remat:
