@@ -3,12 +3,16 @@ policy chooses the stroke.
 
 As in robot table tennis systems (a hitting-point predictor plus a stroke), each control step
 
-1. :func:`predict` extrapolates the observed ball to the hitting plane ``x = x_hit`` (``[intercept]``
-   of the task file): drag-free ballistic flight to the table, a bounce with the task model's
-   nominal ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first,
-   is followed to the next one), then flight to the plane. Spin, drag and the bounce's friction are
-   left out; re-predicting every 10 ms from the current ball makes those errors shrink as the ball
-   nears, and after the bounce on the agent's half only the short last flight is extrapolated;
+1. :func:`predict` extrapolates the observed ball to its hit point (``[intercept]`` of the task
+   file): drag-free ballistic flight to the table, a bounce with the task model's nominal
+   ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first, is
+   followed to the next one), then flight to the hitting plane ``x = x_hit``, or, for a short ball
+   that would sink below ``min_height`` above the playing surface before that plane (bouncing a
+   second time on the agent's half), to where it sinks through ``min_height`` (its apex if it never
+   rises that high), but not before the workspace's near end ``x_min`` (over the table). Spin, drag
+   and the bounce's friction are left out; re-predicting every 10 ms from the current ball makes
+   those errors shrink as the ball nears, and after the bounce on the agent's half only the short
+   last flight is extrapolated;
 2. :func:`mirror` gives the stroke that sends that ball to the task's target point: the face
    normal and normal speed that turn the predicted incoming velocity (and the observed spin) into
    the drag-free arc of a chosen flight time, through the kernel's racket contact model with the
@@ -35,6 +39,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
+from ttsim_jax.env.racket import clip_workspace
+
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
 MIRROR_STEPS = 8
 # Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
@@ -48,7 +54,9 @@ class InterceptParams:
     Attributes:
         x_hit: hitting plane [m]; flight: (2,) range of the return's flight time [s]; offset: (2,)
         largest y and z offsets of the hit point [m]; angle: (2,) largest pitch and yaw offsets
-        [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; e_table,
+        [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; min_height: a
+        short ball is met before it sinks below this height [m]; x_min: the workspace's near end
+        [m] (the earliest hit point along x); e_table,
         e_racket: restitutions of the predicted bounce and stroke; grip: tangential grip of the
         face (:func:`mirror`); gravity: [m/s^2] (positive);
         radius: ball [m].
@@ -60,6 +68,8 @@ class InterceptParams:
     angle: jnp.ndarray
     swing_time: jnp.ndarray
     omega: jnp.ndarray
+    min_height: jnp.ndarray
+    x_min: jnp.ndarray
     e_table: jnp.ndarray
     e_racket: jnp.ndarray
     grip: jnp.ndarray
@@ -87,7 +97,14 @@ def _bounce(vel, e):
 
 
 def predict(p: InterceptParams, pos, vel, bounced):
-    """Where and when the ball crosses the hitting plane after its bounce on the agent's half.
+    """Where and when the racket should meet the ball after its bounce on the agent's half: where it
+    crosses the hitting plane ``x_hit``, or earlier where it sinks through ``min_height`` (at its
+    apex if it never rises that high), but not before ``x_min``.
+
+    The hit comes at ``min(t_plane, max(t_low, t_min))`` after the bounce: t_plane, t_min the times
+    the ball reaches x = x_hit and x = x_min, t_low the time it sinks through min_height. A long
+    ball (still above min_height at the plane) is met at the plane; a short one, whose second bounce
+    on the agent's half would come before the plane, above the table before that bounce.
 
     Arguments:
         p: :class:`InterceptParams`; pos, vel: (B, 3) ball state; bounced: (B,) the ball already
@@ -109,8 +126,12 @@ def predict(p: InterceptParams, pos, vel, bounced):
     after = bounced[:, None]
     pb, vb, tb = jnp.where(after, pos, pb), jnp.where(after, vel, vb), jnp.where(bounced, 0.0, tb)
     speed = vb[:, 0]
-    th = (p.x_hit - pb[:, 0]) / jnp.where(speed > MIN_SPEED, speed, 1.0)
+    safe = jnp.where(speed > MIN_SPEED, speed, 1.0)
+    th = (p.x_hit - pb[:, 0]) / safe
     valid = (speed > MIN_SPEED) & (th >= 0.0) & jnp.isfinite(th + tb)
+    # _fall's clamped root is the apex for a ball that never rises to min_height, 0 for one below it and falling
+    t_low, _ = _fall(pb, vb, p.gravity, p.min_height)
+    th = jnp.minimum(th, jnp.maximum(t_low, (p.x_min - pb[:, 0]) / safe))
     th = jnp.where(valid, th, 0.0)
     point, v_hit = _fly(pb, vb, p.gravity, th)
     keep = valid[:, None]
@@ -190,7 +211,7 @@ def track(p: InterceptParams, limits, start, target, racket, ball_pos, ball_vel,
     go = (valid & ~hit)[:, None]
     # the swing: at the racket's velocity through the hit point during the last swing_time
     lead = jnp.minimum(t_hit, p.swing_time)[:, None]
-    ref = jnp.clip(jnp.where(go, point + offset - swing * lead, start), limits.lo, limits.hi)
+    ref = clip_workspace(limits, jnp.where(go, point + offset - swing * lead, start))
     ref_v = jnp.where(go & (t_hit < p.swing_time)[:, None], swing, 0.0)
     k, c = p.omega ** 2, 2.0 * p.omega  # critically damped
     accel = k * (ref - racket.pos) + c * (ref_v - racket.vel)

@@ -191,6 +191,7 @@ def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptPar
     return intercept.InterceptParams(
         x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
         angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
+        min_height=f32(c.min_height), x_min=f32(config.racket.workspace_lo[0]),
         e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
         grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
         gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
@@ -259,7 +260,13 @@ class ReturnBall:
             limits = racket_kin.RacketLimits(
                 lo=f32(r.workspace_lo), hi=f32(r.workspace_hi), max_speed=f32(r.max_speed), max_accel=f32(r.max_accel),
                 angle_lo=f32(r.angle_lo), angle_hi=f32(r.angle_hi), max_rate=f32(r.max_angle_rate),
-                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face))
+                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face),
+                # the playing surface is z = 0 of the world frame; the agent's half ends at length / 2
+                table_x=f32(0.5 * model.table.length), table_z=f32(r.table_clearance))
+            if float(racket_kin.clip_workspace(limits, f32(r.start))[2]) != float(f32(r.start[2])):
+                raise ConfigError(f"{c.source}: [racket] start = {list(r.start)} lies over the table below "
+                                  f"table_clearance = {r.table_clearance} (the table ends at x = "
+                                  f"{0.5 * float(model.table.length)} m)")
             w = c.reward
             reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
                                                       "miss", "motion", "approach")}
@@ -293,7 +300,7 @@ class ReturnBall:
         shot = jax.random.randint(k_shot, (b,), 0, params.shots.pos.shape[0])
         ball = jax.tree.map(lambda a: a[shot], params.shots)
         pos = params.start + params.start_jitter * jax.random.uniform(k_pos, (b, 3), jnp.float32, -1.0, 1.0)
-        pos = jnp.clip(pos, params.limits.lo, params.limits.hi)
+        pos = racket_kin.clip_workspace(params.limits, pos)
         zeros2 = jnp.zeros((b, 2), jnp.float32)
         rk = racket_kin.RacketState(pos=pos, vel=jnp.zeros_like(pos), angle=zeros2, rate=zeros2)
         u = jax.random.uniform(k_rand, (b, len(self.paths)), jnp.float32)
