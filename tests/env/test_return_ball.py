@@ -206,7 +206,8 @@ def test_racket_respects_its_limits_and_the_schedule_is_its_motion():
     limits = racket_kin.RacketLimits(
         lo=jnp.array([1.4, -1.0, 0.0]), hi=jnp.array([3.0, 1.0, 1.2]), max_speed=jnp.array(8.0),
         max_accel=jnp.array(80.0), angle_lo=jnp.array([-1.0, -0.8]), angle_hi=jnp.array([1.0, 0.8]),
-        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]))
+        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]),
+        table_x=jnp.array(1.37), table_z=jnp.array(0.0))
     state = racket_kin.RacketState(pos=jnp.array([2.0, 0.0, 0.3]), vel=jnp.zeros(3), angle=jnp.zeros(2),
                                    rate=jnp.zeros(2))
     period, n = 0.01, 10

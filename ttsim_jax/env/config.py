@@ -45,9 +45,9 @@ class InterceptConfig:
     offset_z: float = 0.03
     pitch: float = 0.3
     yaw: float = 0.3
-    swing_time: float = 0.15
+    swing_time: float = 0.1
     omega: float = 40.0
-    min_height: float = 0.12
+    min_height: float = 0.3
 
 
 @dataclass(frozen=True)

@@ -56,9 +56,11 @@ class InterceptParams:
         largest y and z offsets of the hit point [m]; angle: (2,) largest pitch and yaw offsets
         [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; min_height: a
         short ball is met before it sinks below this height [m]; x_min: the workspace's near end
-        [m] (the earliest hit point along x); e_table,
-        e_racket: restitutions of the predicted bounce and stroke; grip: tangential grip of the
-        face (:func:`mirror`); gravity: [m/s^2] (positive);
+        [m] (the earliest hit point along x); drag: the ball's drag deceleration per squared speed
+        [1/m] (:func:`arc_velocity`); e_table,
+        e_racket: restitutions of the predicted bounce and stroke (e0 of the racket's); e_slope: the
+        racket's e1 [s/m]; grip, grip_slope: the face's tangential grip (1 + et0) / (1 + kappa) and
+        et1 / (1 + kappa) [s/m] (:func:`mirror`); gravity: [m/s^2] (positive);
         radius: ball [m].
     """
 
@@ -70,9 +72,12 @@ class InterceptParams:
     omega: jnp.ndarray
     min_height: jnp.ndarray
     x_min: jnp.ndarray
+    drag: jnp.ndarray
     e_table: jnp.ndarray
     e_racket: jnp.ndarray
+    e_slope: jnp.ndarray
     grip: jnp.ndarray
+    grip_slope: jnp.ndarray
     gravity: jnp.ndarray
     radius: jnp.ndarray
 
@@ -154,15 +159,35 @@ def stroke(p: InterceptParams, action):
     return flight, offset, a[:, 3:5] * p.angle
 
 
+def arc_velocity(d, tau, g, drag):
+    """Start velocity (B, 3) of the arc that covers the displacement ``d`` (B, 3) in ``tau`` (B, 1)
+    seconds under gravity ``g`` (down) and a linear drag ``-c v`` standing for the quadratic one,
+    ``c = drag * |d| / tau`` (drag [1/m] times the mean speed).
+
+    With x = c tau: ``d = v0 tau f1 - g_vec tau^2 f2`` where ``f1 = (1 - e^-x) / x`` and ``f2 = (f1 - 1) / x``
+    (Taylor series below x = 0.01, where the closed forms lose digits); drag 0 gives the parabola's
+    ``d / tau + (0, 0, g tau / 2)``.
+    """
+    x = drag * jnp.linalg.norm(d, axis=-1, keepdims=True)
+    small = x < 1e-2
+    xs = jnp.where(small, 1.0, x)
+    f1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)
+    f2 = jnp.where(small, -0.5 + x / 6.0 - x * x / 24.0, (f1 - 1.0) / xs)
+    down = jnp.array([0.0, 0.0, -1.0], d.dtype)
+    return (d / tau + g * down * tau * f2) / f1
+
+
 def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """The racket's face normal and velocity that send a ball meeting it at ``point`` with velocity
-    ``v_in`` and spin ``spin`` to land (drag-free) on ``target`` after ``flight`` seconds.
+    ``v_in`` and spin ``spin`` to land on ``target`` after ``flight`` seconds (on the arc of
+    :func:`arc_velocity`: gravity and the drag of ``p.drag``; the return's Magnus force is left out).
 
     The kernel's racket contact (point contact, face moving along its normal, not turning) changes
     the ball's velocity by ``n (1 + e) (V - v_in.n) - grip * P (v_in + r n x spin)``, P the projection
-    onto the face and ``grip = (1 + et0) / (1 + kappa)``; the normal n along
-    ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS`` fixed-point steps,
-    then the normal speed V from the restitution.
+    onto the face, ``grip = (1 + et0 + et1 |u|) / (1 + kappa)`` (u = P (...), the tangential slip) and
+    ``e = e0 + e1 s``, s = V - v_in.n the normal approach speed (the racket model "updated"); the
+    normal n along ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS``
+    fixed-point steps, then s from ``(1 + e0 + e1 s) s`` = the normal change (a quadratic).
 
     Arguments:
         p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
@@ -174,18 +199,26 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """
     tau = flight[:, None]
     land = jnp.concatenate([jnp.broadcast_to(target, point[:, :2].shape), jnp.full_like(point[:, 2:], p.radius)], -1)
-    v_out = (land - point) / tau + 0.5 * p.gravity * tau * jnp.array([0.0, 0.0, 1.0], point.dtype)
+    v_out = arc_velocity(land - point, tau, p.gravity, p.drag)
     unit = lambda d: d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-6)  # noqa: E731
 
     def tangential(n):
         u = v_in + p.radius * jnp.cross(n, spin)
         return u - jnp.sum(u * n, -1, keepdims=True) * n
 
+    def change(n):
+        u = tangential(n)
+        grip = jnp.maximum(p.grip + p.grip_slope * jnp.linalg.norm(u, axis=-1, keepdims=True), 0.0)
+        return v_out - v_in + grip * u
+
     n = unit(v_out - v_in)
     for _ in range(MIRROR_STEPS):
-        n = unit(v_out - v_in + p.grip * tangential(n))
-    push = jnp.sum((v_out - v_in + p.grip * tangential(n)) * n, -1)
-    speed = push / (1.0 + p.e_racket) + jnp.sum(v_in * n, -1)
+        n = unit(change(n))
+    push = jnp.sum(change(n) * n, -1)
+    # e1 s^2 + (1 + e0) s - push = 0, the root that tends to push / (1 + e0) as e1 -> 0
+    a = 1.0 + p.e_racket
+    s = 2.0 * push / (a + jnp.sqrt(jnp.maximum(a * a + 4.0 * p.e_slope * push, 0.0)))
+    speed = s + jnp.sum(v_in * n, -1)
     # rotation(angle)[:, 0] = (-cos p cos y, -cos p sin y, sin p)
     angle = jnp.stack([jnp.arcsin(jnp.clip(n[:, 2], -1.0, 1.0)), jnp.arctan2(-n[:, 1], -n[:, 0])], -1)
     return angle, speed[:, None] * n

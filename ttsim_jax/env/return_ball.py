@@ -185,16 +185,29 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
 
 def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptParams:
     """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
-    nominal ``table.e0`` and ``racket.e0``)."""
+    nominal ``table.e0`` and racket contact coefficients, the return's arc its drag)."""
     c = config.intercept
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     return intercept.InterceptParams(
         x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
         angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
         min_height=f32(c.min_height), x_min=f32(config.racket.workspace_lo[0]),
-        e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
-        grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        drag=f32(drag_per_speed2(model)), e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
+        e_slope=f32(model.racket.e1), grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        grip_slope=f32(model.racket.et1 / (1.0 + model.racket.kappa)),
         gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
+
+
+def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
+    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), as
+    :func:`ttsim_jax.physics.aero.acceleration` computes it."""
+    from ttsim_jax.physics.aero import coefficients
+
+    r, m = float(model.ball.radius), float(model.ball.mass)
+    v = jnp.array([speed, 0.0, 0.0], jnp.float32)
+    cd, _ = coefficients(model.aero, v, jnp.zeros(3, jnp.float32), model.ball.radius)
+    ratio = float(model.aero.rho_air) * (4.0 / 3.0) * np.pi * r ** 3 / m
+    return 3.0 / (8.0 * r) * float(cd) * ratio
 
 
 def _set_leaf(model, path: str, value):
