@@ -33,6 +33,12 @@ def params():
     return intercept_params(model, load_task_config("return_ball_intercept"))
 
 
+@pytest.fixture(scope="module")
+def plane(params):
+    """The tracker's settings with every ball met at the plane x_hit (min_height far below)."""
+    return params.replace(min_height=jnp.float32(-1e3))
+
+
 def _closed_form(p0, v0, x_hit, e, r, bounces):
     """Crossing of x = x_hit after ``bounces`` drag-free bounces at z = r (numpy, scalar maths)."""
     p, v, t = np.array(p0, float), np.array(v0, float), 0.0
@@ -45,7 +51,8 @@ def _closed_form(p0, v0, x_hit, e, r, bounces):
     return p + v * dt + [0, 0, -0.5 * G * dt * dt], t + dt
 
 
-def test_predictor_matches_the_closed_form_with_one_and_two_bounces(params):
+def test_predictor_matches_the_closed_form_with_one_and_two_bounces(plane):
+    params = plane
     # a drive bouncing on the agent's half, a serve bouncing first on its own half, a ball already bounced
     pos = jnp.array([[-1.0, 0.1, 0.35], [-1.3, -0.2, 0.25], [0.6, 0.0, 0.1]], jnp.float32)
     vel = jnp.array([[6.0, 0.3, 0.5], [3.5, 0.4, -0.5], [4.0, -0.2, 1.5]], jnp.float32)
@@ -63,13 +70,14 @@ def test_predictor_matches_the_closed_form_with_one_and_two_bounces(params):
     np.testing.assert_allclose(v_hit[2], vel[2] - np.array([0, 0, G]) * float(t[2]), atol=2e-5)
 
 
-def test_predictor_agrees_with_the_kernels_drag_free_flight(params):
+def test_predictor_agrees_with_the_kernels_drag_free_flight(plane):
     """Air off (rho_air = 0): the kernel's flight is pure gravity; its 1 ms integrator places the
     ball within g dt t / 2 ~ 2 mm of the parabola after 0.4 s, so 3 mm and 1 ms are the tolerances."""
     model = load_model("conti2026")
     model = model.replace(aero=model.aero.replace(rho_air=jnp.zeros_like(model.aero.rho_air)))
     pos = np.array([[0.5, 0.1, 0.2], [0.3, -0.3, 0.25]])
     vel = np.array([[3.0, 0.2, 1.8], [3.5, 0.1, 1.2]])  # both above the table until the plane
+    params = plane
     point, _, t, valid = intercept.predict(params, jnp.asarray(pos, jnp.float32), jnp.asarray(vel, jnp.float32),
                                            jnp.array([True, True]))
     dt, n = 1e-3, 500
@@ -97,11 +105,13 @@ def test_predictor_flags_balls_going_away_or_past_the_plane(params):
 
 @pytest.mark.parametrize("spin", [(0.0, 0.0, 0.0), (0.0, 150.0, 40.0)])
 def test_mirror_law_sends_the_ball_on_the_planned_arc_through_the_kernels_contact(params, spin):
-    """With the racket contact's speed-dependent terms off (e1 = et1 = 0), the kernel's contact turns
-    the incoming ball into the planned outgoing velocity, within 0.2 % of its speed (the fixed-point
-    iteration's residual)."""
+    """The kernel's contact (speed-dependent restitution e1 and grip et1 included) turns the incoming
+    ball into the planned outgoing velocity, within 0.2 % of its speed (the fixed-point iteration's
+    residual); with the arc's drag off the planned velocity is the parabola's."""
     model = load_model("conti2026")
-    rp = model.racket.replace(e1=jnp.zeros_like(model.racket.e1), et1=jnp.zeros_like(model.racket.et1))
+    rp = model.racket
+    assert float(rp.e1) != 0.0 and float(rp.et1) != 0.0
+    params = params.replace(drag=jnp.float32(0.0))
     point = jnp.array([[1.45, 0.2, 0.25]], jnp.float32)
     v_in = jnp.array([[5.0, -0.4, -1.5]], jnp.float32)
     w = jnp.array([spin], jnp.float32)
