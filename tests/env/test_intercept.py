@@ -19,6 +19,7 @@ from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import ReturnBall, intercept_params, jit_reset, jit_step_env
+from ttsim_jax.physics import events as ev
 from ttsim_jax.physics.racket import racket_contact
 from ttsim_jax.state import Racket
 
@@ -93,6 +94,64 @@ def test_predictor_agrees_with_the_kernels_drag_free_flight(plane):
         assert valid[b]
         np.testing.assert_allclose(point[b], crossing, atol=3e-3)
         np.testing.assert_allclose(t[b], when, atol=1e-3)
+
+
+def _second_bounce(p0, v0, r):
+    """(time, x) of a drag-free ball's next fall to z = r (numpy)."""
+    t = (v0[2] + np.sqrt(v0[2] ** 2 + 2 * G * (p0[2] - r))) / G
+    return t, p0[0] + v0[0] * t
+
+
+def test_moving_hit_point_lies_before_a_short_balls_second_bounce(params, plane):
+    """Drag-free, bounced balls (closed forms): a short ball never rising to min_height is met at its
+    apex; one rising above it where it sinks back through it; one whose apex lies before x_min at
+    x_min; each before its second bounce on the agent's half (x < 1.37), where the plane's hit would
+    come after it. A long ball is met at the plane as before."""
+    r, h, x_min = float(params.radius), float(params.min_height), float(params.x_min)
+    assert (h, x_min) == (0.3, 0.6)  # the task file's, as the cases below are built for them
+    pos = np.array([[0.3, 0.0, 0.03], [0.2, 0.1, 0.03], [0.3, 0.0, 0.03], [0.6, 0.0, 0.1]])
+    vel = np.array([[2.0, 0.0, 1.5], [1.8, 0.2, 3.0], [1.0, 0.0, 2.0], [4.0, 0.0, 3.0]])
+    apex = vel[0, 2] / G
+    sink = (vel[1, 2] + np.sqrt(vel[1, 2] ** 2 - 2 * G * (h - pos[1, 2]))) / G
+    reach = (x_min - pos[2, 0]) / vel[2, 0]
+    args = (jnp.asarray(pos, jnp.float32), jnp.asarray(vel, jnp.float32), jnp.ones(4, bool))
+    point, v_hit, t, valid = map(np.asarray, intercept.predict(params, *args))
+    plane_point, _, plane_t, _ = map(np.asarray, intercept.predict(plane, *args))
+    assert valid.all()
+    for i, want_t in enumerate((apex, sink, reach)):
+        want = pos[i] + vel[i] * want_t - [0, 0, 0.5 * G * want_t ** 2]
+        np.testing.assert_allclose(point[i], want, atol=1e-5)
+        np.testing.assert_allclose(t[i], want_t, atol=1e-5)
+        t2, x2 = _second_bounce(pos[i], vel[i], r)
+        assert x2 < 1.37 and t[i] < t2 and point[i, 0] < x2 and point[i, 2] > r  # above the table, in time
+        assert plane_t[i] > t2  # the plane x_hit would come after the second bounce
+    np.testing.assert_allclose(point[1, 2], h, atol=1e-5)
+    np.testing.assert_allclose(v_hit[0, 2], 0.0, atol=1e-5)  # the apex
+    np.testing.assert_allclose(point[3], plane_point[3], atol=1e-6)  # the long ball: at the plane
+    np.testing.assert_allclose(point[3, 0], float(params.x_hit), atol=1e-6)
+
+
+def test_return_arc_with_drag_lands_on_the_target_through_the_kernels_flight(params):
+    """The arc of :func:`intercept.arc_velocity`, flown spinless through the kernel with air on, lands
+    within 4 cm of the target and 10 ms of the planned flight time; the drag-free parabola's start
+    velocity falls more than 20 cm short."""
+    model = load_model("conti2026")
+    pos = np.array([[1.2, 0.1, 0.3], [1.0, -0.2, 0.25]])
+    land = np.array([[-0.9, 0.0, float(params.radius)]] * 2)
+    tau = np.array([[0.5], [0.4]])
+    landings = []
+    for drag in (params.drag, 0.0):
+        v0 = np.asarray(intercept.arc_velocity(jnp.asarray(land - pos, jnp.float32), jnp.asarray(tau, jnp.float32),
+                                               params.gravity, drag), float)
+        _, out = rollout(model, init_state(Ball(pos=pos, vel=v0, spin=np.zeros_like(pos))), 500, 1e-3,
+                         max_events=2, record_every=1)
+        kind, where, when = (np.asarray(a) for a in (out.events.kind, out.events.pre.pos, out.events.time))
+        assert (kind[:, 0] == ev.TABLE).all()  # over the net, onto the table
+        landings.append((where[:, 0, :2], when[:, 0]))
+    (with_drag, t_drag), (parabola, _) = landings
+    np.testing.assert_allclose(with_drag, land[:, :2], atol=0.04)
+    np.testing.assert_allclose(t_drag, tau[:, 0], atol=0.01)
+    assert (parabola[:, 0] > land[:, 0] + 0.2).all()
 
 
 def test_predictor_flags_balls_going_away_or_past_the_plane(params):
