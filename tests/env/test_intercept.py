@@ -108,7 +108,7 @@ def test_moving_hit_point_lies_before_a_short_balls_second_bounce(params, plane)
     x_min; each before its second bounce on the agent's half (x < 1.37), where the plane's hit would
     come after it. A long ball is met at the plane as before."""
     r, h, x_min = float(params.radius), float(params.min_height), float(params.x_min)
-    assert (h, x_min) == (0.3, 0.6)  # the task file's, as the cases below are built for them
+    assert (h, x_min) == pytest.approx((0.3, 0.6))  # the task file's: the cases below are built for them
     pos = np.array([[0.3, 0.0, 0.03], [0.2, 0.1, 0.03], [0.3, 0.0, 0.03], [0.6, 0.0, 0.1]])
     vel = np.array([[2.0, 0.0, 1.5], [1.8, 0.2, 3.0], [1.0, 0.0, 2.0], [4.0, 0.0, 3.0]])
     apex = vel[0, 2] / G
@@ -134,11 +134,11 @@ def test_moving_hit_point_lies_before_a_short_balls_second_bounce(params, plane)
 def test_return_arc_with_drag_lands_on_the_target_through_the_kernels_flight(params):
     """The arc of :func:`intercept.arc_velocity`, flown spinless through the kernel with air on, lands
     within 4 cm of the target and 10 ms of the planned flight time; the drag-free parabola's start
-    velocity falls more than 20 cm short."""
+    velocity falls more than 15 cm short."""
     model = load_model("conti2026")
     pos = np.array([[1.2, 0.1, 0.3], [1.0, -0.2, 0.25]])
     land = np.array([[-0.9, 0.0, float(params.radius)]] * 2)
-    tau = np.array([[0.5], [0.4]])
+    tau = np.array([[0.45], [0.4]])  # landing within the 0.5 s flown
     landings = []
     for drag in (params.drag, 0.0):
         v0 = np.asarray(intercept.arc_velocity(jnp.asarray(land - pos, jnp.float32), jnp.asarray(tau, jnp.float32),
@@ -151,7 +151,7 @@ def test_return_arc_with_drag_lands_on_the_target_through_the_kernels_flight(par
     (with_drag, t_drag), (parabola, _) = landings
     np.testing.assert_allclose(with_drag, land[:, :2], atol=0.04)
     np.testing.assert_allclose(t_drag, tau[:, 0], atol=0.01)
-    assert (parabola[:, 0] > land[:, 0] + 0.2).all()
+    assert (parabola[:, 0] > land[:, 0] + 0.15).all()
 
 
 def test_predictor_flags_balls_going_away_or_past_the_plane(params):
