@@ -51,7 +51,8 @@ def main(task: str) -> None:
     window = (times[None] > t_first[:, None]) & (times[None] < t_end[:, None])
     reach = (inside & window).any(1)
     short = counted & ~reach
-    print(f"{c.source}: {counted.sum()} shots reach the agent's half; {short.sum()} ({short.sum() / counted.sum():.3f}) "
+    share = short.sum() / counted.sum()
+    print(f"{c.source}: {counted.sum()} shots reach the agent's half; {short.sum()} ({share:.3f}) "
           f"never come within {m:.3f} m (face semi-axis + ball radius) of the workspace {list(r.workspace_lo)} - "
           f"{list(r.workspace_hi)} (table_clearance {r.table_clearance}) before their next contact")
 

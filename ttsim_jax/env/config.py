@@ -126,8 +126,8 @@ _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketCon
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
              "max_angle_accel", "target_scale",
              "x_hit", "swing_time", "omega", "flight_time"}
-_NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch", "yaw",
-                 "table_clearance"}
+_NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch",
+                 "yaw", "table_clearance"}
 
 
 def default_task_path(name: str = "return_ball") -> Path:
