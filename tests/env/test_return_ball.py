@@ -1,5 +1,6 @@
 """The functional ReturnBall environment: spaces, determinism, automatic reset, no retrace, extreme
-inputs, domain randomisation, the rally's bookkeeping and the racket's kinematic limits.
+inputs, domain randomisation, the rally's bookkeeping, the racket's kinematic limits and its
+workspace over the table.
 
 One compiled shape: 8 environments, built through ``gymnasium.make_vec`` (module fixture); every
 test that steps reuses its compiled step.
@@ -206,7 +207,8 @@ def test_racket_respects_its_limits_and_the_schedule_is_its_motion():
     limits = racket_kin.RacketLimits(
         lo=jnp.array([1.4, -1.0, 0.0]), hi=jnp.array([3.0, 1.0, 1.2]), max_speed=jnp.array(8.0),
         max_accel=jnp.array(80.0), angle_lo=jnp.array([-1.0, -0.8]), angle_hi=jnp.array([1.0, 0.8]),
-        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]))
+        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]),
+        table_x=jnp.array(1.37), table_z=jnp.array(0.0))
     state = racket_kin.RacketState(pos=jnp.array([2.0, 0.0, 0.3]), vel=jnp.zeros(3), angle=jnp.zeros(2),
                                    rate=jnp.zeros(2))
     period, n = 0.01, 10
@@ -241,6 +243,63 @@ def test_racket_respects_its_limits_and_the_schedule_is_its_motion():
     np.testing.assert_allclose(np.asarray(racket_kin.rotation(jnp.zeros(2)))[:, 0], [-1.0, 0.0, 0.0], atol=1e-7)
 
 
+def _limits(lo_x, table_z):
+    return racket_kin.RacketLimits(
+        lo=jnp.array([lo_x, -1.0, 0.0]), hi=jnp.array([3.0, 1.0, 1.2]), max_speed=jnp.array(8.0),
+        max_accel=jnp.array(80.0), angle_lo=jnp.array([-1.0, -0.8]), angle_hi=jnp.array([1.0, 0.8]),
+        max_rate=jnp.array(15.0), max_angle_accel=jnp.array(600.0), face=jnp.array([0.0775, 0.0755]),
+        table_x=jnp.array(1.37), table_z=jnp.array(table_z))
+
+
+def test_workspace_over_the_table_keeps_the_face_above_it():
+    """Driven forwards and down from behind the table, the racket goes over the table down to
+    workspace_lo x, its face centre never below the table's surface plus the clearance there (but
+    down to the box's floor behind the table), stopping its fall on that raised floor."""
+    limits = _limits(0.6, 0.05)
+    state = racket_kin.RacketState(pos=jnp.array([1.8, 0.0, 0.3]), vel=jnp.zeros(3), angle=jnp.zeros(2),
+                                   rate=jnp.zeros(2))
+    command = jax.jit(racket_kin.command, static_argnums=(4,))
+    period, n = 0.01, 10
+    lowest_behind, lowest_over = np.inf, np.inf
+    for _ in range(40):
+        state, sched, _ = command(limits, state, jnp.array([-1.0, 0.0, -1.0, 0.0, 0.0]), period, n)
+        p, v = np.asarray(sched.pos[:, 0]), np.asarray(sched.vel[:, 0])
+        for q in np.concatenate([p, np.asarray(state.pos)[None]]):
+            if q[0] < 1.37:
+                lowest_over = min(lowest_over, q[2])
+            else:
+                lowest_behind = min(lowest_behind, q[2])
+        np.testing.assert_allclose(p[1:], p[:-1] + v[:-1] * period / n, atol=1e-5)  # still its motion
+        np.testing.assert_allclose(p[-1] + v[-1] * period / n, np.asarray(state.pos), atol=1e-5)
+    assert lowest_over >= 0.05 - 1e-6 and lowest_behind < 0.05  # the floor rises only over the table
+    np.testing.assert_allclose(np.asarray(state.pos), [0.6, 0.0, 0.05], atol=1e-6)  # at the near wall, on the floor
+    np.testing.assert_allclose(np.asarray(state.vel), 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("lo_x, table_z", [(1.4, 0.05), (0.6, 0.0)])
+def test_workspace_configured_as_the_old_box_is_the_old_box(lo_x, table_z):
+    """A box that stays behind the table's end, or a floor over the table no higher than the box's,
+    clips exactly as the plain box [lo, hi] does."""
+    limits = _limits(lo_x, table_z)
+    pos = jax.random.uniform(jax.random.PRNGKey(0), (4096, 3), minval=jnp.array([0.0, -1.5, -0.5]),
+                             maxval=jnp.array([3.5, 1.5, 1.5]))
+    want = jnp.clip(pos, limits.lo, limits.hi)
+    np.testing.assert_array_equal(np.asarray(racket_kin.clip_workspace(limits, pos)), np.asarray(want))
+    # while a raised floor over a box reaching the table does clip differently
+    raised = racket_kin.clip_workspace(_limits(0.6, 0.05), pos)
+    assert (np.asarray(raised) != np.asarray(jnp.clip(pos, _limits(0.6, 0.05).lo, _limits(0.6, 0.05).hi))).any()
+
+
+def test_start_below_the_clearance_over_the_table_is_refused():
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    config = load_task_config(None, dict(OVERRIDES, **{"racket.workspace_lo": [0.6, -1.0, 0.0],
+                                                       "racket.table_clearance": 0.05,
+                                                       "racket.start": [1.0, 0.0, 0.02]}))
+    with pytest.raises(ConfigError, match=r"return_ball.toml: \[racket\] start = \[1.0, 0.0, 0.02\] .*table_clearance"):
+        ReturnBall(config, 2).default_params()
+
+
 def test_angular_velocity_is_the_rotation_rate():
     angle, rate, h = jnp.array([0.3, -0.4]), jnp.array([2.0, -5.0]), 1e-4
     r0, r1 = (np.asarray(racket_kin.rotation(a), np.float64) for a in (angle, angle + h * rate))
@@ -262,6 +321,9 @@ def test_angular_velocity_is_the_rotation_rate():
     ({"intercept.omega": 0.0}, r"\[intercept\] omega = 0.0: must be positive"),
     ({"observation.latency_steps": -1}, r"\[observation\] latency_steps = -1: must not be negative"),
     ({"observation.latency_steps": 1.5}, r"\[observation\] latency_steps = 1.5: expected an integer"),
+    ({"racket.table_clearance": -0.1}, r"\[racket\] table_clearance = -0.1: must not be negative"),
+    ({"racket.workspace_lo": [-0.2, -1.0, 0.0]}, r"\[racket\] workspace_lo = \[-0.2, -1.0, 0.0\]: x must be positive"),
+    ({"intercept.min_height": "low"}, r"\[intercept\] min_height = 'low': expected a finite number"),
 ])
 def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
     with pytest.raises(ConfigError, match=message) as info:

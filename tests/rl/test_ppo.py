@@ -144,3 +144,18 @@ def test_cli_refuses_to_overwrite_and_resumes(files, runs, capsys):
     # a policy of racket accelerations is not played on a task of the intercept mode
     assert main(["play", "--policy", str(out / CHECKPOINT), "--task", "return_ball_intercept"]) == 2
     assert "action = 'intercept'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cli_plays_a_checkpoint(files, runs, capsys):
+    """``ttsim play`` of the short run's checkpoint on its own task (as many episodes as it trained
+    environments: the training shape is reused) prints the evaluation as JSON and draws rallies."""
+    plot = files / "rallies.png"
+    assert main(["play", "--policy", str(files / "straight" / CHECKPOINT), "--episodes", "16", "--json",
+                 "--plot", str(plot)]) == 0
+    text = capsys.readouterr().out
+    s = json.loads(text[:text.rindex("}") + 1])
+    assert 1 <= s["episodes"] <= 16 and 0.0 <= s["legal_rate"] <= 1.0
+    assert sum(s["outcomes"].values()) == pytest.approx(1.0)
+    assert s["task"].endswith("task.toml") and s["env_steps_trained"] == 10240
+    assert plot.stat().st_size > 1000

@@ -45,8 +45,9 @@ class InterceptConfig:
     offset_z: float = 0.03
     pitch: float = 0.3
     yaw: float = 0.3
-    swing_time: float = 0.15
+    swing_time: float = 0.1
     omega: float = 40.0
+    min_height: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,7 @@ class RacketConfig:
     max_angle_rate: float = 15.0
     max_angle_accel: float = 600.0
     face: tuple = (0.0775, 0.0755)
+    table_clearance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,8 @@ _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketCon
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
              "max_angle_accel", "target_scale",
              "x_hit", "swing_time", "omega", "flight_time"}
-_NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch", "yaw"}
+_NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch",
+                 "yaw", "table_clearance"}
 
 
 def default_task_path(name: str = "return_ball") -> Path:
@@ -228,6 +231,9 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
         if any(a >= b for a, b in zip(getattr(racket, lo), getattr(racket, hi))):
             raise ConfigError(f"{source}: [racket] {lo} = {list(getattr(racket, lo))} must be below "
                               f"{hi} = {list(getattr(racket, hi))} in every coordinate ({what})")
+    if racket.workspace_lo[0] <= 0.0:
+        raise ConfigError(f"{source}: [racket] workspace_lo = {list(racket.workspace_lo)}: x must be positive "
+                          "(the racket stays on the agent's half, x > 0)")
     if any(not a <= s <= b for a, s, b in zip(racket.workspace_lo, racket.start, racket.workspace_hi)):
         raise ConfigError(f"{source}: [racket] start = {list(racket.start)} lies outside the workspace")
     from ttsim_jax.shots import SHOT_TYPES

@@ -3,12 +3,16 @@ policy chooses the stroke.
 
 As in robot table tennis systems (a hitting-point predictor plus a stroke), each control step
 
-1. :func:`predict` extrapolates the observed ball to the hitting plane ``x = x_hit`` (``[intercept]``
-   of the task file): drag-free ballistic flight to the table, a bounce with the task model's
-   nominal ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first,
-   is followed to the next one), then flight to the plane. Spin, drag and the bounce's friction are
-   left out; re-predicting every 10 ms from the current ball makes those errors shrink as the ball
-   nears, and after the bounce on the agent's half only the short last flight is extrapolated;
+1. :func:`predict` extrapolates the observed ball to its hit point (``[intercept]`` of the task
+   file): drag-free ballistic flight to the table, a bounce with the task model's nominal
+   ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first, is
+   followed to the next one), then flight to the hitting plane ``x = x_hit``, or, for a short ball
+   that would sink below ``min_height`` above the playing surface before that plane (bouncing a
+   second time on the agent's half), to where it sinks through ``min_height`` (its apex if it never
+   rises that high), but not before the workspace's near end ``x_min`` (over the table). Spin, drag
+   and the bounce's friction are left out; re-predicting every 10 ms from the current ball makes
+   those errors shrink as the ball nears, and after the bounce on the agent's half only the short
+   last flight is extrapolated;
 2. :func:`mirror` gives the stroke that sends that ball to the task's target point: the face
    normal and normal speed that turn the predicted incoming velocity (and the observed spin) into
    the drag-free arc of a chosen flight time, through the kernel's racket contact model with the
@@ -35,6 +39,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
+from ttsim_jax.env.racket import clip_workspace
+
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
 MIRROR_STEPS = 8
 # Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
@@ -48,9 +54,13 @@ class InterceptParams:
     Attributes:
         x_hit: hitting plane [m]; flight: (2,) range of the return's flight time [s]; offset: (2,)
         largest y and z offsets of the hit point [m]; angle: (2,) largest pitch and yaw offsets
-        [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; e_table,
-        e_racket: restitutions of the predicted bounce and stroke; grip: tangential grip of the
-        face (:func:`mirror`); gravity: [m/s^2] (positive);
+        [rad]; swing_time: [s]; omega: the tracking loop's natural frequency [rad/s]; min_height: a
+        short ball is met before it sinks below this height [m]; x_min: the workspace's near end
+        [m] (the earliest hit point along x); drag: the ball's drag deceleration per squared speed
+        [1/m] (:func:`arc_velocity`); e_table,
+        e_racket: restitutions of the predicted bounce and stroke (e0 of the racket's); e_slope: the
+        racket's e1 [s/m]; grip, grip_slope: the face's tangential grip (1 + et0) / (1 + kappa) and
+        et1 / (1 + kappa) [s/m] (:func:`mirror`); gravity: [m/s^2] (positive);
         radius: ball [m].
     """
 
@@ -60,9 +70,14 @@ class InterceptParams:
     angle: jnp.ndarray
     swing_time: jnp.ndarray
     omega: jnp.ndarray
+    min_height: jnp.ndarray
+    x_min: jnp.ndarray
+    drag: jnp.ndarray
     e_table: jnp.ndarray
     e_racket: jnp.ndarray
+    e_slope: jnp.ndarray
     grip: jnp.ndarray
+    grip_slope: jnp.ndarray
     gravity: jnp.ndarray
     radius: jnp.ndarray
 
@@ -87,7 +102,14 @@ def _bounce(vel, e):
 
 
 def predict(p: InterceptParams, pos, vel, bounced):
-    """Where and when the ball crosses the hitting plane after its bounce on the agent's half.
+    """Where and when the racket should meet the ball after its bounce on the agent's half: where it
+    crosses the hitting plane ``x_hit``, or earlier where it sinks through ``min_height`` (at its
+    apex if it never rises that high), but not before ``x_min``.
+
+    The hit comes at ``min(t_plane, max(t_low, t_min))`` after the bounce: t_plane, t_min the times
+    the ball reaches x = x_hit and x = x_min, t_low the time it sinks through min_height. A long
+    ball (still above min_height at the plane) is met at the plane; a short one, whose second bounce
+    on the agent's half would come before the plane, above the table before that bounce.
 
     Arguments:
         p: :class:`InterceptParams`; pos, vel: (B, 3) ball state; bounced: (B,) the ball already
@@ -109,8 +131,12 @@ def predict(p: InterceptParams, pos, vel, bounced):
     after = bounced[:, None]
     pb, vb, tb = jnp.where(after, pos, pb), jnp.where(after, vel, vb), jnp.where(bounced, 0.0, tb)
     speed = vb[:, 0]
-    th = (p.x_hit - pb[:, 0]) / jnp.where(speed > MIN_SPEED, speed, 1.0)
+    safe = jnp.where(speed > MIN_SPEED, speed, 1.0)
+    th = (p.x_hit - pb[:, 0]) / safe
     valid = (speed > MIN_SPEED) & (th >= 0.0) & jnp.isfinite(th + tb)
+    # _fall's clamped root is the apex for a ball that never rises to min_height, 0 for one below it and falling
+    t_low, _ = _fall(pb, vb, p.gravity, p.min_height)
+    th = jnp.minimum(th, jnp.maximum(t_low, (p.x_min - pb[:, 0]) / safe))
     th = jnp.where(valid, th, 0.0)
     point, v_hit = _fly(pb, vb, p.gravity, th)
     keep = valid[:, None]
@@ -133,15 +159,35 @@ def stroke(p: InterceptParams, action):
     return flight, offset, a[:, 3:5] * p.angle
 
 
+def arc_velocity(d, tau, g, drag):
+    """Start velocity (B, 3) of the arc that covers the displacement ``d`` (B, 3) in ``tau`` (B, 1)
+    seconds under gravity ``g`` (down) and a linear drag ``-c v`` standing for the quadratic one,
+    ``c = drag * |d| / tau`` (drag [1/m] times the mean speed).
+
+    With x = c tau: ``d = v0 tau f1 - g_vec tau^2 f2`` where ``f1 = (1 - e^-x) / x`` and ``f2 = (f1 - 1) / x``
+    (Taylor series below x = 0.01, where the closed forms lose digits); drag 0 gives the parabola's
+    ``d / tau + (0, 0, g tau / 2)``.
+    """
+    x = drag * jnp.linalg.norm(d, axis=-1, keepdims=True)
+    small = x < 1e-2
+    xs = jnp.where(small, 1.0, x)
+    f1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)
+    f2 = jnp.where(small, -0.5 + x / 6.0 - x * x / 24.0, (f1 - 1.0) / xs)
+    down = jnp.array([0.0, 0.0, -1.0], d.dtype)
+    return (d / tau + g * down * tau * f2) / f1
+
+
 def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """The racket's face normal and velocity that send a ball meeting it at ``point`` with velocity
-    ``v_in`` and spin ``spin`` to land (drag-free) on ``target`` after ``flight`` seconds.
+    ``v_in`` and spin ``spin`` to land on ``target`` after ``flight`` seconds (on the arc of
+    :func:`arc_velocity`: gravity and the drag of ``p.drag``; the return's Magnus force is left out).
 
     The kernel's racket contact (point contact, face moving along its normal, not turning) changes
     the ball's velocity by ``n (1 + e) (V - v_in.n) - grip * P (v_in + r n x spin)``, P the projection
-    onto the face and ``grip = (1 + et0) / (1 + kappa)``; the normal n along
-    ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS`` fixed-point steps,
-    then the normal speed V from the restitution.
+    onto the face, ``grip = (1 + et0 + et1 |u|) / (1 + kappa)`` (u = P (...), the tangential slip) and
+    ``e = e0 + e1 s``, s = V - v_in.n the normal approach speed (the racket model "updated"); the
+    normal n along ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS``
+    fixed-point steps, then s from ``(1 + e0 + e1 s) s`` = the normal change (a quadratic).
 
     Arguments:
         p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
@@ -153,18 +199,26 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """
     tau = flight[:, None]
     land = jnp.concatenate([jnp.broadcast_to(target, point[:, :2].shape), jnp.full_like(point[:, 2:], p.radius)], -1)
-    v_out = (land - point) / tau + 0.5 * p.gravity * tau * jnp.array([0.0, 0.0, 1.0], point.dtype)
+    v_out = arc_velocity(land - point, tau, p.gravity, p.drag)
     unit = lambda d: d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-6)  # noqa: E731
 
     def tangential(n):
         u = v_in + p.radius * jnp.cross(n, spin)
         return u - jnp.sum(u * n, -1, keepdims=True) * n
 
+    def change(n):
+        u = tangential(n)
+        grip = jnp.maximum(p.grip + p.grip_slope * jnp.linalg.norm(u, axis=-1, keepdims=True), 0.0)
+        return v_out - v_in + grip * u
+
     n = unit(v_out - v_in)
     for _ in range(MIRROR_STEPS):
-        n = unit(v_out - v_in + p.grip * tangential(n))
-    push = jnp.sum((v_out - v_in + p.grip * tangential(n)) * n, -1)
-    speed = push / (1.0 + p.e_racket) + jnp.sum(v_in * n, -1)
+        n = unit(change(n))
+    push = jnp.sum(change(n) * n, -1)
+    # e1 s^2 + (1 + e0) s - push = 0, the root that tends to push / (1 + e0) as e1 -> 0
+    a = 1.0 + p.e_racket
+    s = 2.0 * push / (a + jnp.sqrt(jnp.maximum(a * a + 4.0 * p.e_slope * push, 0.0)))
+    speed = s + jnp.sum(v_in * n, -1)
     # rotation(angle)[:, 0] = (-cos p cos y, -cos p sin y, sin p)
     angle = jnp.stack([jnp.arcsin(jnp.clip(n[:, 2], -1.0, 1.0)), jnp.arctan2(-n[:, 1], -n[:, 0])], -1)
     return angle, speed[:, None] * n
@@ -190,7 +244,7 @@ def track(p: InterceptParams, limits, start, target, racket, ball_pos, ball_vel,
     go = (valid & ~hit)[:, None]
     # the swing: at the racket's velocity through the hit point during the last swing_time
     lead = jnp.minimum(t_hit, p.swing_time)[:, None]
-    ref = jnp.clip(jnp.where(go, point + offset - swing * lead, start), limits.lo, limits.hi)
+    ref = clip_workspace(limits, jnp.where(go, point + offset - swing * lead, start))
     ref_v = jnp.where(go & (t_hit < p.swing_time)[:, None], swing, 0.0)
     k, c = p.omega ** 2, 2.0 * p.omega  # critically damped
     accel = k * (ref - racket.pos) + c * (ref_v - racket.vel)

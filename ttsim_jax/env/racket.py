@@ -3,7 +3,10 @@
 Each control period the policy commands an acceleration of the face centre (3) and of the face's
 two angles (pitch: face opened upwards, yaw: face turned across the table), as fractions of their
 limits. The racket moves at that constant acceleration over the period, reduced where it would
-exceed the speed limits, inside its workspace box (a coordinate driven into a wall stops there);
+exceed the speed limits, inside its workspace (a coordinate driven into a wall stops there): a box
+whose floor rises to the table's surface plus a clearance where the face centre is over the agent's
+half of the table (x below the table's end), so that a box reaching over the table never lets the
+face pass through it (:func:`clip_workspace`);
 the period is cut into the kernel's physics steps, each a racket moving at constant velocity (the
 kernel's racket model), so the schedule is the piecewise-linear interpolation of that motion.
 
@@ -37,7 +40,11 @@ class RacketState:
 
 @struct.dataclass
 class RacketLimits:
-    """Kinematic limits (see ``[racket]`` of the task file); (3,) and (2,) arrays, scalars."""
+    """Kinematic limits (see ``[racket]`` of the task file); (3,) and (2,) arrays, scalars.
+
+    ``lo``, ``hi`` are the workspace box; where the face centre's x is below ``table_x`` (the table's
+    end) its z is also at least ``table_z`` (the playing surface plus ``[racket] table_clearance``).
+    """
 
     lo: jnp.ndarray
     hi: jnp.ndarray
@@ -48,6 +55,17 @@ class RacketLimits:
     max_rate: jnp.ndarray
     max_angle_accel: jnp.ndarray
     face: jnp.ndarray
+    table_x: jnp.ndarray
+    table_z: jnp.ndarray
+
+
+def clip_workspace(limits: RacketLimits, pos):
+    """Face centre positions (..., 3) clipped into the workspace: the box, then the raised floor over
+    the table (a stepped box: z >= ``table_z`` where x < ``table_x``). Branch-free."""
+    pos = jnp.clip(pos, limits.lo, limits.hi)
+    over = pos[..., 0] < limits.table_x
+    z = jnp.where(over, jnp.maximum(pos[..., 2], limits.table_z), pos[..., 2])
+    return pos.at[..., 2].set(z)
 
 
 def rotation(angle):
@@ -75,11 +93,12 @@ def angular_velocity(angle, rate):
     return rate[0] * jnp.stack([-sy, cy, jnp.zeros_like(cy)]) + rate[1] * jnp.array([0.0, 0.0, 1.0], cy.dtype)
 
 
-def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub):
+def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub, bound=None):
     """Constant-acceleration motion of one group of coordinates over a control period.
 
     Arguments:
         x, v: (d,) position and velocity; fraction: (d,) commanded acceleration / its limit, in [-1, 1].
+        bound: clips positions (..., d) into the allowed region (default: the box [lo, hi]).
 
     Returns:
         (positions at the n_sub step starts (n_sub, d), mean velocities over each step (n_sub, d),
@@ -89,12 +108,14 @@ def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub):
     accel = jnp.clip(fraction * max_accel, (-max_speed - v) / period, (max_speed - v) / period)
     h = period / n_sub
     t = jnp.arange(n_sub, dtype=x.dtype)[:, None] * h
-    pos = jnp.clip(x + v * t + 0.5 * accel * t * t, lo, hi)
+    bound = (lambda p: jnp.clip(p, lo, hi)) if bound is None else bound
+    pos = bound(x + v * t + 0.5 * accel * t * t)
     end = x + v * period + 0.5 * accel * period * period
-    nxt = jnp.concatenate([pos[1:], jnp.clip(end, lo, hi)[None]])
+    held = bound(end)
+    nxt = jnp.concatenate([pos[1:], held[None]])
     # a coordinate held at a wall stops there
-    end_v = jnp.where((end < lo) | (end > hi), 0.0, v + accel * period)
-    return pos, (nxt - pos) / h, jnp.clip(end, lo, hi), end_v, accel / max_accel
+    end_v = jnp.where(held != end, 0.0, v + accel * period)
+    return pos, (nxt - pos) / h, held, end_v, accel / max_accel
 
 
 def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int):
@@ -113,7 +134,8 @@ def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int
     """
     a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0).astype(state.pos.dtype)
     pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3], limits.max_accel, limits.max_speed,
-                                          limits.lo, limits.hi, period, n_sub)
+                                          limits.lo, limits.hi, period, n_sub,
+                                          bound=lambda p: clip_workspace(limits, p))
     ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5], limits.max_angle_accel,
                                            limits.max_rate, limits.angle_lo, limits.angle_hi, period, n_sub)
     rot = jax.vmap(rotation)(ang)

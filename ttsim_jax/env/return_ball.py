@@ -185,15 +185,29 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
 
 def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptParams:
     """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
-    nominal ``table.e0`` and ``racket.e0``)."""
+    nominal ``table.e0`` and racket contact coefficients, the return's arc its drag)."""
     c = config.intercept
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     return intercept.InterceptParams(
         x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
         angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
-        e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
-        grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        min_height=f32(c.min_height), x_min=f32(config.racket.workspace_lo[0]),
+        drag=f32(drag_per_speed2(model)), e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
+        e_slope=f32(model.racket.e1), grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        grip_slope=f32(model.racket.et1 / (1.0 + model.racket.kappa)),
         gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
+
+
+def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
+    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), as
+    :func:`ttsim_jax.physics.aero.acceleration` computes it."""
+    from ttsim_jax.physics.aero import coefficients
+
+    r, m = float(model.ball.radius), float(model.ball.mass)
+    v = jnp.array([speed, 0.0, 0.0], jnp.float32)
+    cd, _ = coefficients(model.aero, v, jnp.zeros(3, jnp.float32), model.ball.radius)
+    ratio = float(model.aero.rho_air) * (4.0 / 3.0) * np.pi * r ** 3 / m
+    return 3.0 / (8.0 * r) * float(cd) * ratio
 
 
 def _set_leaf(model, path: str, value):
@@ -259,7 +273,13 @@ class ReturnBall:
             limits = racket_kin.RacketLimits(
                 lo=f32(r.workspace_lo), hi=f32(r.workspace_hi), max_speed=f32(r.max_speed), max_accel=f32(r.max_accel),
                 angle_lo=f32(r.angle_lo), angle_hi=f32(r.angle_hi), max_rate=f32(r.max_angle_rate),
-                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face))
+                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face),
+                # the playing surface is z = 0 of the world frame; the agent's half ends at length / 2
+                table_x=f32(0.5 * model.table.length), table_z=f32(r.table_clearance))
+            if float(racket_kin.clip_workspace(limits, f32(r.start))[2]) != float(f32(r.start[2])):
+                raise ConfigError(f"{c.source}: [racket] start = {list(r.start)} lies over the table below "
+                                  f"table_clearance = {r.table_clearance} (the table ends at x = "
+                                  f"{0.5 * float(model.table.length)} m)")
             w = c.reward
             reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
                                                       "miss", "motion", "approach")}
@@ -293,7 +313,7 @@ class ReturnBall:
         shot = jax.random.randint(k_shot, (b,), 0, params.shots.pos.shape[0])
         ball = jax.tree.map(lambda a: a[shot], params.shots)
         pos = params.start + params.start_jitter * jax.random.uniform(k_pos, (b, 3), jnp.float32, -1.0, 1.0)
-        pos = jnp.clip(pos, params.limits.lo, params.limits.hi)
+        pos = racket_kin.clip_workspace(params.limits, pos)
         zeros2 = jnp.zeros((b, 2), jnp.float32)
         rk = racket_kin.RacketState(pos=pos, vel=jnp.zeros_like(pos), angle=zeros2, rate=zeros2)
         u = jax.random.uniform(k_rand, (b, len(self.paths)), jnp.float32)
