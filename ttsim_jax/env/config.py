@@ -75,6 +75,22 @@ class ObservationConfig:
 
 
 @dataclass(frozen=True)
+class ResidualConfig:
+    """``[residual]``: a racket residual network on the task model, and its noise as domain
+    randomisation.
+
+    Attributes:
+        checkpoint: a ``.ttres`` file (``ttsim train residual``), relative to the task file; "" for
+            none (the task model's own, usually none).
+        sample: draw each racket contact's correction from the network's predicted standard
+            deviations (a fresh draw per environment and contact), instead of its mean.
+    """
+
+    checkpoint: str = ""
+    sample: bool = False
+
+
+@dataclass(frozen=True)
 class RewardConfig:
     contact: float = 1.0
     legal: float = 2.0
@@ -94,7 +110,7 @@ class TaskConfig:
 
     Attributes:
         model: bundled model name or model .toml path.
-        shots, control, racket, observation, reward, intercept: the sections of the file.
+        shots, control, racket, observation, reward, intercept, residual: the sections of the file.
         randomisation: ((dotted model path, low, high), ...) per-environment uniform ranges.
         source: the file it was read from ("" for the defaults).
     """
@@ -106,6 +122,7 @@ class TaskConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     intercept: InterceptConfig = field(default_factory=InterceptConfig)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)
     randomisation: tuple = ()
     source: str = ""
 
@@ -121,7 +138,8 @@ class TaskConfig:
 
 
 _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketConfig,
-             "observation": ObservationConfig, "reward": RewardConfig, "intercept": InterceptConfig}
+             "observation": ObservationConfig, "reward": RewardConfig, "intercept": InterceptConfig,
+             "residual": ResidualConfig}
 # keys that must be positive
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
              "max_angle_accel", "target_scale",
@@ -251,6 +269,16 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     flight = out["intercept"].flight_time
     if flight[0] > flight[1]:
         raise ConfigError(f"{source}: [intercept] flight_time = {list(flight)}: low must not exceed high")
+    residual = out["residual"]
+    if residual.checkpoint:
+        where = Path(source).parent if source else Path.cwd()
+        path = Path(residual.checkpoint).expanduser()
+        path = path if path.is_absolute() else where / path
+        if not path.is_file():
+            raise ConfigError(f"{source}: [residual] checkpoint = {residual.checkpoint!r}: no such file ({path})")
+        out["residual"] = residual = ResidualConfig(checkpoint=str(path), sample=residual.sample)
+    if residual.sample and not residual.checkpoint:
+        raise ConfigError(f"{source}: [residual] sample = true needs a network: set [residual] checkpoint")
     ranges = []
     rand = raw.get("randomisation", {})
     if not isinstance(rand, dict):

@@ -256,7 +256,8 @@ class ReturnBall:
         """The task file's parameters (the shot bank is drawn, and aimed, on the first call)."""
         if self._params is None:
             c = self.config
-            model = load_model(c.model, dtype=jnp.float32)
+            # a residual checkpoint holds float32 arrays, as the environment's model
+            model = load_model(c.model, dtype=jnp.float32, residual=c.residual.checkpoint or None)
             try:
                 per_ball_axes(model, *self.paths)
             except ValueError as e:
@@ -267,7 +268,7 @@ class ReturnBall:
                     leaf = getattr(leaf, name)
                 if not hasattr(leaf, "shape") or jnp.ndim(leaf) != 0:
                     raise ConfigError(f"{c.source}: [randomisation] {path!r} is not a scalar model parameter")
-            shots, types = shot_bank(model, c)
+            shots, types = shot_bank(model.replace(residual=None), c)  # the flight has no racket: one bank
             r = c.racket
             f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
             limits = racket_kin.RacketLimits(
@@ -384,6 +385,7 @@ class ReturnBall:
         rally = state.rally.replace(step=jnp.zeros_like(state.rally.step), t0=jnp.zeros_like(state.rally.t0))
         rally, out = rollout(model, rally, self.substeps, self.config.control.physics_dt, schedule,
                              model_axes=axes, max_events=MAX_EVENTS, key=k_phys, remat=False,
+                             sample_residual=self.config.residual.sample,
                              block_size=self.block_size, reference=self.reference)
         before = state.progress
         progress = before
