@@ -167,6 +167,23 @@ def test_domain_randomisation_draws_per_environment_values_in_range(vec):
     assert axes.table.e0 == 0 and axes.table.mu is None
 
 
+def test_normal_laws_are_drawn_around_their_mean_within_three_deviations():
+    """``{mean = M, std = S}`` entries: a truncated normal per environment, beside uniform ranges
+    (the reset's draw, evaluated for 4,096 environments without compiling an environment)."""
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    env = ReturnBall(load_task_config(None, dict(OVERRIDES, **{"randomisation": {
+        "table.e0": {"mean": 0.95, "std": 0.01}, "racket.e0": [0.84, 0.90]}})), 4096)
+    assert env.config.randomisation == (("table.e0", 0.95, 0.01, "normal"), ("racket.e0", 0.84, 0.90, "uniform"))
+    lo, hi, normal = jnp.array([0.95, 0.84]), jnp.array([0.01, 0.90]), jnp.array([True, False])
+    draw = jax.jit(lambda k: env.draw_model_values(k, lo, hi, normal))
+    v = np.asarray(draw(jax.random.PRNGKey(0)))
+    assert v.shape == (4096, 2)
+    assert abs(v[:, 0].mean() - 0.95) < 4 * 0.01 / 64 and 0.0095 < v[:, 0].std() < 0.0105
+    assert np.abs(v[:, 0] - 0.95).max() <= 0.03 + 1e-6
+    assert (v[:, 1] >= 0.84).all() and (v[:, 1] <= 0.90).all() and abs(v[:, 1].mean() - 0.87) < 0.002
+
+
 def _events(*rows):
     """(kind (1,), pos (1, 3)) per event."""
     return [(jnp.array([k]), jnp.array([p], jnp.float32)) for k, p in rows]
@@ -324,6 +341,10 @@ def test_angular_velocity_is_the_rotation_rate():
     ({"racket.table_clearance": -0.1}, r"\[racket\] table_clearance = -0.1: must not be negative"),
     ({"racket.workspace_lo": [-0.2, -1.0, 0.0]}, r"\[racket\] workspace_lo = \[-0.2, -1.0, 0.0\]: x must be positive"),
     ({"intercept.min_height": "low"}, r"\[intercept\] min_height = 'low': expected a finite number"),
+    ({"randomisation.table.e0": {"mean": 0.95, "std": -0.01}}, r"\[randomisation\] 'table.e0': std = -0.01"),
+    ({"randomisation.table.e0": {"mean": 0.95}}, r"'table.e0' = \{'mean': 0.95\}: expected \[low, high\]"),
+    ({"randomisation.table.e0": {"fit": "nope.fit.json"}}, r"'table.e0'.fit = 'nope.fit.json': cannot read"),
+    ({"randomisation.aero.rho_air": {"fit": "x.fit.json"}}, r"'aero.rho_air': `ttsim fit` gives no standard error"),
 ])
 def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
     with pytest.raises(ConfigError, match=message) as info:

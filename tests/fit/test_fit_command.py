@@ -135,3 +135,21 @@ def test_fit_residual_stage_trains_a_network_on_what_the_fitted_base_leaves(tmp_
     # a second run refuses to overwrite the checkpoint
     assert main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "residual", "--quiet"]) != 0
     assert "exists" in capsys.readouterr().err
+
+
+def test_a_task_randomises_around_the_fit_with_its_standard_errors(fitted, tmp_path):
+    """`ttsim fit`'s summary feeds ReturnBall's domain randomisation: {fit = FILE} is a normal law of
+    the fitted value and (scale times) its standard error."""
+    from ttsim_jax.env.config import FITTED, load_task_config
+
+    _, _, summary = fitted
+    info = json.loads(summary.read_text())
+    config = load_task_config("return_ball", {"randomisation": {
+        "table.e0": {"fit": str(summary)}, "racket.et0": {"fit": str(summary), "scale": 2.0}}})
+    laws = {path: (a, b, law) for path, a, b, law in config.randomisation}
+    assert laws["table.e0"] == (info["table"]["fit"]["e0"], info["table"]["fit"]["stderr_e0"], "normal")
+    assert laws["racket.et0"] == (info["racket"]["fit"]["values"]["et0"],
+                                  2.0 * info["racket"]["fit"]["stderr"]["et0"], "normal")
+    # every parameter the loader offers is in the summary, finite
+    for path in FITTED:
+        load_task_config("return_ball", {"randomisation": {path: {"fit": str(summary)}}})

@@ -111,7 +111,8 @@ class TaskConfig:
     Attributes:
         model: bundled model name or model .toml path.
         shots, control, racket, observation, reward, intercept, residual: the sections of the file.
-        randomisation: ((dotted model path, low, high), ...) per-environment uniform ranges.
+        randomisation: ((dotted model path, a, b, law), ...) per-environment draws: ``law`` "uniform"
+            in [a, b], or "normal" of mean a and standard deviation b, truncated at 3 b.
         source: the file it was read from ("" for the defaults).
     """
 
@@ -181,6 +182,52 @@ def convert_value(where: str, default, value):
             return tuple(convert_value(where, default[0], v) for v in value)
         return tuple(value)
     raise ConfigError(f"{where} = {value!r}: unexpected value")
+
+
+# parameters whose fitted value and standard error `ttsim fit` writes to OUT.fit.json:
+# model path -> (stage, value key, standard error key) inside summary[stage]["fit"]
+FITTED = {"table.e0": ("table", "e0", "stderr_e0"), "table.e1": ("table", "e1", "stderr_e1"),
+          **{f"racket.{k}": ("racket", f"values.{k}", f"stderr.{k}") for k in ("e0", "e1", "et0", "et1", "e_s")}}
+
+
+def _normal_law(where: str, key: str, value: dict, base: Path) -> tuple[float, float]:
+    """(mean, std) of a ``[randomisation]`` entry given as ``{mean = M, std = S}`` or as
+    ``{fit = "OUT.fit.json", scale = K}`` (the fitted value and K times its standard error)."""
+    import json
+
+    if "fit" in value:
+        bad = set(value) - {"fit", "scale"}
+        if bad:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(bad)} beside fit; known: fit, scale")
+        scale = convert_value(f"{where}.scale", 1.0, value.get("scale", 1.0))
+        fit = convert_value(f"{where}.fit", "", value["fit"])
+        if key not in FITTED:
+            raise ConfigError(f"{where}: `ttsim fit` gives no standard error for {key!r}; fitted ones: {sorted(FITTED)}")
+        path = Path(fit).expanduser()
+        path = path if path.is_absolute() else base / path
+        try:
+            summary = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"{where}.fit = {fit!r}: cannot read a fit summary at {path} ({e})") from None
+        stage, mean_key, std_key = FITTED[key]
+        found = []
+        for k in (mean_key, std_key):
+            node = summary.get(stage, {}).get("fit", {}) if isinstance(summary, dict) else {}
+            for part in k.split("."):
+                node = node.get(part) if isinstance(node, dict) else None
+            if not isinstance(node, (int, float)) or isinstance(node, bool) or not math.isfinite(node):
+                raise ConfigError(f"{where}.fit = {fit!r}: {path} has no finite {stage}.fit.{k} (got {node!r}); "
+                                  f"was the {stage} stage fitted?")
+            found.append(float(node))
+        mean, std = found[0], found[1] * scale
+    else:
+        bad = set(value) - {"mean", "std"}
+        if bad or len(value) != 2:
+            raise ConfigError(f"{where} = {value!r}: expected [low, high], {{mean = M, std = S}} or {{fit = FILE}}")
+        mean, std = convert_value(f"{where}.mean", 0.0, value["mean"]), convert_value(f"{where}.std", 0.0, value["std"])
+    if std < 0:
+        raise ConfigError(f"{where}: std = {std!r} must not be negative")
+    return mean, std
 
 
 def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
@@ -285,10 +332,14 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
         raise ConfigError(f"{source}: [randomisation] must be a table")
     for key, value in rand.items():
         where = f"{source}: [randomisation] {key!r}"
+        if isinstance(value, dict):
+            ranges.append((key, *_normal_law(where, key, value, Path(source).parent if source else Path.cwd()),
+                           "normal"))
+            continue
         lo, hi = convert_value(where, (0.0, 0.0), value)
         if lo > hi:
             raise ConfigError(f"{where} = {value!r}: low must not exceed high")
-        ranges.append((key, lo, hi))
+        ranges.append((key, lo, hi, "uniform"))
     model = raw.get("model", "conti2026")
     if not isinstance(model, str):
         raise ConfigError(f"{source}: model = {model!r}: expected a model name or path")

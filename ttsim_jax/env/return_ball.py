@@ -103,7 +103,8 @@ class EnvParams:
         model: the simulator :class:`~ttsim_jax.params.Model` (randomised leaves are replaced per
             environment at each step).
         shots: :class:`Ball` (S, 3) bank of incoming shots; shot_type: (S,) index into ``shot_types``.
-        rand_lo, rand_hi: (P,) ranges of the randomised parameters.
+        rand_lo, rand_hi: (P,) ranges of the randomised parameters, or mean and standard deviation
+            where ``rand_normal`` (P,) is set.
         limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start, start_jitter: (3,) racket start.
         noise: (2,) std of the observed ball position [m] and velocity [m/s].
         reward: dict of reward weights (see the module docstring); target: (2,) target point.
@@ -115,6 +116,7 @@ class EnvParams:
     shot_type: jnp.ndarray
     rand_lo: jnp.ndarray
     rand_hi: jnp.ndarray
+    rand_normal: jnp.ndarray
     limits: racket_kin.RacketLimits
     start: jnp.ndarray
     start_jitter: jnp.ndarray
@@ -246,7 +248,7 @@ class ReturnBall:
         self.substeps = self.config.substeps
         self.max_steps = self.config.max_steps
         self.period = 1.0 / self.config.control.rate_hz
-        self.paths = tuple(p for p, _, _ in self.config.randomisation)
+        self.paths = tuple(r[0] for r in self.config.randomisation)
         self.obs_dim = 25 if self.config.observation.spin else 22
         self.latency = self.config.observation.latency_steps
         self._params = None
@@ -286,11 +288,20 @@ class ReturnBall:
                                                       "miss", "motion", "approach")}
             self._params = EnvParams(
                 model=model, shots=jax.tree.map(f32, shots), shot_type=jnp.asarray(types),
-                rand_lo=f32([lo for _, lo, _ in c.randomisation]), rand_hi=f32([hi for _, _, hi in c.randomisation]),
+                rand_lo=f32([r[1] for r in c.randomisation]), rand_hi=f32([r[2] for r in c.randomisation]),
+                rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
                 limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
                 noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
                 target=f32(w.target_point), intercept=intercept_params(model, c))
         return self._params
+
+    def draw_model_values(self, key, lo, hi, normal):
+        """(B, P) randomised parameter values: uniform in [lo, hi], or where ``normal`` (P,) is set, a
+        normal law of mean ``lo`` and standard deviation ``hi`` truncated at three deviations."""
+        shape = (self.num_envs, len(self.paths))
+        u = jax.random.uniform(key, shape, jnp.float32)
+        z = jax.random.truncated_normal(jax.random.fold_in(key, 1), -3.0, 3.0, shape, jnp.float32)
+        return jnp.where(normal, lo + z * hi, lo + u * (hi - lo))
 
     def model_for(self, params: EnvParams, values):
         """(model with the randomised leaves set to ``values`` (B, P), its ``model_axes``)."""
@@ -317,8 +328,7 @@ class ReturnBall:
         pos = racket_kin.clip_workspace(params.limits, pos)
         zeros2 = jnp.zeros((b, 2), jnp.float32)
         rk = racket_kin.RacketState(pos=pos, vel=jnp.zeros_like(pos), angle=zeros2, rate=zeros2)
-        u = jax.random.uniform(k_rand, (b, len(self.paths)), jnp.float32)
-        values = params.rand_lo + u * (params.rand_hi - params.rand_lo)
+        values = self.draw_model_values(k_rand, params.rand_lo, params.rand_hi, params.rand_normal)
         progress = Rally(bounced=jnp.zeros(b, bool), hit=jnp.zeros(b, bool), outcome=jnp.zeros(b, jnp.int32),
                          landing=jnp.zeros((b, 2), jnp.float32))
         # nothing older than the first measurement exists: the history starts filled with it
