@@ -5,7 +5,8 @@
   mask, the segment's spin and session. The items of the "where" analysis are the observations.
 * *table*: every usable table bounce, estimated as in ``ttsim evaluate``
   (:func:`ttsim_jax.evaluate.stages.table_stage`): contact point, pre- and post-bounce velocity
-  and spin.
+  and spin (the pre-bounce spin 0 where it is not measured: such a bounce is compared in its
+  normal velocity only).
 * *racket*: every usable racket contact with a racket state, in the racket frame
   (:func:`ttsim_jax.fit.contacts.contact_arrays`): inputs x = (v~, w~, d), the observation, the
   racket's rotation (for racket-state error sizes).
@@ -79,7 +80,9 @@ class Contacts:
         event_id: (N,); session: (N,) session index; pos: (N, 3) contact point (world);
         x: (N, 8) table: (v_in, w_in, 0, 0) world frame; racket: (v~, w~, d) racket frame;
         y_obs: (N, 6) observed post-contact (v, w) in the same frame; spin_known: (N,) whether
-        the post-contact spin is measured (and the pre-contact one); correction: (N, 6) the model's
+        the post-contact spin is measured (and the pre-contact one); spin_in_known: (N,) whether the
+        pre-contact spin is measured (without it a table bounce's tangential velocity, which the
+        spin drives, is not compared); correction: (N, 6) the model's
         residual network's correction (zeros without one); rot: (N, 3, 3) racket frame (identity
         for the table); world_in: (N, 6) world-frame pre-contact (v, w); since: (N,) time since
         the previous contact [s].
@@ -91,6 +94,7 @@ class Contacts:
     x: np.ndarray
     y_obs: np.ndarray
     spin_known: np.ndarray
+    spin_in_known: np.ndarray
     correction: np.ndarray
     rot: np.ndarray
     world_in: np.ndarray
@@ -199,7 +203,7 @@ def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Con
     n = len(ids)
     x = np.concatenate([res["pre"], np.zeros((n, 2))], 1)
     return Contacts(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
-                    correction=np.zeros((n, 6)), rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"],
+                    spin_in_known=res["spin_known"][:, 0], correction=np.zeros((n, 6)), rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"],
                     since=_since(ds, ids)), ""
 
 
@@ -226,7 +230,8 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
     pos = np.array([[ev[k][row[int(e)]] for k in "xyz"] for e in a.event_id], np.float64)
     sess = np.array([session_index[int(s)] for s in a.session_id], np.int64)
     return Contacts(event_id=a.event_id, session=sess, pos=pos, x=np.asarray(a.x, np.float64),
-                    y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool), correction=corr,
+                    y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool),
+                    spin_in_known=np.ones(len(a), bool), correction=corr,
                     rot=quat_to_matrix(q), world_in=a.world_in, since=_since(ds, a.event_id)), ""
 
 
