@@ -4,14 +4,16 @@ For each source in ``--real`` (read at run time; see their SOURCES.md and cite t
 (``ttsim data import --source spindoe|tt3d|mpi``, in memory), diagnoses it with each of
 ``--models`` (default conti2026; ``--baselines`` adds the paper's baselines nakashima2011 and
 durr2026) with the default settings of ``ttsim diagnose`` (``--quick`` for its quick ones), and
-writes each report (``report.md``, ``diagnosis.json``, figures) to ``OUT/NAME/SOURCE/MODEL`` and a
-summary of all of them to ``OUT/NAME.json`` (``--name``, default ``diagnose_real``): per run the items per phase, the
+writes each report (``report.md``, ``diagnosis.json``, figures) to ``REPORTS/SOURCE/MODEL``
+(``--reports``, default ``runs/diagnose_real``), the first model's gap-by-regime figure on the first
+source to ``OUT/NAME_SOURCE.png`` and a summary of all of them to ``OUT/NAME.json`` (``--name``,
+default ``diagnose_real``): per run the items per phase, the
 phases without data, the mean error per phase with its 95 % interval, the flagged regimes, the
 significant dependences, the ranked candidates (held-out reduction, interval, significance), the
 record's sizes, the verdict, and the wall and CPU time.
 
-    python benchmarks/diagnose_real.py --out benchmarks/results            # conti2026, about 6 min
-    python benchmarks/diagnose_real.py --out runs --baselines --quick      # three models, quick
+    python benchmarks/diagnose_real.py --out benchmarks/results            # conti2026, about 10 min
+    python benchmarks/diagnose_real.py --out runs --baselines --quick --name quick   # three models
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ def main(argv=None) -> int:
     p.add_argument("--models", default="conti2026", help="comma-separated bundled models (default: %(default)s)")
     p.add_argument("--baselines", action="store_true", help=f"also diagnose {' and '.join(BASELINES)}")
     p.add_argument("--quick", action="store_true", help="ttsim diagnose --quick's settings")
-    p.add_argument("--name", default="diagnose_real", help="name of the summary JSON and of the reports' folder "
+    p.add_argument("--reports", type=Path, default=Path("runs/diagnose_real"),
+                   help="folder of the full reports (default: %(default)s)")
+    p.add_argument("--name", default="diagnose_real", help="name of the summary JSON and the figure "
                    "(default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -63,7 +67,7 @@ def main(argv=None) -> int:
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
     from ttsim_jax.diagnose.diagnosis import Settings, diagnose, jsonable, work_units
-    from ttsim_jax.diagnose.report import write_report
+    from ttsim_jax.diagnose.report import FIGURES, write_report
 
     sources = [s.strip() for s in args.sources.split(",") if s.strip()]
     unknown = [s for s in sources if s not in SOURCES]
@@ -74,9 +78,10 @@ def main(argv=None) -> int:
         p.error(f"--real: missing {', '.join(missing)}")
     models = [m.strip() for m in args.models.split(",") if m.strip()] + (list(BASELINES) if args.baselines else [])
     settings = Settings.quick() if args.quick else Settings()
-    reports = args.out / args.name
+    reports = args.reports
     result = dict(settings=jsonable(dict(quick=args.quick, steps=settings.steps, max_segments=settings.max_segments,
                                          test_fraction=settings.test_fraction, seed=settings.seed)), runs={})
+    args.out.mkdir(parents=True, exist_ok=True)
     t_start, c_start = time.perf_counter(), time.process_time()
     with tqdm(total=len(sources) * len(models) * work_units(settings), unit="step", disable=args.quiet) as bar:
         for source in sources:
@@ -103,6 +108,7 @@ def main(argv=None) -> int:
     result.update(seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - c_start)
     path = args.out / f"{args.name}.json"
     path.write_text(json.dumps(jsonable(result), indent=1))
+    shutil.copy(reports / sources[0] / models[0] / FIGURES["where"], args.out / f"{args.name}_{sources[0]}.png")
     for source, runs in result["runs"].items():
         for name, r in runs.items():
             print(f"{source}, {name}: {r['verdict']} ({r['seconds']:.0f} s wall, {r['cpu_seconds']:.0f} s CPU)")
