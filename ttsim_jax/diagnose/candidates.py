@@ -2,9 +2,11 @@
 split and scored by its error reduction on the held-out split.
 
 For a candidate effect (:func:`spec`), the phases it can change follow from its hooks
-(:func:`phases_of`): ``spin_derivative`` and ``air_velocity`` act in flight, ``table_surface`` and
-``table_restitution`` on table contacts, ``racket_coefficients`` on racket contacts, and
-``ball_properties`` on all three. Its free parameters are written ``start + scale * u`` with ``u``
+(:func:`phases_of`): ``air_velocity`` acts in flight, ``table_surface`` and ``table_restitution`` on
+table contacts, ``racket_coefficients`` on racket contacts, and ``ball_properties`` and
+``spin_derivative`` on all three (a spin that changes in flight also moves the contacts' spin
+estimates, each segment's mean, away from the spin at the contact:
+:func:`ttsim_jax.diagnose.stages.contact_spin`). Its free parameters are written ``start + scale * u`` with ``u``
 starting at 0 (the effect neutral, or at the typical values of its fixed shape parameters, e.g. the
 bump centres of ``table_unevenness``), so Adam's step size means the same for every parameter.
 Effects drawn per session (``SCOPE == "session"``: air flow, ball variation, worn ball) get one set
@@ -54,7 +56,7 @@ PHASES = ("flight", "table", "racket")
 HOOK_PHASES = {
     "ball_properties": ("flight", "table", "racket"),
     "air_velocity": ("flight",),
-    "spin_derivative": ("flight",),
+    "spin_derivative": ("flight", "table", "racket"),
     "table_surface": ("table",),
     "table_restitution": ("table",),
     "racket_coefficients": ("racket",),
@@ -204,7 +206,8 @@ def _pad_contacts(c):
     idx = np.minimum(np.arange(pad_rows(n)), n - 1)
     f = lambda a: jnp.asarray(np.asarray(a)[idx], jnp.float32)  # noqa: E731
     return dict(pos=f(c.pos), x=f(c.x), y_obs=f(c.y_obs), known=f(c.spin_known.astype(np.float32)),
-                known_in=f(c.spin_in_known.astype(np.float32)),
+                known_in=f(c.spin_in_known.astype(np.float32)), world_in=f(c.world_in), world_out=f(c.world_out),
+                rot=f(c.rot), t=f(c.t), spin_dt=f(c.spin_dt),
                 correction=f(c.correction), session=jnp.asarray(c.session[idx], jnp.int32))
 
 
