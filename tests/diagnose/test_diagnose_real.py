@@ -69,3 +69,15 @@ def test_bounces_without_spin_compare_the_normal_velocity_only(run):
     assert n >= FILES // 2
     assert np.all(e[:, :2] == 0.0) and np.all(e[:, 3:] == 0.0)
     assert np.all(np.abs(e[:, 2]) > 0.0)
+
+
+def test_thin_sessions_pool_the_per_session_effects():
+    from ttsim_jax.diagnose import candidates as C
+
+    def problem(per_session):
+        sessions = np.repeat(np.arange(10), per_session)
+        data = {"flight": {"session": sessions, "train": np.ones(len(sessions))}}
+        return C.Problem(data=data, phases=("flight",), n_sessions=10, sessions=np.arange(10))
+
+    assert C.pooled(problem(2)) and not C.pooled(problem(C.MIN_SESSION_ITEMS))
+    assert C.spec("air_flow")[0].per_session and not C.spec("air_flow", pooled=True)[0].per_session
