@@ -106,3 +106,12 @@ def test_dependence_finds_the_driving_quantity_only():
     assert all(d["quantity"] != "since_contact" for d in deps)
     rho, p = spearman(np.arange(20.0), np.arange(20.0) ** 3)
     assert rho == pytest.approx(1.0) and p < 1e-6
+
+
+def test_spearman_ties_and_constants():
+    # a constant quantity (e.g. spin 0 where none is measured) carries no dependence, whatever the rows' order
+    assert math.isnan(spearman(np.zeros(30), np.arange(30.0))[0])
+    # tied values share their mean rank: a two-valued quantity against the row order
+    x = np.repeat([0.0, 1.0], 10)
+    rho, _ = spearman(x, np.tile(np.arange(10.0), 2))
+    assert rho == pytest.approx(0.0, abs=1e-12)

@@ -2,13 +2,18 @@
 split and scored by its error reduction on the held-out split.
 
 For a candidate effect (:func:`spec`), the phases it can change follow from its hooks
-(:func:`phases_of`): ``spin_derivative`` and ``air_velocity`` act in flight, ``table_surface`` and
-``table_restitution`` on table contacts, ``racket_coefficients`` on racket contacts, and
-``ball_properties`` on all three. Its free parameters are written ``start + scale * u`` with ``u``
+(:func:`phases_of`): ``air_velocity`` acts in flight, ``table_surface`` and ``table_restitution`` on
+table contacts, ``racket_coefficients`` on racket contacts, and ``ball_properties`` and
+``spin_derivative`` on all three (a spin that changes in flight also moves the contacts' spin
+estimates, each segment's mean, away from the spin at the contact:
+:func:`ttsim_jax.diagnose.stages.contact_spin`). Its free parameters are written ``start + scale * u`` with ``u``
 starting at 0 (the effect neutral, or at the typical values of its fixed shape parameters, e.g. the
 bump centres of ``table_unevenness``), so Adam's step size means the same for every parameter.
 Effects drawn per session (``SCOPE == "session"``: air flow, ball variation, worn ball) get one set
-of parameters per session.
+of parameters per session, unless the sessions are too thin to fit them (:func:`pooled`: fewer
+than :data:`MIN_SESSION_ITEMS` training items in the median session, as when every recorded throw
+is a session of its own); then one set is shared by all sessions, since a session's parameters
+fitted on one throw could be scored only on that throw.
 
 The effects of one compilation group (:func:`groups`) are all attached in one compiled program,
 and a fit frees only its own (the others stay exactly neutral), so a group costs one compilation.
@@ -51,7 +56,7 @@ PHASES = ("flight", "table", "racket")
 HOOK_PHASES = {
     "ball_properties": ("flight", "table", "racket"),
     "air_velocity": ("flight",),
-    "spin_derivative": ("flight",),
+    "spin_derivative": ("flight", "table", "racket"),
     "table_surface": ("table",),
     "table_restitution": ("table",),
     "racket_coefficients": ("racket",),
@@ -76,6 +81,8 @@ MIN_REDUCTION = 1.0
 #: reduction below the resolution of the phase's measurement is not a physical effect (with a
 #: perfect model, the contact states' polynomial estimates still err by millimetres per second).
 MIN_GAIN = {"flight": 5e-5, "table": 0.01, "racket": 0.01}
+#: Least training items (segments and contacts) of the median session for per-session parameters.
+MIN_SESSION_ITEMS = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,9 +112,9 @@ def phases_of(cls) -> tuple:
     return tuple(p for p in PHASES if p in out)
 
 
-def spec(name: str) -> tuple[Spec, dict]:
+def spec(name: str, pooled: bool = False) -> tuple[Spec, dict]:
     """(:class:`Spec`, numpy constants {"start": {param: value}, "scale": {param: value}}) of a
-    catalogue effect."""
+    catalogue effect; ``pooled``: one parameter set for all sessions even for a per-session effect."""
     cls = fx.effect_class(name)
     if cls.WHERE != "simulator":
         raise fx.EffectError(f"effect {name!r} acts on the record, not in the simulator: it is not fitted as physics")
@@ -122,7 +129,7 @@ def spec(name: str) -> tuple[Spec, dict]:
     start = {k: np.broadcast_to(np.asarray(p.typical if k in typical else p.neutral, np.float64), p.shape).copy()
              for k, p in cls.PARAMS.items()}
     scale = {k: np.float64(free.get(k, 0.0)) for k in cls.PARAMS}
-    return Spec(name, cls, tuple(free), cls.SCOPE == "session"), dict(start=start, scale=scale)
+    return Spec(name, cls, tuple(free), cls.SCOPE == "session" and not pooled), dict(start=start, scale=scale)
 
 
 def initial_u(specs, n_sessions: int) -> tuple:
@@ -151,7 +158,8 @@ class Problem:
         data: {phase: dict of arrays}, each with ``train`` and ``test`` weights per row (0 for
             padding); ``phases``: the phases present; ``n_sessions``; ``x0``: (S, 6) the flight
             segments' fitted initial states under the model; ``base``: {phase: per-row errors of
-            the model}; ``norm``: {phase: the model's training mean squared error}.
+            the model}; ``norm``: {phase: the model's training mean squared error}; ``pooled``:
+            per-session effects share one parameter set (:func:`pooled`).
     """
 
     data: dict
@@ -161,6 +169,17 @@ class Problem:
     x0: jnp.ndarray | None = None
     base: dict = dataclasses.field(default_factory=dict)
     norm: dict = dataclasses.field(default_factory=dict)
+    pooled: bool = False
+
+
+def pooled(pb: Problem) -> bool:
+    """Whether the median session (of those with items) holds fewer than :data:`MIN_SESSION_ITEMS`
+    training segments and contacts, too few to fit per-session parameters."""
+    count = np.zeros(pb.n_sessions)
+    for d in pb.data.values():
+        np.add.at(count, np.asarray(d["session"]), np.asarray(d["train"], np.float64))
+    used = count[count > 0]
+    return bool(len(used) and np.median(used) < MIN_SESSION_ITEMS)
 
 
 def _split(score, n: int, rows: int, test_fraction: float, rng) -> tuple[np.ndarray, np.ndarray]:
@@ -187,6 +206,8 @@ def _pad_contacts(c):
     idx = np.minimum(np.arange(pad_rows(n)), n - 1)
     f = lambda a: jnp.asarray(np.asarray(a)[idx], jnp.float32)  # noqa: E731
     return dict(pos=f(c.pos), x=f(c.x), y_obs=f(c.y_obs), known=f(c.spin_known.astype(np.float32)),
+                known_in=f(c.spin_in_known.astype(np.float32)), world_in=f(c.world_in), world_out=f(c.world_out),
+                rot=f(c.rot), t=f(c.t), spin_dt=f(c.spin_dt),
                 correction=f(c.correction), session=jnp.asarray(c.session[idx], jnp.int32))
 
 
@@ -219,6 +240,7 @@ def problem(ph: Phases, model, test_fraction: float = 0.4, seed: int = 0) -> Pro
         sse, n = item_sums(pb, p, pb.base[p])
         w = np.asarray(pb.data[p]["train"])
         pb.norm[p] = float(max(np.sum(w * sse) / max(np.sum(w * n), 1.0), 1e-20))
+    pb.pooled = pooled(pb)
     return pb
 
 
@@ -342,7 +364,7 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
     missing = set(names) - set(group)
     if missing:
         raise ValueError(f"fit: effects {sorted(missing)} are not in the group {list(group)}")
-    built = [spec(n) for n in group]
+    built = [spec(n, pb.pooled) for n in group]
     specs = tuple(b[0] for b in built)
     consts = tuple(b[1] for b in built)
     fitted = [s for s in specs if s.name in names]

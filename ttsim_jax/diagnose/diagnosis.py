@@ -35,12 +35,15 @@ from ttsim_jax.diagnose import where as W
 from ttsim_jax.diagnose.phases import MAX_SEGMENTS, collect
 from ttsim_jax.fit.contacts import ContactFit
 
+
 class NoData(ValueError):
     """The dataset has no usable item in any phase; the message gives each phase's reason."""
 
 
 #: Most significant candidates fitted jointly for the before/after.
 TOP = 3
+#: Phases of the "where" analysis.
+PHASES = ("flight", "table", "racket", "landing")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +131,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             (``"problem"``), for scoring other models on the same split.
 
     Returns:
-        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``dependence``,
+        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``no_data`` ({phase:
+        reason} of the phases without items: reported as "no data", never as a number),
+        ``pooled_sessions`` (per-session effects fitted with one shared set), ``dependence``,
         ``record``, ``candidates`` (ranked), ``combined``, ``before_after``, ``landing``,
         ``verdict``, ``settings``, ``seconds``, and ``arrays`` (per-item errors for the figures).
     """
@@ -161,6 +166,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             out["skipped"]["landing"] = landing["skipped"]
     tick("landing", 1)
     out["where"] = {p: W.summarise(it, settings.seed) for p, it in items.items()}
+    out["no_data"] = no_data(out["skipped"], settings.landing)
     out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
     out["record"] = R.record_sizes(ds, ph, model)
@@ -214,10 +220,18 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         out["landing"] = entry
     tick("landing after", 1)
     out["verdict"] = verdict(out, significant)
+    out["pooled_sessions"] = pb.pooled
     out["seconds"] = time.perf_counter() - t_start
     out["arrays"] = arrays
     out["histories"] = {c.spec.name: c.history for c in ranked}
     return out
+
+
+def no_data(skipped: dict, landing: bool = True) -> dict:
+    """{phase: why it has no data} for every phase of :data:`PHASES` without items (the landing
+    phase only when its rollouts were asked for)."""
+    phases = PHASES if landing else PHASES[:-1]
+    return {p: skipped[p] for p in phases if p in skipped}
 
 
 def work_units(settings: Settings) -> int:

@@ -5,7 +5,8 @@
   mask, the segment's spin and session. The items of the "where" analysis are the observations.
 * *table*: every usable table bounce, estimated as in ``ttsim evaluate``
   (:func:`ttsim_jax.evaluate.stages.table_stage`): contact point, pre- and post-bounce velocity
-  and spin.
+  and spin (the pre-bounce spin 0 where it is not measured: such a bounce is compared in its
+  normal velocity only).
 * *racket*: every usable racket contact with a racket state, in the racket frame
   (:func:`ttsim_jax.fit.contacts.contact_arrays`): inputs x = (v~, w~, d), the observation, the
   racket's rotation (for racket-state error sizes).
@@ -79,10 +80,14 @@ class Contacts:
         event_id: (N,); session: (N,) session index; pos: (N, 3) contact point (world);
         x: (N, 8) table: (v_in, w_in, 0, 0) world frame; racket: (v~, w~, d) racket frame;
         y_obs: (N, 6) observed post-contact (v, w) in the same frame; spin_known: (N,) whether
-        the post-contact spin is measured (and the pre-contact one); correction: (N, 6) the model's
+        the post-contact spin is measured (and the pre-contact one); spin_in_known: (N,) whether the
+        pre-contact spin is measured (without it a table bounce's tangential velocity, which the
+        spin drives, is not compared); correction: (N, 6) the model's
         residual network's correction (zeros without one); rot: (N, 3, 3) racket frame (identity
-        for the table); world_in: (N, 6) world-frame pre-contact (v, w); since: (N,) time since
-        the previous contact [s].
+        for the table); world_in, world_out: (N, 6) world-frame pre- and post-contact (v, w) as
+        estimated; since: (N,) time since the previous contact [s]; t: (N,) contact time [s];
+        spin_dt: (N, 2) from the incoming segment's mean sample time to the contact and from the
+        contact to the outgoing segment's [s] (:func:`contact_times`).
     """
 
     event_id: np.ndarray
@@ -91,10 +96,14 @@ class Contacts:
     x: np.ndarray
     y_obs: np.ndarray
     spin_known: np.ndarray
+    spin_in_known: np.ndarray
     correction: np.ndarray
     rot: np.ndarray
     world_in: np.ndarray
+    world_out: np.ndarray
     since: np.ndarray
+    t: np.ndarray
+    spin_dt: np.ndarray
 
     def __len__(self) -> int:
         return len(self.event_id)
@@ -163,24 +172,29 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     return out
 
 
-def _since(ds, event_ids) -> np.ndarray:
-    """(N,) time from the start of the incoming segment to each contact [s] (NaN without one)."""
+def contact_times(ds, event_ids) -> dict:
+    """Times around each contact [s]: ``t`` (N,) the contact's; ``since`` (N,) from the start of the
+    incoming segment (NaN without one); ``spin_dt`` (N, 2) from the incoming segment's mean sample
+    time to the contact and from the contact to the outgoing segment's (0 without one): a segment's
+    spin is the mean of its samples' estimates, the spin at its mean sample time when it changes
+    linearly in flight."""
     from ttsim_jax.data.batch import segments_around
 
-    in_rows, _ = segments_around(ds, event_ids)
+    in_rows, out_rows = segments_around(ds, event_ids)
     ev = ds.events
     row = {int(e): i for i, e in enumerate(ev["event_id"])}
     t_c = np.array([ev["t"][row[int(e)]] for e in event_ids], np.float64)
-    seg, obs = ds.segments, ds.observations
-    first = {}
-    sid = np.asarray(obs["segment_id"])
-    t_obs = np.asarray(obs["t"], np.float64)
+    sid = np.asarray(ds.observations["segment_id"])
+    t_obs = np.asarray(ds.observations["t"], np.float64)
+    seg_ids = np.asarray(ds.segments["segment_id"])
     order = np.argsort(sid, kind="stable")
-    starts = np.searchsorted(sid[order], np.asarray(seg["segment_id"]))
-    for k, st in enumerate(starts):
-        if st < len(order) and sid[order[st]] == seg["segment_id"][k]:
-            first[k] = t_obs[order[st]]
-    return np.array([t_c[i] - first[r] if r >= 0 and r in first else np.nan for i, r in enumerate(in_rows)])
+    lo = np.searchsorted(sid[order], seg_ids)
+    hi = np.searchsorted(sid[order], seg_ids, side="right")
+    first = np.array([t_obs[order[a]] if b > a else np.nan for a, b in zip(lo, hi)])
+    mean = np.array([t_obs[order[a:b]].mean() if b > a else np.nan for a, b in zip(lo, hi)])
+    at = lambda values, rows: np.where(rows >= 0, values[np.maximum(rows, 0)], np.nan)  # noqa: E731
+    spin_dt = np.nan_to_num(np.stack([t_c - at(mean, in_rows), at(mean, out_rows) - t_c], 1))
+    return dict(t=t_c, since=t_c - at(first, in_rows), spin_dt=spin_dt)
 
 
 def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
@@ -198,9 +212,11 @@ def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Con
     sess = np.array([session_index[int(s)] for s in np.asarray(ev["session_id"])[rows]], np.int64)
     n = len(ids)
     x = np.concatenate([res["pre"], np.zeros((n, 2))], 1)
+    times = contact_times(ds, ids)
     return Contacts(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
-                    correction=np.zeros((n, 6)), rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"],
-                    since=_since(ds, ids)), ""
+                    spin_in_known=res["spin_known"][:, 0], correction=np.zeros((n, 6)),
+                    rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"], world_out=res["post"],
+                    since=times["since"], t=times["t"], spin_dt=times["spin_dt"]), ""
 
 
 def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
@@ -225,9 +241,12 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
     row = {int(e): i for i, e in enumerate(ev["event_id"])}
     pos = np.array([[ev[k][row[int(e)]] for k in "xyz"] for e in a.event_id], np.float64)
     sess = np.array([session_index[int(s)] for s in a.session_id], np.int64)
+    times = contact_times(ds, a.event_id)
     return Contacts(event_id=a.event_id, session=sess, pos=pos, x=np.asarray(a.x, np.float64),
-                    y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool), correction=corr,
-                    rot=quat_to_matrix(q), world_in=a.world_in, since=_since(ds, a.event_id)), ""
+                    y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool),
+                    spin_in_known=np.ones(len(a), bool), correction=corr, rot=quat_to_matrix(q),
+                    world_in=a.world_in, world_out=a.world_out, since=times["since"], t=times["t"],
+                    spin_dt=times["spin_dt"]), ""
 
 
 def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, phases=("flight", "table", "racket"),

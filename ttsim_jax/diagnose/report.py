@@ -122,8 +122,15 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
         unit, f = _show(p)
         flagged = ", ".join(f"{r} {label}" for r, label in w["flagged"]) or "none"
         lines.append(f"| {p} | {w['n']} | {w['groups']} | {_pm(w['mean'], w['ci95'], f)} {unit} | {flagged} |")
-    for p, why in out["skipped"].items():
-        lines.append(f"\nSkipped {p}: {why}")
+    no_data = out.get("no_data", {})
+    for p in no_data:
+        lines.append(f"| {p} | 0 | 0 | no data | - |")
+    lines.append("")
+    lines += [f"- {p}: no data: {why}" for p, why in no_data.items()]
+    lines += [f"- {p}: {why}" for p, why in out["skipped"].items() if p not in no_data]
+    if out.get("pooled_sessions"):
+        lines.append("- per-session effects (air_flow, ball_variation, worn_ball) fitted with one parameter set for "
+                     "all sessions: the median session holds too few segments and contacts to fit its own")
     lines += ["", f"![gap by phase and regime]({FIGURES['where']})", "", "Residual dependences (Spearman, over segments / "
               "contacts; |rho| >= 0.3, p < 0.001):", ""]
     deps = [(p, d) for p, ds in out["dependence"].items() for d in ds]

@@ -11,10 +11,18 @@ Each phase uses the cheapest function that contains the physics it checks:
   samples' estimates, so when an effect changes spin in flight the initial spin is set so that the
   flight's mean spin matches it (one fixed-point step).
 * *table*: the kernel's contact response (:func:`ttsim_jax.kernel.step.respond`) applied to the
-  estimated pre-bounce state, minus the estimated post-bounce state.
+  estimated pre-bounce state, minus the estimated post-bounce state. Where the pre-bounce spin is
+  not measured (flown as 0) only the normal (z) velocity is compared: the tangential velocity
+  after a bounce is driven by the incoming spin (about r |w| = 4 m/s of surface speed at 200
+  rad/s), so its error would measure the unknown spin, not the contact law.
 * *racket*: the racket contact in the racket frame
   (:func:`ttsim_jax.physics.racket.base_response`, plus the model's residual network's correction
   held fixed), minus the observation.
+
+When an effect changes the spin in flight (``spin_derivative``), a contact's measured spins, its
+segments' means, are the spins at the segments' mean sample times, not at the contact: both are
+carried to the contact time with the effects' spin derivative (:func:`contact_spin`) before the
+contact is compared (without such an effect they are the spins at the contact).
 
 Contact errors are (v error, r * spin error) (N, 6) in m/s, the spin part 0 where the spin is not
 measured on both sides; flight errors are (S, T, 3) position residuals [m].
@@ -35,6 +43,8 @@ from ttsim_jax.physics.aero import flight_step
 
 #: Gauss-Newton iterations of the initial state at the start (later calls warm-start).
 GN_START = 6
+#: Midpoint steps of the spin between a segment's mean sample time and a contact.
+SPIN_STEPS = 4
 
 
 def effects_of(specs, consts, u, session):
@@ -137,38 +147,71 @@ def flight_errors(model, specs, consts, u, fl: dict, x):
 
 
 # ---------------------------------------------------------------------------------------------- contacts
+def contact_spin(effects, vel, spin, t, dt):
+    """The spin ``dt`` seconds later (earlier for dt < 0) under the effects' ``spin_derivative``, the
+    velocity held (midpoint steps, :data:`SPIN_STEPS`)."""
+    h = dt / SPIN_STEPS
+
+    def rate(w):
+        return hooks.apply(effects, "spin_derivative", jnp.zeros_like(w), vel=vel, spin=w, t=t)
+
+    def step(_, w):
+        return (w + h * rate(w + 0.5 * h * rate(w))).astype(spin.dtype)
+
+    return jax.lax.fori_loop(0, SPIN_STEPS, step, spin)
+
+
+def _at_contact(fx, c_row, x_spin, y_spin):
+    """The racket-/world-frame pre- and post-contact spins carried from the segments' mean sample
+    times to the contact (:func:`contact_spin`)."""
+    w_in, w_out, rot, t, dt = c_row
+    d_in = contact_spin(fx, w_in[:3], w_in[3:], t, dt[0]) - w_in[3:]
+    d_out = contact_spin(fx, w_out[:3], w_out[3:], t, -dt[1]) - w_out[3:]
+    return x_spin + rot.T @ d_in, y_spin + rot.T @ d_out
+
+
+def _spin_rows(c: dict):
+    return (c["world_in"], c["world_out"], c["rot"], c["t"], c["spin_dt"])
+
+
 def table_errors(model, specs, consts, u, c: dict):
     """(N, 6) table-contact errors (see the module docstring) of the contacts in ``c``
-    (``pos``, ``x``, ``y_obs``, ``known``, ``session``)."""
+    (``pos``, ``x``, ``y_obs``, ``known``, ``known_in``, ``session`` and the spin times' arrays)."""
     from ttsim_jax.kernel.step import respond
     from ttsim_jax.physics.events import TABLE
     from ttsim_jax.state import Ball
 
     r = model.ball.radius
+    changes = _spin_changes(model, specs)
 
-    def one(p, x, y, known, s):
-        m = model.replace(effects=model.effects + effects_of(specs, consts, u, s))
-        post, _, _ = respond(m, Ball(p, x[:3], x[3:6]), TABLE, None)
-        return jnp.concatenate([post.vel - y[:3], r * (post.spin - y[3:]) * known])
+    def one(p, x, y, known, known_in, s, rows):
+        fx = effects_of(specs, consts, u, s)
+        m = model.replace(effects=model.effects + fx)
+        w_in, w_out = _at_contact(m.effects, rows, x[3:6], y[3:]) if changes else (x[3:6], y[3:])
+        post, _, _ = respond(m, Ball(p, x[:3], w_in), TABLE, None)
+        tangential = jnp.stack([known_in, known_in, jnp.ones_like(known_in)])
+        return jnp.concatenate([(post.vel - y[:3]) * tangential, r * (post.spin - w_out) * known])
 
-    return jax.vmap(one)(c["pos"], c["x"], c["y_obs"], c["known"], c["session"])
+    return jax.vmap(one)(c["pos"], c["x"], c["y_obs"], c["known"], c["known_in"], c["session"], _spin_rows(c))
 
 
 def racket_errors(model, specs, consts, u, c: dict):
     """(N, 6) racket-contact errors in the racket frame (see the module docstring) of the contacts
-    in ``c`` (``x``, ``y_obs``, ``correction``, ``known``, ``session``)."""
+    in ``c`` (``x``, ``y_obs``, ``correction``, ``known``, ``session`` and the spin times' arrays)."""
     from ttsim_jax.physics.racket import base_response
 
     r = model.ball.radius
+    changes = _spin_changes(model, specs)
 
-    def one(x, y, corr, known, s):
+    def one(x, y, corr, known, s, rows):
         fx = model.effects + effects_of(specs, consts, u, s)
         radius, mass = _ball(model, fx)
-        v, w = base_response(model.racket, x[:3], x[3:6], x[6:8], radius, mass, fx)
-        e = jnp.concatenate([v, w]) + corr - y
+        w_in, w_out = _at_contact(fx, rows, x[3:6], y[3:]) if changes else (x[3:6], y[3:])
+        v, w = base_response(model.racket, x[:3], w_in, x[6:8], radius, mass, fx)
+        e = jnp.concatenate([v - y[:3], w - w_out]) + corr
         return jnp.concatenate([e[:3], r * e[3:] * known])
 
-    return jax.vmap(one)(c["x"], c["y_obs"], c["correction"], c["known"], c["session"])
+    return jax.vmap(one)(c["x"], c["y_obs"], c["correction"], c["known"], c["session"], _spin_rows(c))
 
 
 ERRORS = {"table": table_errors, "racket": racket_errors}

@@ -5,7 +5,8 @@ Items and their error (:func:`items`):
 * flight: every observation of a flight segment, the 3-D distance [m] between the flight flown
   from the segment's fitted initial state and the observation; grouped by segment;
 * table / racket: every contact, the magnitude [m/s] of the post-contact velocity error (world
-  frame for the table, racket frame for the racket); one group each;
+  frame for the table, racket frame for the racket; for a bounce whose incoming spin is not
+  measured, of the normal velocity error only); one group each;
 * landing: every racket contact with a measured landing point, the landing distance error [m]
   (from ``ttsim evaluate``'s landing rollouts); one group each.
 
