@@ -19,35 +19,13 @@ import numpy as np
 
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import ReturnBall
-from ttsim_jax.rl.ppo import summarise
+from ttsim_jax.rl.ppo import episode_runner, summarise
 
 
 def make_play(env: ReturnBall):
     """A jitted ``play(action (5,), env_params, key) -> dict`` (as :func:`ttsim_jax.rl.ppo.make_evaluate`)
     holding one constant action in every environment for one episode."""
-
-    @jax.jit
-    def play(action, env_params, key):
-        k_reset, key = jax.random.split(key)
-        _, state = env.reset(k_reset, env_params)
-        b = env.num_envs
-        actions = jnp.broadcast_to(action, (b, env.action_dim))
-
-        def body(carry, k):
-            state, finished, ret, outcome, error = carry
-            _, state, reward, terminated, truncated, info = env.step_env(k, state, actions, env_params)
-            ret = ret + jnp.where(finished, 0.0, reward)
-            newly = (terminated | truncated) & ~finished
-            outcome = jnp.where(newly, info["outcome"], outcome)
-            error = jnp.where(newly, info["landing_error"], error)
-            return (state, finished | newly, ret, outcome, error), None
-
-        init = (state, jnp.zeros(b, bool), jnp.zeros(b, jnp.float32), jnp.zeros(b, jnp.int32),
-                jnp.full(b, -1.0, jnp.float32))
-        (_, _, ret, outcome, error), _ = jax.lax.scan(body, init, jax.random.split(key, env.max_steps))
-        return {"outcome": outcome, "return": ret, "landing_error": error}
-
-    return play
+    return jax.jit(episode_runner(env, lambda action, obs: jnp.broadcast_to(action, (obs.shape[0], env.action_dim))))
 
 
 def main() -> None:

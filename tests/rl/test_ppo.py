@@ -15,7 +15,7 @@ from ttsim_jax.params import ConfigError
 from ttsim_jax.rl.checkpoint import CheckpointError, read_checkpoint
 from ttsim_jax.rl.config import load_ppo_config, parse_ppo_config
 from ttsim_jax.rl.normalise import RunningStats
-from ttsim_jax.rl.ppo import gae
+from ttsim_jax.rl.ppo import _program_key, gae, optimizer
 from ttsim_jax.rl.train import CHECKPOINT, CURVE, METRICS, train
 
 # the motion penalty dominates this task's reward: a quick, sure signal for a short run
@@ -85,6 +85,25 @@ def test_bad_ppo_config_is_refused():
         parse_ppo_config("[ppo]\nnum_envs = 10\nnum_steps = 1\nnum_minibatches = 3\n", "x.toml")
     with pytest.raises(ConfigError, match="x.toml.*learning_rate"):
         parse_ppo_config("[ppo]\nlearning_rate = -1.0\n", "x.toml")
+
+
+@pytest.mark.parametrize("anneal", [False, True])
+def test_learning_rate_falls_linearly_to_zero_over_the_run_when_annealed(anneal):
+    config = parse_ppo_config(f"[ppo]\nnum_envs = 4\nnum_steps = 4\nnum_minibatches = 2\nupdate_epochs = 2\n"
+                              f"learning_rate = 0.01\nanneal_lr = {str(anneal).lower()}\n"
+                              "[train]\ntotal_env_steps = 40\n", "x.toml")
+    # the optimiser as the compiled update builds it, from the config without its run limits
+    opt = optimizer(_program_key(config))
+    params = jnp.zeros(())
+    state = opt.init(params)
+    steps = []
+    for _ in range(10):
+        # a constant gradient makes Adam's normalised step exactly one: the update is the step size
+        update, state = opt.update(jnp.asarray(0.1), state, params)
+        steps.append(-float(update))
+    # 40 steps / 16 per update = 2 updates of 2 epochs x 2 minibatches: 8 optimiser steps
+    expect = 0.01 * np.clip(1.0 - np.arange(10) / 8, 0.0, None) if anneal else np.full(10, 0.01)
+    np.testing.assert_allclose(steps, expect, rtol=1e-4, atol=1e-9)
 
 
 @pytest.fixture(scope="module")

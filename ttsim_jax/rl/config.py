@@ -24,6 +24,7 @@ class PPOSettings:
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     init_log_std: float = -0.5
+    anneal_lr: bool = False
 
 
 @dataclass(frozen=True)

@@ -51,9 +51,18 @@ def network(env: ReturnBall, config: PPOConfig) -> ActorCritic:
 
 
 def optimizer(config: PPOConfig):
-    """Adam with global gradient-norm clipping."""
-    return optax.chain(optax.clip_by_global_norm(config.ppo.max_grad_norm),
-                       optax.adam(config.ppo.learning_rate, eps=1e-5))
+    """Adam with global gradient-norm clipping; with ``anneal_lr`` its step size falls linearly from
+    ``learning_rate`` to zero over the minibatch steps of ``total_env_steps``.
+
+    The schedule's count lives in the optimiser state, so a resumed run continues on the same line.
+    A run cut short by ``time_limit_s`` stops before the step size reaches zero: set
+    ``total_env_steps`` to what the machine trains in that time.
+    """
+    lr = config.ppo.learning_rate
+    if config.ppo.anneal_lr:
+        updates = max(config.train.total_env_steps // config.batch_size, 1)
+        lr = optax.linear_schedule(lr, 0.0, updates * config.ppo.update_epochs * config.ppo.num_minibatches)
+    return optax.chain(optax.clip_by_global_norm(config.ppo.max_grad_norm), optax.adam(lr, eps=1e-5))
 
 
 def init_runner(env: ReturnBall, env_params: EnvParams, config: PPOConfig, key) -> Runner:
@@ -173,9 +182,11 @@ def make_update(env: ReturnBall, config: PPOConfig):
 
 
 def _program_key(config: PPOConfig) -> PPOConfig:
-    """The config without what does not change a compiled program (its file name and text, limits)."""
+    """The config without what does not change a compiled program (its file name and text, limits;
+    ``total_env_steps`` stays when it sets the learning-rate schedule)."""
+    steps = config.train.total_env_steps if config.ppo.anneal_lr else 1
     return dataclasses.replace(config, source="", text="", train=dataclasses.replace(
-        config.train, total_env_steps=1, time_limit_s=1.0, seed=0, eval_every_chunks=0, checkpoint_every_chunks=1))
+        config.train, total_env_steps=steps, time_limit_s=1.0, seed=0, eval_every_chunks=0, checkpoint_every_chunks=1))
 
 
 def make_chunk(env: ReturnBall, config: PPOConfig):
@@ -211,18 +222,28 @@ def make_evaluate(env: ReturnBall, config: PPOConfig, record: int = 0):
 @functools.lru_cache(maxsize=8)
 def _make_evaluate(env: ReturnBall, config: PPOConfig, record: int):
     net = network(env, config)
+    run = episode_runner(env, lambda policy, obs: net.apply(policy[0], policy[1].normalise(obs))[0], record)
+    return jax.jit(lambda params, stats, env_params, key: run((params, stats), env_params, key))
 
-    @jax.jit
-    def evaluate(params, stats, env_params, key):
+
+def episode_runner(env: ReturnBall, act, record: int = 0):
+    """``run(policy, env_params, key) -> dict``: one episode in each of ``env.num_envs`` environments,
+    actions from ``act(policy, obs) -> (N, action_dim)``, where ``policy`` is any pytree (network
+    parameters, a constant action); traceable, so the caller jits it.
+
+    The dict holds what :func:`make_evaluate` describes.
+    """
+
+    def run(policy, env_params, key):
         k_reset, key = jax.random.split(key)
         obs, state = env.reset(k_reset, env_params)
         b = env.num_envs
 
         def body(carry, k):
             obs, state, finished, ret, outcome, error = carry
-            action = net.apply(params, stats.normalise(obs))[0]
-            obs, state, reward, terminated, truncated, info = env.step_env(k, state, action, env_params)
+            obs, state, reward, terminated, truncated, info = env.step_env(k, state, act(policy, obs), env_params)
             ret = ret + jnp.where(finished, 0.0, reward)
+            # an episode's outcome is read at its end; finished environments step on unrecorded
             newly = (terminated | truncated) & ~finished
             outcome = jnp.where(newly, info["outcome"], outcome)
             error = jnp.where(newly, info["landing_error"], error)
@@ -237,7 +258,7 @@ def _make_evaluate(env: ReturnBall, config: PPOConfig, record: int):
             out["ball"], out["racket"] = rec
         return out
 
-    return evaluate
+    return run
 
 
 def summarise(result: dict) -> dict:
