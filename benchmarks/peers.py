@@ -18,8 +18,12 @@ Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1
   table, flight + table only: similar physics, not the same (``benchmarks/peers_mujoco.py``).
 - ``mjx``: the same MuJoCo model under MJX on the JAX device, if it runs.
 
-Two configurations: ``table`` (flight + table, no rackets) and ``rackets`` (plus the two tracking
-rackets of ``ttsim_jax.policies``, the "updated" racket model; kernel, plain scan and numba).
+Three configurations: ``table`` (flight + table, no rackets), ``rackets`` (plus the two tracking
+rackets of ``ttsim_jax.policies``, the "updated" racket model; kernel, plain scan and numba) and
+``network`` (the same with conti2026's racket residual network evaluated at every racket contact,
+untrained, of the bundled size, so of the same cost as a trained one; only the kernel has it, so
+only the kernel runs). ``targets`` in the JSON divides the kernel of each
+configuration by numba's flight + table of the same run and batch.
 Before timing, the peers' first table bounces are compared with the kernel's on the same shots:
 a benchmark of wrong physics is worthless.
 
@@ -60,7 +64,9 @@ from ttsim_jax.state import Ball  # noqa: E402
 
 DT = 1e-3
 MODEL = "conti2026"
-CONFIGS = ("table", "rackets")
+CONFIGS = ("table", "rackets", "network")
+TITLES = {"table": "flight + table", "rackets": "flight + table + 2 rackets",
+          "network": "+ 2 rackets + residual network"}
 JAX_PEERS = ("kernel", "kernel_fused", "plain_scan")  # they take the shots as JAX arrays
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 
@@ -158,9 +164,16 @@ class Peers:
     """The runnable peers of one configuration: name -> (prepare(shots), run(prepared), compile_s)."""
 
     def __init__(self, model, config: str, mujoco_chunk: int, try_mjx: bool, log=print):
-        self.model, self.config = model, config
-        self.policy = tracking_rackets() if config == "rackets" else None
         self.skipped: dict[str, str] = {}
+        if config == "network":
+            from ttsim_jax.physics.residual import init_model, load_residual_config
+
+            net = init_model(load_residual_config(REPO / "configs" / "residual" / f"{MODEL}.toml"), jax.random.PRNGKey(0))
+            model = load_model(MODEL, dtype=jnp.float32, residual=net)
+            self.skipped["plain_scan"] = "no residual network in the plain scan"
+            self.skipped["numba"] = self.skipped["numba_cuda"] = "no residual network in the numba loops"
+        self.model, self.config = model, config
+        self.policy = tracking_rackets() if config != "table" else None
         self.runs: dict = {}
         self.compile_s: dict[str, float] = {}
         self.runs["kernel"] = lambda b, n: kernel_rollout(model, b, n, DT, self.policy)
@@ -174,9 +187,12 @@ class Peers:
                 except Exception as e:
                     del self.runs["kernel_fused"]
                     self.skipped["kernel_fused"] = f"{type(e).__name__}: {str(e)[:300]}"
-        self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
+        if "plain_scan" not in self.skipped:
+            self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
         numba_mod, why = _optional("numba")
-        if numba_mod is None:
+        if "numba" in self.skipped:
+            pass
+        elif numba_mod is None:
             self.skipped["numba"] = self.skipped["numba_cuda"] = why
         else:
             params = numba_mod.pack_params(model, tracking_rackets().params)
@@ -186,7 +202,7 @@ class Peers:
                 self.runs["numba_cuda"] = lambda b, n: numba_mod.rollout_cuda(params, b, n, DT, on)[::2]
             else:
                 self.skipped["numba_cuda"] = "no CUDA GPU visible to numba"
-        if config == "rackets":
+        if config != "table":
             self.skipped["mujoco"] = self.skipped["mjx"] = "flight + table only (no rackets)"
             return
         mj, why = _optional("mujoco")
@@ -330,7 +346,7 @@ def plot(report: dict, path: Path) -> None:
         ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         ax.set_xlabel("batch (balls)")
         ax.set_ylabel("ball-steps / s")
-        ax.set_title(f"{cfg}: {'flight + table' if cfg == 'table' else 'flight + table + 2 rackets'}")
+        ax.set_title(f"{cfg}: {TITLES[cfg]}")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(f"conti2026, RK4, dt = 1 ms, float32; {report['device']}", fontsize=9)
@@ -338,6 +354,20 @@ def plot(report: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def targets(report: dict) -> list[dict]:
+    """Per batch: each configuration's kernel throughput over numba's flight + table in the same run
+    (the ratios the kernel is held to: >= 0.5 for ``table``, >= 0.35 for ``network``)."""
+    rows = {}
+    base = {r["batch"]: r["peers"].get("numba", {}).get("ball_steps_per_s")
+            for r in report["configs"].get("table", {}).get("results", [])}
+    for cfg, c in report["configs"].items():
+        for r in c["results"]:
+            k, n = r["peers"]["kernel"].get("ball_steps_per_s"), base.get(r["batch"])
+            if k and n:
+                rows.setdefault(r["batch"], {"batch": r["batch"]})[cfg] = k / n
+    return [rows[b] for b in sorted(rows)]
 
 
 def _versions() -> dict:
@@ -352,9 +382,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--batches", default="1024,4096,16384,65536",
                    help="comma-separated batch sizes (default: %(default)s)")
-    p.add_argument("--configs", default="table,rackets",
+    p.add_argument("--configs", default="table,rackets,network",
                    help="comma-separated configurations: table (flight + table), rackets (plus two tracking "
-                        "rackets) (default: %(default)s)")
+                        "rackets), network (rackets plus the racket residual network; the kernel only) "
+                        "(default: %(default)s)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per peer and batch; the median is kept "
                    "(default: %(default)s)")
     p.add_argument("--budget", type=float, default=4e6,
@@ -431,8 +462,13 @@ def main(argv=None) -> int:
                           f"of kernel (compile/warm-up {r['compile_s']:.1f} s)", flush=True)
             rows.append(dict(batch=batch, n_steps=n_steps, peers=res))
         report["configs"][cfg] = dict(
-            rackets="tracking_rackets() (2, ttsim_jax.policies), updated racket model" if cfg == "rackets" else None,
+            rackets="tracking_rackets() (2, ttsim_jax.policies), updated racket model" if cfg != "table" else None,
+            residual_network=f"configs/residual/{MODEL}.toml, untrained (PRNGKey(0))" if cfg == "network" else None,
             skipped=peers.skipped, numba_compile_s=numba_compile, agreement_first_bounce=agree, results=rows)
+    report["targets"] = targets(report)
+    for row in report["targets"]:
+        print(f"  batch {row['batch']}: kernel / numba flight + table: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "batch"), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2))
     print(f"written {args.out}")

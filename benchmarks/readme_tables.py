@@ -67,6 +67,11 @@ def render(result: dict, source: str) -> str:
     skipped |= {f"{p} at batch {r['batch']:,}: {v['skipped']}" for c in configs.values() for r in c["results"]
                 for p, v in r["peers"].items() if "skipped" in v}
     skipped = sorted(skipped)
+    targets = result.get("targets", [])  # peers.py's kernel / numba flight + table, per configuration
+    lines += [""] if targets else []
+    for row in targets:
+        lines.append(f"- the kernel over numba's flight + table at batch {row['batch']:,}: "
+                     + ", ".join(f"{cfg} {v:.2f}" for cfg, v in row.items() if cfg != "batch"))
     if skipped:
         lines += [""] + [f"- not run, {s}" for s in skipped]
     return "\n".join(lines)
