@@ -7,7 +7,9 @@ always the numbers of one run and never typed by hand.
 One table per entry of :data:`TABLES`: the CPU run (``results/peers_cpu.json``) between the lines
 ``<!-- peers-table:start -->`` and ``<!-- peers-table:end -->``, the GPU runs
 (``results/peers_gpu.json``, ``results/peers_gpu_fused.json``) between
-``<!-- peers-gpu-table:start -->`` / ``<!-- peers-gpu-fused-table:start -->`` and their end lines.
+``<!-- peers-gpu-table:start -->`` / ``<!-- peers-gpu-fused-table:start -->`` and their end lines,
+the CPU run with the residual network (``results/peers_cpu_network.json``) between
+``<!-- peers-network-table:start -->`` and its end line.
 ``--write`` replaces those blocks in each file (a file without them is an error).
 """
 
@@ -23,7 +25,8 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 # marker name -> the benchmark JSON its table is written from
 TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json",
-          "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json"}
+          "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json",
+          "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json"}
 PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
 
 

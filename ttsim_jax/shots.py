@@ -218,7 +218,7 @@ def refine_aim(model, ball: Ball, target_xy, bounce=None, first_x=None, max_up=N
     first_x = np.zeros(n) if first_x is None else np.asarray(first_x)
     j = lambda a: jnp.asarray(np.asarray(a, dtype))  # noqa: E731
     vel, _, _ = aim_batch(model, j(ball.pos), j(ball.spin), j(np.linalg.norm(vel0[:, :2], axis=-1)), j(vel0[:, 2]),
-                          j(target_xy), j(first_x), jnp.asarray(serve), jnp.asarray(dt, dtype),
+                          j(target_xy), j(first_x), jnp.asarray(serve), j(dt),
                           int(round(t_max / dt)), jnp.asarray(iters))
     vel = np.asarray(vel)
     keep = ~np.isfinite(vel).all(-1)
