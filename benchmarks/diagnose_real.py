@@ -22,15 +22,18 @@ import argparse
 import json
 import shutil
 import time
+import sys
 from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):  # run as a script: make ``benchmarks`` importable
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.real_flight_rmse import real_root  # noqa: E402
 
 #: Source folder (under --real) and importer name of each public dataset.
 SOURCES = {"spindoe": "spindoe", "tt3d": "tt3d", "mpi": "mpi_ball_prediction"}
 BASELINES = ("nakashima2011", "durr2026")
-
-
-def real_root() -> Path:
-    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
 
 def summary(out: dict, counts: dict, wall: float, cpu: float) -> dict:

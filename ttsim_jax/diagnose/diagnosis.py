@@ -43,7 +43,7 @@ class NoData(ValueError):
 #: Most significant candidates fitted jointly for the before/after.
 TOP = 3
 #: Phases of the "where" analysis.
-PHASES = ("flight", "table", "racket", "landing")
+PHASES = C.PHASES + ("landing",)
 
 
 @dataclasses.dataclass(frozen=True)

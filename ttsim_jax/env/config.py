@@ -190,7 +190,14 @@ FITTED = {"table.e0": ("table", "e0", "stderr_e0"), "table.e1": ("table", "e1", 
           **{f"racket.{k}": ("racket", f"values.{k}", f"stderr.{k}") for k in ("e0", "e1", "et0", "et1", "e_s")}}
 
 
-def _normal_law(where: str, key: str, value: dict, base: Path) -> tuple[float, float]:
+def _beside(source: str, value: str) -> Path:
+    """``value`` as a path: ``~`` expanded, a relative one taken from the folder of the task file
+    ``source`` (the working directory for a task without a file)."""
+    path = Path(value).expanduser()
+    return path if path.is_absolute() else (Path(source).parent if source else Path.cwd()) / path
+
+
+def _normal_law(where: str, key: str, value: dict, source: str) -> tuple[float, float]:
     """(mean, std) of a ``[randomisation]`` entry given as ``{mean = M, std = S}`` or as
     ``{fit = "OUT.fit.json", scale = K}`` (the fitted value and K times its standard error)."""
     import json
@@ -203,8 +210,7 @@ def _normal_law(where: str, key: str, value: dict, base: Path) -> tuple[float, f
         fit = convert_value(f"{where}.fit", "", value["fit"])
         if key not in FITTED:
             raise ConfigError(f"{where}: `ttsim fit` gives no standard error for {key!r}; fitted ones: {sorted(FITTED)}")
-        path = Path(fit).expanduser()
-        path = path if path.is_absolute() else base / path
+        path = _beside(source, fit)
         try:
             summary = json.loads(path.read_text())
         except (OSError, ValueError) as e:
@@ -318,9 +324,7 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
         raise ConfigError(f"{source}: [intercept] flight_time = {list(flight)}: low must not exceed high")
     residual = out["residual"]
     if residual.checkpoint:
-        where = Path(source).parent if source else Path.cwd()
-        path = Path(residual.checkpoint).expanduser()
-        path = path if path.is_absolute() else where / path
+        path = _beside(source, residual.checkpoint)
         if not path.is_file():
             raise ConfigError(f"{source}: [residual] checkpoint = {residual.checkpoint!r}: no such file ({path})")
         out["residual"] = residual = ResidualConfig(checkpoint=str(path), sample=residual.sample)
@@ -333,8 +337,7 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     for key, value in rand.items():
         where = f"{source}: [randomisation] {key!r}"
         if isinstance(value, dict):
-            ranges.append((key, *_normal_law(where, key, value, Path(source).parent if source else Path.cwd()),
-                           "normal"))
+            ranges.append((key, *_normal_law(where, key, value, source), "normal"))
             continue
         lo, hi = convert_value(where, (0.0, 0.0), value)
         if lo > hi:

@@ -93,12 +93,12 @@ def angular_velocity(angle, rate):
     return rate[0] * jnp.stack([-sy, cy, jnp.zeros_like(cy)]) + rate[1] * jnp.array([0.0, 0.0, 1.0], cy.dtype)
 
 
-def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub, bound=None):
+def _ramp(x, v, fraction, max_accel, max_speed, bound, period, n_sub):
     """Constant-acceleration motion of one group of coordinates over a control period.
 
     Arguments:
         x, v: (d,) position and velocity; fraction: (d,) commanded acceleration / its limit, in [-1, 1].
-        bound: clips positions (..., d) into the allowed region (default: the box [lo, hi]).
+        bound: clips positions (..., d) into the allowed region.
 
     Returns:
         (positions at the n_sub step starts (n_sub, d), mean velocities over each step (n_sub, d),
@@ -108,7 +108,6 @@ def _ramp(x, v, fraction, max_accel, max_speed, lo, hi, period, n_sub, bound=Non
     accel = jnp.clip(fraction * max_accel, (-max_speed - v) / period, (max_speed - v) / period)
     h = period / n_sub
     t = jnp.arange(n_sub, dtype=x.dtype)[:, None] * h
-    bound = (lambda p: jnp.clip(p, lo, hi)) if bound is None else bound
     pos = bound(x + v * t + 0.5 * accel * t * t)
     end = x + v * period + 0.5 * accel * period * period
     held = bound(end)
@@ -134,10 +133,10 @@ def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int
     """
     a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0).astype(state.pos.dtype)
     pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3], limits.max_accel, limits.max_speed,
-                                          limits.lo, limits.hi, period, n_sub,
-                                          bound=lambda p: clip_workspace(limits, p))
+                                          lambda p: clip_workspace(limits, p), period, n_sub)
     ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5], limits.max_angle_accel,
-                                           limits.max_rate, limits.angle_lo, limits.angle_hi, period, n_sub)
+                                           limits.max_rate, lambda a: jnp.clip(a, limits.angle_lo, limits.angle_hi),
+                                           period, n_sub)
     rot = jax.vmap(rotation)(ang)
     omega = jax.vmap(angular_velocity)(ang, rate)
     face = jnp.broadcast_to(limits.face, (n_sub, 2))

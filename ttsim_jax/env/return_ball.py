@@ -201,15 +201,14 @@ def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptPar
 
 
 def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
-    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), as
-    :func:`ttsim_jax.physics.aero.acceleration` computes it."""
-    from ttsim_jax.physics.aero import coefficients
+    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), read from
+    :func:`ttsim_jax.physics.aero.acceleration` along a horizontal flight (gravity and buoyancy act
+    across it, a spinless ball has no Magnus force)."""
+    from ttsim_jax.physics.aero import acceleration
 
-    r, m = float(model.ball.radius), float(model.ball.mass)
-    v = jnp.array([speed, 0.0, 0.0], jnp.float32)
-    cd, _ = coefficients(model.aero, v, jnp.zeros(3, jnp.float32), model.ball.radius)
-    ratio = float(model.aero.rho_air) * (4.0 / 3.0) * np.pi * r ** 3 / m
-    return 3.0 / (8.0 * r) * float(cd) * ratio
+    zero = jnp.zeros(3, jnp.float32)
+    a = acceleration(model.aero, model.ball.radius, model.ball.mass, zero, zero.at[0].set(speed), zero, 0.0)
+    return -float(a[0]) / speed ** 2
 
 
 def _set_leaf(model, path: str, value):
