@@ -189,12 +189,10 @@ class Peers:
                     self.skipped["kernel_fused"] = f"{type(e).__name__}: {str(e)[:300]}"
         if "plain_scan" not in self.skipped:
             self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
-        numba_mod, why = _optional("numba")
-        if "numba" in self.skipped:
-            pass
-        elif numba_mod is None:
+        numba_mod, why = (None, None) if "numba" in self.skipped else _optional("numba")
+        if why:
             self.skipped["numba"] = self.skipped["numba_cuda"] = why
-        else:
+        elif numba_mod is not None:
             params = numba_mod.pack_params(model, tracking_rackets().params)
             on = self.policy is not None
             self.runs["numba"] = lambda b, n: numba_mod.rollout_cpu(params, b, n, DT, on)[::2]
