@@ -12,7 +12,7 @@ import pytest
 
 from ttsim_jax.cli import main
 from ttsim_jax.params import ConfigError
-from ttsim_jax.rl.checkpoint import CheckpointError, read_checkpoint
+from ttsim_jax.rl.checkpoint import CheckpointError, read_checkpoint, restore_runner
 from ttsim_jax.rl.config import load_ppo_config, parse_ppo_config
 from ttsim_jax.rl.normalise import RunningStats
 from ttsim_jax.rl.ppo import _program_key, gae, optimizer
@@ -178,3 +178,15 @@ def test_cli_plays_a_checkpoint(files, runs, capsys):
     assert sum(s["outcomes"].values()) == pytest.approx(1.0)
     assert s["task"].endswith("task.toml") and s["env_steps_trained"] == 10240
     assert plot.stat().st_size > 1000
+
+
+def test_a_checkpoint_of_other_shapes_than_its_task_now_is_refused_naming_the_leaf():
+    """A task whose observation grew since training: the restored arrays are checked against the
+    fresh runner's shapes, not handed to the network."""
+    template = {"params": {"dense": {"kernel": jax.ShapeDtypeStruct((33, 64), jnp.float32)}}}
+    payload = {"runner": {"params": {"dense": {"kernel": np.zeros((25, 64), np.float32)}}}}
+    with pytest.raises(CheckpointError, match=r"old.msgpack: \['params'\]\['dense'\]\['kernel'\] has shape "
+                                              r"\(25, 64\) in the checkpoint, \(33, 64\) for its task"):
+        restore_runner(template, payload, "old.msgpack")
+    same = {"runner": {"params": {"dense": {"kernel": np.ones((33, 64), np.float32)}}}}
+    assert restore_runner(template, same, "new.msgpack")["params"]["dense"]["kernel"].shape == (33, 64)

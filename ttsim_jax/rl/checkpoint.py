@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 from flax import serialization
 
 from ttsim_jax.io_atomic import atomic_write
@@ -59,6 +61,14 @@ def restore_runner(template, payload: dict, path=""):
     """The runner stored in ``payload``, in the structure of ``template`` (a fresh runner of the same
     config); raises :class:`CheckpointError` when they do not match."""
     try:
-        return serialization.from_state_dict(template, payload["runner"])
+        runner = serialization.from_state_dict(template, payload["runner"])
     except (ValueError, KeyError, TypeError) as e:
         raise CheckpointError(f"{path}: the checkpoint does not match its config ({e})") from None
+    # from_state_dict takes arrays of any shape: a task whose observation has changed since training
+    # (another size) would otherwise fail later, inside the network, with an unclear error
+    for (where, want), got in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree.leaves(runner)):
+        if tuple(want.shape) != tuple(jnp.shape(got)):
+            raise CheckpointError(f"{path}: {jax.tree_util.keystr(where)} has shape {tuple(jnp.shape(got))} in the "
+                                  f"checkpoint, {tuple(want.shape)} for its task as it is now (has the task's "
+                                  "observation changed since training?)")
+    return runner
