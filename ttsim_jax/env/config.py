@@ -27,6 +27,8 @@ class ShotsConfig:
 
 # The action modes of ``[control] action`` (see :mod:`ttsim_jax.env.intercept`).
 ACTION_MODES = ("accel", "intercept")
+# How the intercept tracker predicts a bounce (``[intercept] bounce``).
+BOUNCE_MODES = ("plain", "model")
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,8 @@ class InterceptConfig:
     swing_time: float = 0.1
     omega: float = 40.0
     min_height: float = 0.3
+    bounce: str = "plain"
+    magnus: bool = False
 
 
 @dataclass(frozen=True)
@@ -68,10 +72,21 @@ class RacketConfig:
 
 @dataclass(frozen=True)
 class ObservationConfig:
+    """``[observation]``: what the policy sees.
+
+    Attributes:
+        spin: include the ball's spin; noise_pos, noise_vel: std of the Gaussian noise on the
+            observed ball position [m] and velocity [m/s]; latency_steps: the ball is observed as it
+            was this many control steps ago; plan: append the intercept tracker's prediction of the
+            hit (:func:`~ttsim_jax.env.intercept.predict` of the observed ball: point, velocity,
+            time to it, whether one exists), in either action mode.
+    """
+
     spin: bool = True
     noise_pos: float = 0.0
     noise_vel: float = 0.0
     latency_steps: int = 0
+    plan: bool = False
 
 
 @dataclass(frozen=True)
@@ -319,6 +334,9 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
                           "a control period must be a whole number of physics steps")
     if control.action not in ACTION_MODES:
         raise ConfigError(f"{source}: [control] action = {control.action!r}: expected one of {list(ACTION_MODES)}")
+    if out["intercept"].bounce not in BOUNCE_MODES:
+        raise ConfigError(f"{source}: [intercept] bounce = {out['intercept'].bounce!r}: expected one of "
+                          f"{list(BOUNCE_MODES)}")
     flight = out["intercept"].flight_time
     if flight[0] > flight[1]:
         raise ConfigError(f"{source}: [intercept] flight_time = {list(flight)}: low must not exceed high")

@@ -9,13 +9,15 @@ As in robot table tennis systems (a hitting-point predictor plus a stroke), each
    followed to the next one), then flight to the hitting plane ``x = x_hit``, or, for a short ball
    that would sink below ``min_height`` above the playing surface before that plane (bouncing a
    second time on the agent's half), to where it sinks through ``min_height`` (its apex if it never
-   rises that high), but not before the workspace's near end ``x_min`` (over the table). Spin, drag
-   and the bounce's friction are left out; re-predicting every 10 ms from the current ball makes
-   those errors shrink as the ball nears, and after the bounce on the agent's half only the short
-   last flight is extrapolated;
+   rises that high), but not before the workspace's near end ``x_min`` (over the table). Spin and
+   drag are left out of the flight, and the bounce's friction unless ``bounce = "model"`` (then the
+   model's table contact with the observed spin); re-predicting every 10 ms from the current ball
+   makes those errors shrink as the ball nears, and after the bounce on the agent's half only the
+   short last flight is extrapolated;
 2. :func:`mirror` gives the stroke that sends that ball to the task's target point: the face
    normal and normal speed that turn the predicted incoming velocity (and the observed spin) into
-   the drag-free arc of a chosen flight time, through the kernel's racket contact model with the
+   the arc of a chosen flight time (with the ball's drag and, with ``magnus = true``, the Magnus
+   force of the spin the stroke gives it), through the kernel's racket contact model with the
    nominal ``racket.e0`` / ``et0`` (the "mirror law" of robot table tennis, with the face's grip);
    :func:`stroke` maps the policy's action (5,) in [-1, 1] linearly onto adjustments of it: the
    return's flight time (``flight_time`` range: short is fast and flat), offsets of the hit point
@@ -36,13 +38,21 @@ of fixed-point steps; no data-dependent loop).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ttsim_jax.env.racket import clip_workspace
+from ttsim_jax.env.racket import clip_workspace, rotation
+from ttsim_jax.physics import aero as aero_stage
+from ttsim_jax.physics import racket as racket_stage
+from ttsim_jax.physics import table as table_stage
+from ttsim_jax.state import Racket
 
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
 MIRROR_STEPS = 8
+# Passes of the mirror law with the return's spin acceleration (each re-plans the arc with the
+# spin its previous stroke gives the ball).
+SPIN_STEPS = 3
 # Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
 MIN_SPEED = 0.2
 
@@ -61,7 +71,13 @@ class InterceptParams:
         e_racket: restitutions of the predicted bounce and stroke (e0 of the racket's); e_slope: the
         racket's e1 [s/m]; grip, grip_slope: the face's tangential grip (1 + et0) / (1 + kappa) and
         et1 / (1 + kappa) [s/m] (:func:`mirror`); gravity: [m/s^2] (positive);
-        radius: ball [m].
+        radius: ball [m]; table: the model's :class:`~ttsim_jax.physics.table.TableParams` to
+        predict each bounce with its contact model (spin, friction and residual matrices), or None
+        for the plain bounce (vertical speed times ``e_table``, horizontal velocity and spin kept);
+        aero, contact, mass, face: the model's :class:`~ttsim_jax.physics.aero.AeroParams` and
+        :class:`~ttsim_jax.physics.racket.RacketParams`, the ball's mass [kg] and the face's
+        semi-axes [m], to plan the return's arc with the Magnus force of the spin the stroke gives it
+        (:func:`mirror`), or None (aero) to leave it out.
     """
 
     x_hit: jnp.ndarray
@@ -80,6 +96,11 @@ class InterceptParams:
     grip_slope: jnp.ndarray
     gravity: jnp.ndarray
     radius: jnp.ndarray
+    table: object = None
+    aero: object = None
+    contact: object = None
+    mass: jnp.ndarray = None
+    face: jnp.ndarray = None
 
 
 def _fall(pos, vel, g, z):
@@ -97,11 +118,20 @@ def _fly(pos, vel, g, t):
     return pos + vel * tt - 0.5 * g * down * tt * tt, vel - g * down * tt
 
 
-def _bounce(vel, e):
-    return vel * jnp.array([1.0, 1.0, 0.0], vel.dtype) - e * vel * jnp.array([0.0, 0.0, 1.0], vel.dtype)
+def _bounce(p: InterceptParams, pos, vel, spin):
+    """(velocity, spin) (B, 3) just after a bounce at ``pos``."""
+    if p.table is None:
+        keep, up = jnp.array([1.0, 1.0, 0.0], vel.dtype), jnp.array([0.0, 0.0, 1.0], vel.dtype)
+        return vel * keep - p.e_table * vel * up, spin
+
+    def one(x, v, w):
+        # the playing surface as an unbounded plane: a bounce predicted just past an edge still comes back up
+        return table_stage.table_contact(p.table, p.radius, x, v, w, edges=False)[1:]
+
+    return jax.vmap(one)(pos, vel, spin)
 
 
-def predict(p: InterceptParams, pos, vel, bounced):
+def predict(p: InterceptParams, pos, vel, bounced, spin=None):
     """Where and when the racket should meet the ball after its bounce on the agent's half: where it
     crosses the hitting plane ``x_hit``, or earlier where it sinks through ``min_height`` (at its
     apex if it never rises that high), but not before ``x_min``.
@@ -113,7 +143,8 @@ def predict(p: InterceptParams, pos, vel, bounced):
 
     Arguments:
         p: :class:`InterceptParams`; pos, vel: (B, 3) ball state; bounced: (B,) the ball already
-            bounced on the agent's half.
+            bounced on the agent's half; spin: (B, 3) (zero if None; flight keeps it, only the
+            bounce with ``p.table`` reads it).
 
     Returns:
         (point (B, 3) [m], velocity there (B, 3) [m/s], time from now (B,) [s], valid (B,): the ball
@@ -121,11 +152,12 @@ def predict(p: InterceptParams, pos, vel, bounced):
         meaningless).
     """
     z = p.radius
+    spin = jnp.zeros_like(vel) if spin is None else spin
     t1, (p1, v1) = _fall(pos, vel, p.gravity, z)
-    v1 = _bounce(v1, p.e_table)
+    v1, w1 = _bounce(p, p1, v1, spin)
     # a bounce on the opponent's half (a serve's first) is followed to the next one, on the agent's
     t2, (p2, v2) = _fall(p1, v1, p.gravity, z)
-    v2 = _bounce(v2, p.e_table)
+    v2, _ = _bounce(p, p2, v2, w1)
     serve = (p1[:, 0] < 0.0)[:, None]
     pb, vb, tb = jnp.where(serve, p2, p1), jnp.where(serve, v2, v1), jnp.where(serve[:, 0], t1 + t2, t1)
     after = bounced[:, None]
@@ -159,12 +191,14 @@ def stroke(p: InterceptParams, action):
     return flight, offset, a[:, 3:5] * p.angle
 
 
-def arc_velocity(d, tau, g, drag):
+def arc_velocity(d, tau, g, drag, extra=None):
     """Start velocity (B, 3) of the arc that covers the displacement ``d`` (B, 3) in ``tau`` (B, 1)
-    seconds under gravity ``g`` (down) and a linear drag ``-c v`` standing for the quadratic one,
-    ``c = drag * |d| / tau`` (drag [1/m] times the mean speed).
+    seconds under gravity ``g`` (down), a constant acceleration ``extra`` (B, 3) (none if None) and
+    a linear drag ``-c v`` standing for the quadratic one, ``c = drag * |d| / tau`` (drag [1/m]
+    times the mean speed).
 
-    With x = c tau: ``d = v0 tau f1 - g_vec tau^2 f2`` where ``f1 = (1 - e^-x) / x`` and ``f2 = (f1 - 1) / x``
+    With x = c tau and A the constant acceleration: ``d = v0 tau f1 - A tau^2 f2`` where
+    ``f1 = (1 - e^-x) / x`` and ``f2 = (f1 - 1) / x``
     (Taylor series below x = 0.01, where the closed forms lose digits); drag 0 gives the parabola's
     ``d / tau + (0, 0, g tau / 2)``.
     """
@@ -173,14 +207,17 @@ def arc_velocity(d, tau, g, drag):
     xs = jnp.where(small, 1.0, x)
     f1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)
     f2 = jnp.where(small, -0.5 + x / 6.0 - x * x / 24.0, (f1 - 1.0) / xs)
-    down = jnp.array([0.0, 0.0, -1.0], d.dtype)
-    return (d / tau + g * down * tau * f2) / f1
+    accel = g * jnp.array([0.0, 0.0, -1.0], d.dtype)
+    if extra is not None:
+        accel = accel + extra
+    return (d / tau + accel * tau * f2) / f1
 
 
 def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """The racket's face normal and velocity that send a ball meeting it at ``point`` with velocity
     ``v_in`` and spin ``spin`` to land on ``target`` after ``flight`` seconds (on the arc of
-    :func:`arc_velocity`: gravity and the drag of ``p.drag``; the return's Magnus force is left out).
+    :func:`arc_velocity`: gravity and the drag of ``p.drag``, and with ``p.aero`` the spin's share of
+    the aerodynamic force, Magnus chiefly, held at its mean over the flight).
 
     The kernel's racket contact (point contact, face moving along its normal, not turning) changes
     the ball's velocity by ``n (1 + e) (V - v_in.n) - grip * P (v_in + r n x spin)``, P the projection
@@ -188,6 +225,11 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     ``e = e0 + e1 s``, s = V - v_in.n the normal approach speed (the racket model "updated"); the
     normal n along ``v_out - v_in + grip * P (...)`` (P depends on n) is found by ``MIRROR_STEPS``
     fixed-point steps, then s from ``(1 + e0 + e1 s) s`` = the normal change (a quadratic).
+
+    With ``p.aero`` the stroke is planned ``SPIN_STEPS`` times: each pass gives the ball the spin
+    of the previous stroke (the kernel's racket contact) and adds to the arc the acceleration that
+    spin causes at the arc's mean velocity ``d / flight`` (the Magnus force is linear in the
+    velocity, so that is its mean over a flight at constant C_M and spin).
 
     Arguments:
         p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
@@ -199,7 +241,31 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     """
     tau = flight[:, None]
     land = jnp.concatenate([jnp.broadcast_to(target, point[:, :2].shape), jnp.full_like(point[:, 2:], p.radius)], -1)
-    v_out = arc_velocity(land - point, tau, p.gravity, p.drag)
+    d = land - point
+    extra = None
+    for _ in range(SPIN_STEPS if p.aero is not None else 1):
+        angle, v_racket = _invert(p, v_in, spin, arc_velocity(d, tau, p.gravity, p.drag, extra))
+        if p.aero is not None:
+            extra = _spin_acceleration(p, point, v_in, spin, angle, v_racket, d / tau)
+    return angle, v_racket
+
+
+def _spin_acceleration(p: InterceptParams, point, v_in, spin, angle, v_racket, v_mean):
+    """(B, 3) the acceleration the spin that the stroke (``angle``, ``v_racket``) gives the ball adds
+    to its flight at velocity ``v_mean``: the aerodynamic acceleration with that spin minus without."""
+    def one(x, v, w, a, vr, vm):
+        rot = rotation(a)
+        face = Racket(pos=x - p.radius * rot[:, 0], rot=rot, vel=vr, ang_vel=jnp.zeros_like(vr), face=p.face)
+        _, w_out, _ = racket_stage.racket_contact(p.contact, face, p.radius, p.mass, x, v, w)
+        acc = lambda ww: aero_stage.acceleration(p.aero, p.radius, p.mass, x, vm, ww, 0.0)  # noqa: E731
+        return acc(w_out) - acc(jnp.zeros_like(w_out))
+
+    return jax.vmap(one)(point, v_in, spin, angle, v_racket, v_mean)
+
+
+def _invert(p: InterceptParams, v_in, spin, v_out):
+    """(face angles (B, 2), racket velocity (B, 3)) of the stroke that turns ``v_in`` into ``v_out``
+    (the fixed-point inversion of the contact described in :func:`mirror`)."""
     unit = lambda d: d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-6)  # noqa: E731
 
     def tangential(n):
@@ -237,7 +303,7 @@ def track(p: InterceptParams, limits, start, target, racket, ball_pos, ball_vel,
     Returns:
         (B, 5) accelerations of the face centre and angles as fractions of their limits, in [-1, 1].
     """
-    point, v_in, t_hit, valid = predict(p, ball_pos, ball_vel, bounced)
+    point, v_in, t_hit, valid = predict(p, ball_pos, ball_vel, bounced, ball_spin)
     flight, offset, angle_offset = stroke(p, action)
     angle, swing = mirror(p, point, v_in, ball_spin, target, flight)
     swing = jnp.clip(swing, -limits.max_speed, limits.max_speed)

@@ -51,6 +51,8 @@ OUTCOME_NAMES = ("running", "legal", "net", "out", "miss", "volley", "shot_fault
 MAX_EVENTS = 4
 # Cap of the ball-racket distance in the approach term [m].
 APPROACH_CAP = 3.0
+# Entries the tracker's plan adds to the observation (``[observation] plan``): point, velocity, time, valid.
+PLAN_DIM = 8
 
 
 @struct.dataclass
@@ -197,7 +199,10 @@ def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptPar
         drag=f32(drag_per_speed2(model)), e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
         e_slope=f32(model.racket.e1), grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
         grip_slope=f32(model.racket.et1 / (1.0 + model.racket.kappa)),
-        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius))
+        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius),
+        table=model.table if c.bounce == "model" else None,
+        aero=model.aero if c.magnus else None, contact=model.racket, mass=f32(model.ball.mass),
+        face=f32(config.racket.face))
 
 
 def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
@@ -248,7 +253,7 @@ class ReturnBall:
         self.max_steps = self.config.max_steps
         self.period = 1.0 / self.config.control.rate_hz
         self.paths = tuple(r[0] for r in self.config.randomisation)
-        self.obs_dim = 25 if self.config.observation.spin else 22
+        self.obs_dim = (25 if self.config.observation.spin else 22) + PLAN_DIM * self.config.observation.plan
         self.latency = self.config.observation.latency_steps
         self._params = None
 
@@ -334,7 +339,7 @@ class ReturnBall:
         seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
         state = EnvState(rally=init_state(ball), racket=rk, progress=progress, model_values=values, shot=shot,
                          t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen)
-        return self.observe(state), state
+        return self.observe(state, params), state
 
     @staticmethod
     def _distance(ball: Ball, rk):
@@ -347,11 +352,13 @@ class ReturnBall:
         ball = jax.tree.map(lambda a: a[:, 0], state.seen)
         return ball if self.config.observation.spin else ball.replace(spin=jnp.zeros_like(ball.spin))
 
-    def observe(self, state: EnvState):
+    def observe(self, state: EnvState, params: EnvParams):
         """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300] (as
         :meth:`seen_ball`: noisy and ``latency_steps`` control steps old), racket position,
         velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced,
-        hit (the racket's state and the rally's progress are current).
+        hit (the racket's state and the rally's progress are current) [, with ``[observation] plan``:
+        the tracker's predicted hit point, velocity there / 10, time to it [s] and whether one
+        exists (:func:`~ttsim_jax.env.intercept.predict` of the seen ball), 0 where none does].
 
         Every entry is finite (a non-finite state reads 0) and within +-1e3."""
         ball, rk = self.seen_ball(state), state.racket
@@ -362,6 +369,13 @@ class ReturnBall:
         parts += [rk.pos, rk.vel / 10.0, rk.angle, rk.rate / 10.0, pos - rk.pos,
                   (state.t.astype(jnp.float32) * self.period)[:, None],
                   state.progress.bounced[:, None].astype(jnp.float32), state.progress.hit[:, None].astype(jnp.float32)]
+        if self.config.observation.plan:
+            # the hit the tracker aims at: the stroke's adjustments depend on it more simply than on the ball
+            point, v_hit, t_hit, valid = intercept.predict(params.intercept, pos, ball.vel, state.progress.bounced,
+                                                           ball.spin)
+            keep = valid[:, None]
+            parts += [jnp.where(keep, point, 0.0), jnp.where(keep, v_hit / 10.0, 0.0),
+                      jnp.where(valid, t_hit, 0.0)[:, None], keep.astype(jnp.float32)]
         obs = jnp.concatenate([p.astype(jnp.float32) for p in parts], axis=-1)
         return jnp.clip(jnp.nan_to_num(obs, nan=0.0, posinf=OBS_BOUND, neginf=-OBS_BOUND), -OBS_BOUND, OBS_BOUND)
 
@@ -429,7 +443,7 @@ class ReturnBall:
         info = {"outcome": progress.outcome, "legal": legal, "contact": contact,
                 "landing_error": jnp.where(legal, err, -1.0), "shot_type": params.shot_type[state.shot]}
         reward = jnp.nan_to_num(reward.astype(jnp.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        return self.observe(state), state, reward, terminated, truncated, info
+        return self.observe(state, params), state, reward, terminated, truncated, info
 
     def step(self, key, state: EnvState, action, params: EnvParams):
         """:meth:`step_env`, then finished environments (terminated or truncated) start afresh.
