@@ -242,11 +242,10 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     tau = flight[:, None]
     land = jnp.concatenate([jnp.broadcast_to(target, point[:, :2].shape), jnp.full_like(point[:, 2:], p.radius)], -1)
     d = land - point
-    extra = None
-    for _ in range(SPIN_STEPS if p.aero is not None else 1):
+    angle, v_racket = _invert(p, v_in, spin, arc_velocity(d, tau, p.gravity, p.drag))
+    for _ in range(SPIN_STEPS - 1 if p.aero is not None else 0):
+        extra = _spin_acceleration(p, point, v_in, spin, angle, v_racket, d / tau)
         angle, v_racket = _invert(p, v_in, spin, arc_velocity(d, tau, p.gravity, p.drag, extra))
-        if p.aero is not None:
-            extra = _spin_acceleration(p, point, v_in, spin, angle, v_racket, d / tau)
     return angle, v_racket
 
 
