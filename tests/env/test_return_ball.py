@@ -343,6 +343,7 @@ def test_angular_velocity_is_the_rotation_rate():
     ({"intercept.min_height": "low"}, r"\[intercept\] min_height = 'low': expected a finite number"),
     ({"intercept.bounce": "spin"}, r"\[intercept\] bounce = 'spin': expected one of \['plain', 'model'\]"),
     ({"intercept.magnus": 1}, r"\[intercept\] magnus = 1: expected true or false"),
+    ({"intercept.air": "on"}, r"\[intercept\] air = 'on': expected true or false"),
     ({"observation.plan": "yes"}, r"\[observation\] plan = 'yes': expected true or false"),
     ({"randomisation.table.e0": {"mean": 0.95, "std": -0.01}}, r"\[randomisation\] 'table.e0': std = -0.01"),
     ({"randomisation.table.e0": {"mean": 0.95}}, r"'table.e0' = \{'mean': 0.95\}: expected \[low, high\]"),

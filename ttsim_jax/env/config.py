@@ -52,6 +52,7 @@ class InterceptConfig:
     min_height: float = 0.3
     bounce: str = "plain"
     magnus: bool = False
+    air: bool = False
 
 
 @dataclass(frozen=True)

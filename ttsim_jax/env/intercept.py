@@ -4,16 +4,18 @@ policy chooses the stroke.
 As in robot table tennis systems (a hitting-point predictor plus a stroke), each control step
 
 1. :func:`predict` extrapolates the observed ball to its hit point (``[intercept]`` of the task
-   file): drag-free ballistic flight to the table, a bounce with the task model's nominal
-   ``table.e0`` (horizontal velocity kept; a bounce on the opponent's half, a serve's first, is
-   followed to the next one), then flight to the hitting plane ``x = x_hit``, or, for a short ball
-   that would sink below ``min_height`` above the playing surface before that plane (bouncing a
-   second time on the agent's half), to where it sinks through ``min_height`` (its apex if it never
-   rises that high), but not before the workspace's near end ``x_min`` (over the table). Spin and
-   drag are left out of the flight, and the bounce's friction unless ``bounce = "model"`` (then the
-   model's table contact with the observed spin); re-predicting every 10 ms from the current ball
-   makes those errors shrink as the ball nears, and after the bounce on the agent's half only the
-   short last flight is extrapolated;
+   file): flight to the table, a bounce with the task model's nominal ``table.e0`` (horizontal
+   velocity kept; a bounce on the opponent's half, a serve's first, is followed to the next one),
+   then flight to the hitting plane ``x = x_hit``, or, for a short ball that would sink below
+   ``min_height`` above the playing surface before that plane (bouncing a second time on the
+   agent's half), to where it sinks through ``min_height`` (its apex if it never rises that high),
+   but not before the workspace's near end ``x_min`` (over the table). Each flight is closed-form at
+   a constant acceleration: gravity alone, or with ``air = true`` gravity plus the model's drag and
+   Magnus force at its velocity a third of the way through (two passes; the spin is held). The
+   bounce's friction is left out unless ``bounce = "model"`` (then the model's table contact with
+   the observed spin).
+   Re-predicting every 10 ms from the current ball makes the remaining errors shrink as the ball
+   nears, and after the bounce on the agent's half only the short last flight is extrapolated;
 2. :func:`mirror` gives the stroke that sends that ball to the task's target point: the face
    normal and normal speed that turn the predicted incoming velocity (and the observed spin) into
    the arc of a chosen flight time (with the ball's drag and, with ``magnus = true``, the Magnus
@@ -55,6 +57,8 @@ MIRROR_STEPS = 8
 SPIN_STEPS = 3
 # Slowest ball (towards the agent, [m/s]) for which a crossing of the hitting plane is predicted.
 MIN_SPEED = 0.2
+# The least downward acceleration of a predicted flight with air, as a fraction of gravity.
+MIN_FALL = 0.25
 
 
 @struct.dataclass
@@ -77,7 +81,9 @@ class InterceptParams:
         aero, contact, mass, face: the model's :class:`~ttsim_jax.physics.aero.AeroParams` and
         :class:`~ttsim_jax.physics.racket.RacketParams`, the ball's mass [kg] and the face's
         semi-axes [m], to plan the return's arc with the Magnus force of the spin the stroke gives it
-        (:func:`mirror`), or None (aero) to leave it out.
+        (:func:`mirror`), or None (aero) to leave it out; air: the model's
+        :class:`~ttsim_jax.physics.aero.AeroParams` to predict the incoming ball's flight with its
+        drag and Magnus force (:func:`predict`), or None for drag-free flight.
     """
 
     x_hit: jnp.ndarray
@@ -101,21 +107,61 @@ class InterceptParams:
     contact: object = None
     mass: jnp.ndarray = None
     face: jnp.ndarray = None
+    air: object = None
 
 
-def _fall(pos, vel, g, z):
-    """(time until the centre falls to height z, position, velocity then) of drag-free flight; (B,),
-    (B, 3), (B, 3). A ball already below z lands at once."""
-    disc = jnp.maximum(vel[:, 2] ** 2 + 2.0 * g * (pos[:, 2] - z), 0.0)
-    t = jnp.maximum((vel[:, 2] + jnp.sqrt(disc)) / g, 0.0)
-    return t, _fly(pos, vel, g, t)
+def _accel(p: InterceptParams, vel, spin):
+    """(B, 3) the constant acceleration a predicted flight at velocity ``vel`` is given: gravity, and
+    with ``p.air`` the model's whole aerodynamic acceleration (drag, Magnus) at that velocity, its
+    vertical part held at least ``MIN_FALL`` downwards (a backspin ball whose lift nearly cancels
+    gravity still comes down: its drag slows it and its lift with it)."""
+    if p.air is None:
+        return jnp.broadcast_to(jnp.array([0.0, 0.0, -1.0], vel.dtype) * p.gravity, vel.shape)
+    zero = jnp.zeros(3, vel.dtype)
+    acc = jax.vmap(lambda v, w: aero_stage.acceleration(p.air, p.radius, p.mass, zero, v, w, 0.0))(vel, spin)
+    return acc.at[:, 2].set(jnp.minimum(acc[:, 2], -MIN_FALL * p.gravity))
 
 
-def _fly(pos, vel, g, t):
-    """(position, velocity) after drag-free flight for times t (B,)."""
-    down = jnp.array([0.0, 0.0, 1.0], pos.dtype)
+def _fall(pos, vel, acc, z):
+    """(time until the centre falls to height z, position, velocity then) of flight at the constant
+    acceleration ``acc`` (B, 3) (its z part negative); (B,), (B, 3), (B, 3). A ball already below z
+    lands at once; one that never rises to z is taken to its apex."""
+    down = -acc[:, 2]
+    disc = jnp.maximum(vel[:, 2] ** 2 + 2.0 * down * (pos[:, 2] - z), 0.0)
+    t = jnp.maximum((vel[:, 2] + jnp.sqrt(disc)) / down, 0.0)
+    return t, _fly(pos, vel, acc, t)
+
+
+def _reach(pos, vel, acc, x):
+    """(B,) time until the ball reaches x = ``x`` along the table at constant acceleration (negative
+    if it is past it; a ball that stops short is given the time a constant speed would take)."""
+    gap = x - pos[:, 0]
+    speed = jnp.where(vel[:, 0] > MIN_SPEED, vel[:, 0], 1.0)
+    disc = speed ** 2 + 2.0 * acc[:, 0] * gap
+    root = jnp.where(disc > 0.0, jnp.sqrt(jnp.maximum(disc, 0.0)), speed)
+    return 2.0 * gap / (speed + root)
+
+
+def _fly(pos, vel, acc, t):
+    """(position, velocity) after flight at the constant acceleration ``acc`` (B, 3) for times t (B,)."""
     tt = t[:, None]
-    return pos + vel * tt - 0.5 * g * down * tt * tt, vel - g * down * tt
+    return pos + vel * tt + 0.5 * acc * tt * tt, vel + acc * tt
+
+
+def _flight(p: InterceptParams, pos, vel, spin, when):
+    """(time, position, velocity, acceleration) of a predicted flight that lasts ``when(acc)``
+    (B,): one pass with gravity alone, or with ``p.air`` two, the second at the aerodynamic
+    acceleration of the first pass's velocity a third of the way through the flight. An
+    acceleration a(s) changing linearly over a flight of duration T moves the ball as its value at
+    T / 3 would (the position weighs a(s) by T - s): so the vertical drag, downwards while the ball
+    rises and upwards as it falls, is not averaged away (2 cm of height over a 0.25 s flight)."""
+    acc = _accel(p, vel, spin)
+    t = when(acc)
+    if p.air is not None:
+        _, v_end = _fly(pos, vel, acc, t)
+        acc = _accel(p, vel + (v_end - vel) / 3.0, spin)
+        t = when(acc)
+    return (t,) + _fly(pos, vel, acc, t) + (acc,)
 
 
 def _bounce(p: InterceptParams, pos, vel, spin):
@@ -143,8 +189,8 @@ def predict(p: InterceptParams, pos, vel, bounced, spin=None):
 
     Arguments:
         p: :class:`InterceptParams`; pos, vel: (B, 3) ball state; bounced: (B,) the ball already
-            bounced on the agent's half; spin: (B, 3) (zero if None; flight keeps it, only the
-            bounce with ``p.table`` reads it).
+            bounced on the agent's half; spin: (B, 3) (zero if None; flight keeps it; the flight
+            with ``p.air`` and the bounce with ``p.table`` read it).
 
     Returns:
         (point (B, 3) [m], velocity there (B, 3) [m/s], time from now (B,) [s], valid (B,): the ball
@@ -153,24 +199,26 @@ def predict(p: InterceptParams, pos, vel, bounced, spin=None):
     """
     z = p.radius
     spin = jnp.zeros_like(vel) if spin is None else spin
-    t1, (p1, v1) = _fall(pos, vel, p.gravity, z)
+    t1, p1, v1, _ = _flight(p, pos, vel, spin, lambda a: _fall(pos, vel, a, z)[0])
     v1, w1 = _bounce(p, p1, v1, spin)
     # a bounce on the opponent's half (a serve's first) is followed to the next one, on the agent's
-    t2, (p2, v2) = _fall(p1, v1, p.gravity, z)
-    v2, _ = _bounce(p, p2, v2, w1)
+    t2, p2, v2, _ = _flight(p, p1, v1, w1, lambda a: _fall(p1, v1, a, z)[0])
+    v2, w2 = _bounce(p, p2, v2, w1)
     serve = (p1[:, 0] < 0.0)[:, None]
     pb, vb, tb = jnp.where(serve, p2, p1), jnp.where(serve, v2, v1), jnp.where(serve[:, 0], t1 + t2, t1)
+    wb = jnp.where(serve, w2, w1)
     after = bounced[:, None]
     pb, vb, tb = jnp.where(after, pos, pb), jnp.where(after, vel, vb), jnp.where(bounced, 0.0, tb)
-    speed = vb[:, 0]
-    safe = jnp.where(speed > MIN_SPEED, speed, 1.0)
-    th = (p.x_hit - pb[:, 0]) / safe
-    valid = (speed > MIN_SPEED) & (th >= 0.0) & jnp.isfinite(th + tb)
-    # _fall's clamped root is the apex for a ball that never rises to min_height, 0 for one below it and falling
-    t_low, _ = _fall(pb, vb, p.gravity, p.min_height)
-    th = jnp.minimum(th, jnp.maximum(t_low, (p.x_min - pb[:, 0]) / safe))
-    th = jnp.where(valid, th, 0.0)
-    point, v_hit = _fly(pb, vb, p.gravity, th)
+    wb = jnp.where(after, spin, wb)
+
+    def when(acc):
+        # _fall's clamped root is the apex for a ball that never rises to min_height, 0 for one below it and falling
+        t_low, _ = _fall(pb, vb, acc, p.min_height)
+        return jnp.minimum(_reach(pb, vb, acc, p.x_hit), jnp.maximum(t_low, _reach(pb, vb, acc, p.x_min)))
+
+    th, point, v_hit, acc = _flight(p, pb, vb, wb, when)
+    t_plane = _reach(pb, vb, acc, p.x_hit)
+    valid = (vb[:, 0] > MIN_SPEED) & (t_plane >= 0.0) & jnp.isfinite(t_plane + tb + th)
     keep = valid[:, None]
     return jnp.where(keep, point, pos), jnp.where(keep, v_hit, vel), jnp.where(valid, tb + th, 0.0), valid
 

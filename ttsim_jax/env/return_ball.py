@@ -202,7 +202,7 @@ def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptPar
         gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius),
         table=model.table if c.bounce == "model" else None,
         aero=model.aero if c.magnus else None, contact=model.racket, mass=f32(model.ball.mass),
-        face=f32(config.racket.face))
+        face=f32(config.racket.face), air=model.aero if c.air else None)
 
 
 def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
