@@ -30,7 +30,7 @@ def make_play(env: ReturnBall):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--task", default="return_ball_intercept")
+    p.add_argument("--task", default="return_ball")
     p.add_argument("--envs", type=int, default=512)
     p.add_argument("--swing", type=float, nargs="*", default=[-1.0, -0.5, 0.0, 0.5, 1.0],
                    help="grid of action[0] (return flight time)")

@@ -5,7 +5,7 @@ second bounce, the floor), never comes within reach of the face, i.e. never ente
 face's semi-axis plus the ball's radius. Flown through the task's nominal model, no racket, the
 path sampled every 2 ms. A ceiling: the face reaching a ball with its rim counts as a return.
 
-    python benchmarks/reachable_shots.py return_ball return_ball_intercept
+    python benchmarks/reachable_shots.py return_ball_accel return_ball
 """
 
 from __future__ import annotations

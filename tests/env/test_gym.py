@@ -9,12 +9,13 @@ from gymnasium.utils.env_checker import check_env
 import ttsim_jax  # noqa: F401  (registers the environments)
 from ttsim_jax.env.gym import ReturnBallEnv, ReturnBallVectorEnv
 
+TASK = "return_ball_accel"
 OVERRIDES = {"shots.bank": 32, "shots.aim": False}
 
 
 @pytest.fixture(scope="module")
 def env():
-    return gymnasium.make("ttsim/ReturnBall-v0", overrides=OVERRIDES)
+    return gymnasium.make("ttsim/ReturnBall-v0", task=TASK, overrides=OVERRIDES)
 
 
 def test_registered_on_import():
@@ -39,11 +40,11 @@ def test_single_env_episode_ends_and_reports_its_outcome(env):
     assert terminated or truncated
     assert info["outcome"] != 0 or truncated
     with pytest.raises(gymnasium.error.ResetNeeded):
-        ReturnBallEnv(overrides=OVERRIDES).step(np.zeros(5, np.float32))
+        ReturnBallEnv(task=TASK, overrides=OVERRIDES).step(np.zeros(5, np.float32))
 
 
 def test_make_vec_builds_the_batched_env_with_batched_spaces():
-    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=4096, overrides=OVERRIDES)
+    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=4096, task=TASK, overrides=OVERRIDES)
     assert isinstance(vec, ReturnBallVectorEnv) and vec.num_envs == 4096
     assert vec.observation_space.shape == (4096, 25) and vec.action_space.shape == (4096, 5)
     assert vec.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.SAME_STEP

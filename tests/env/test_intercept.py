@@ -24,6 +24,8 @@ from ttsim_jax.physics.racket import racket_contact
 from ttsim_jax.state import Racket
 
 N = 8
+# the "accel" task switched to the intercept mode: its tracker settings are the code's defaults
+ACCEL = "return_ball_accel"
 OVERRIDES = {"shots.bank": 64, "shots.aim": True, "control.action": "intercept"}
 G = 9.81
 
@@ -32,7 +34,7 @@ G = 9.81
 def params():
     model = load_model("conti2026", dtype=jnp.float32)
     # the drag-free flight and plain bounce, whose closed forms the predictor tests check
-    return intercept_params(model, load_task_config("return_ball_intercept",
+    return intercept_params(model, load_task_config("return_ball",
                                                     {"intercept.air": False, "intercept.bounce": "plain"}))
 
 
@@ -298,7 +300,7 @@ def test_return_planned_with_its_spin_lands_on_the_target_through_the_kernel(par
 def episode():
     """8 environments in intercept mode played with action 0 until every one finished, with the
     prediction made before each step."""
-    env = ReturnBall(load_task_config("return_ball_intercept", OVERRIDES), N)
+    env = ReturnBall(load_task_config("return_ball", OVERRIDES), N)
     p = env.default_params()
     key = jax.random.PRNGKey(3)
     _, state = jit_reset(env, key, p)
@@ -391,17 +393,17 @@ def test_extreme_and_non_finite_actions_stay_finite(episode):
 
 
 def test_spaces_are_those_of_the_accel_mode_the_plan_appended():
-    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides=OVERRIDES)
-    plain = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides={"shots.bank": 64, "shots.aim": False})
+    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, task=ACCEL, overrides=OVERRIDES)
+    plain = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, task=ACCEL, overrides={"shots.bank": 64, "shots.aim": False})
     assert vec.single_observation_space == plain.single_observation_space
     assert vec.single_action_space == plain.single_action_space
-    planned = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N,
+    planned = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, task=ACCEL,
                                  overrides=dict(OVERRIDES, **{"observation.plan": True}))
     assert planned.single_observation_space.shape == (plain.single_observation_space.shape[0] + 8,)
     assert planned.single_observation_space.dtype == np.float32
 
 
 def test_single_env_in_intercept_mode_passes_gymnasiums_checker():
-    env = gymnasium.make("ttsim/ReturnBall-v0", overrides=dict(OVERRIDES, **{"shots.bank": 32, "shots.aim": False,
+    env = gymnasium.make("ttsim/ReturnBall-v0", task=ACCEL, overrides=dict(OVERRIDES, **{"shots.bank": 32, "shots.aim": False,
                                                                             "observation.plan": True}))
     check_env(env.unwrapped, skip_render_check=True)

@@ -26,7 +26,7 @@ def env(tmp_path_factory):
     n = TINY.n_inputs
     R.save_residual(path, net.replace(x_min=jnp.full(n, -1e3, jnp.float32), x_max=jnp.full(n, 1e3, jnp.float32),
                                       beta_coef=jnp.array([1.0, 0.0, 0.0], jnp.float32)))
-    env = ReturnBall(load_task_config("return_ball_intercept", {**QUIET, "residual.checkpoint": str(path),
+    env = ReturnBall(load_task_config("return_ball", {**QUIET, "residual.checkpoint": str(path),
                                                                 "residual.sample": True}), N)
     return env, env.default_params()
 
@@ -72,5 +72,5 @@ def test_sampled_correction_changes_the_contacts_only_and_vanishes_with_sigma(en
 ])
 def test_bad_residual_section_is_refused_naming_file_and_key(overrides, match):
     with pytest.raises(ConfigError, match=match) as err:
-        load_task_config("return_ball_intercept", overrides)
-    assert "return_ball_intercept.toml" in str(err.value)
+        load_task_config("return_ball", overrides)
+    assert "return_ball.toml" in str(err.value)

@@ -21,12 +21,14 @@ from ttsim_jax.params import ConfigError
 from ttsim_jax.physics import events as ev
 
 N = 8
+# the "accel" form: the policy commands the racket (the default task puts the intercept tracker under it)
+TASK = "return_ball_accel"
 OVERRIDES = {"shots.bank": 64, "shots.aim": False}
 
 
 @pytest.fixture(scope="module")
 def vec():
-    env = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, overrides=OVERRIDES)
+    env = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=N, task=TASK, overrides=OVERRIDES)
     env.reset(seed=0)
     return env
 
@@ -172,7 +174,7 @@ def test_normal_laws_are_drawn_around_their_mean_within_three_deviations():
     (the reset's draw, evaluated for 4,096 environments without compiling an environment)."""
     from ttsim_jax.env.return_ball import ReturnBall
 
-    env = ReturnBall(load_task_config(None, dict(OVERRIDES, **{"randomisation": {
+    env = ReturnBall(load_task_config(TASK, dict(OVERRIDES, **{"randomisation": {
         "table.e0": {"mean": 0.95, "std": 0.01}, "racket.e0": [0.84, 0.90]}})), 4096)
     assert env.config.randomisation == (("table.e0", 0.95, 0.01, "normal"), ("racket.e0", 0.84, 0.90, "uniform"))
     lo, hi, normal = jnp.array([0.95, 0.84]), jnp.array([0.01, 0.90]), jnp.array([True, False])
@@ -310,10 +312,10 @@ def test_workspace_configured_as_the_old_box_is_the_old_box(lo_x, table_z):
 def test_start_below_the_clearance_over_the_table_is_refused():
     from ttsim_jax.env.return_ball import ReturnBall
 
-    config = load_task_config(None, dict(OVERRIDES, **{"racket.workspace_lo": [0.6, -1.0, 0.0],
+    config = load_task_config(TASK, dict(OVERRIDES, **{"racket.workspace_lo": [0.6, -1.0, 0.0],
                                                        "racket.table_clearance": 0.05,
                                                        "racket.start": [1.0, 0.0, 0.02]}))
-    with pytest.raises(ConfigError, match=r"return_ball.toml: \[racket\] start = \[1.0, 0.0, 0.02\] .*table_clearance"):
+    with pytest.raises(ConfigError, match=r"return_ball_accel.toml: \[racket\] start = \[1.0, 0.0, 0.02\] .*table_clearance"):
         ReturnBall(config, 2).default_params()
 
 
@@ -352,14 +354,20 @@ def test_angular_velocity_is_the_rotation_rate():
 ])
 def test_bad_task_file_is_refused_naming_file_and_key(overrides, message):
     with pytest.raises(ConfigError, match=message) as info:
-        load_task_config(None, overrides)
-    assert "return_ball.toml" in str(info.value)
+        load_task_config(TASK, overrides)
+    assert "return_ball_accel.toml" in str(info.value)
+
+
+def test_a_renamed_bundled_task_is_refused_naming_its_new_name():
+    with pytest.raises(ConfigError, match=r"return_ball_intercept.toml: no such task file \(bundled tasks: "
+                                          r"return_ball, return_ball_accel, .*; return_ball_intercept is now return_ball\)"):
+        load_task_config("return_ball_intercept")
 
 
 def test_unknown_randomised_parameter_is_refused():
     from ttsim_jax.env.return_ball import ReturnBall
 
-    config = load_task_config(None, dict(OVERRIDES, **{"randomisation.table.bounciness": [0.1, 0.2]}))
+    config = load_task_config(TASK, dict(OVERRIDES, **{"randomisation.table.bounciness": [0.1, 0.2]}))
     with pytest.raises(ConfigError, match="bounciness"):
         ReturnBall(config, 2).default_params()
 
@@ -369,7 +377,7 @@ def test_latency_shows_the_ball_as_it_was_that_many_steps_ago():
     control steps earlier (the reset's ball until then), while the racket part is current."""
     from ttsim_jax.env.return_ball import ReturnBall
 
-    env = ReturnBall(load_task_config(None, dict(OVERRIDES, **{"observation.latency_steps": 2})), N)
+    env = ReturnBall(load_task_config(TASK, dict(OVERRIDES, **{"observation.latency_steps": 2})), N)
     params = env.default_params()
     key = jax.random.PRNGKey(3)
     obs, state = jit_reset(env, key, params)

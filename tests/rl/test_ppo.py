@@ -161,7 +161,7 @@ def test_cli_refuses_to_overwrite_and_resumes(files, runs, capsys):
         read_checkpoint(files / "bad.msgpack")
     assert main(["play", "--policy", str(files / "bad.msgpack")]) == 2
     # a policy of racket accelerations is not played on a task of the intercept mode
-    assert main(["play", "--policy", str(out / CHECKPOINT), "--task", "return_ball_intercept"]) == 2
+    assert main(["play", "--policy", str(out / CHECKPOINT), "--task", "return_ball"]) == 2
     assert "action = 'intercept'" in capsys.readouterr().err
 
 

@@ -165,6 +165,10 @@ _NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach"
                  "yaw", "table_clearance"}
 
 
+# Bundled tasks under their former names (the intercept mode became the default task).
+RENAMED = {"return_ball_intercept": "return_ball", "return_ball_pro_intercept": "return_ball_pro"}
+
+
 def default_task_path(name: str = "return_ball") -> Path:
     """The bundled task file ``configs/tasks/NAME.toml``."""
     return config_dir() / "tasks" / f"{name}.toml"
@@ -256,7 +260,8 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
     """Reads and checks a task file.
 
     Arguments:
-        path: a task .toml file, a bundled task name (``"return_ball"``, ``"return_ball_pro"``), or
+        path: a task .toml file, a bundled task name (``"return_ball"``, ``"return_ball_pro"``, their
+            "accel" forms ``"return_ball_accel"``, ``"return_ball_pro_accel"``), or
             None for ``return_ball``.
         overrides: ``{"section.key": value}`` applied on top of the file (``{"shots.bank": 64}``).
 
@@ -265,7 +270,11 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
     """
     path = default_task_path() if path is None else Path(path)
     if path.suffix != ".toml" and not path.exists():
-        path = default_task_path(str(path))
+        name, path = str(path), default_task_path(str(path))
+        if not path.is_file():
+            bundled = sorted(p.stem for p in path.parent.glob("*.toml"))
+            hint = f"; {name} is now {RENAMED[name]}" if name in RENAMED else ""
+            raise ConfigError(f"{path}: no such task file (bundled tasks: {', '.join(bundled)}{hint})")
     if not path.is_file():
         raise ConfigError(f"{path}: no such task file")
     try:

@@ -43,7 +43,8 @@ def register(subparsers) -> None:
     q.add_argument("--policy", required=True, type=existing_file, metavar="CKPT",
                    help="checkpoint written by 'ttsim train ppo' (OUT/checkpoint.msgpack)")
     q.add_argument("--task", default=None, metavar="TASK",
-                   help="bundled task name (return_ball, return_ball_pro) or task .toml (default: the checkpoint's)")
+                   help="bundled task name (return_ball, return_ball_pro; return_ball_accel, return_ball_pro_accel for "
+                        "an accel policy) or task .toml (default: the checkpoint's)")
     q.add_argument("--episodes", type=positive_int, default=1024, help="episodes (default: %(default)s)")
     q.add_argument("--seed", type=seed, default=0, help="seed (default: %(default)s)")
     q.add_argument("--plot", type=writable_file, default=None, metavar="PNG", help="draw sample rallies to this PNG")
@@ -93,7 +94,7 @@ def cmd_play(args) -> int:
     if trained != asked:
         raise UsageError(f"--task {args.task}: its [control] action = {asked!r}, but {args.policy} was trained with "
                          f"action = {trained!r} (for the professional shots of an intercept policy: "
-                         "--task return_ball_pro_intercept)")
+                         "--task return_ball_pro; of an accel policy: --task return_ball_pro_accel)")
     train_env, train_params = build(config, config.ppo.num_envs, args.task)
     runner = restore_runner(jax.eval_shape(lambda k: ppo.init_runner(train_env, train_params, config, k),
                                            jax.random.PRNGKey(0)), payload, args.policy)
