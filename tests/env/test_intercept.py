@@ -403,7 +403,11 @@ def test_spaces_are_those_of_the_accel_mode_the_plan_appended():
     assert planned.single_observation_space.dtype == np.float32
 
 
-def test_single_env_in_intercept_mode_passes_gymnasiums_checker():
-    env = gymnasium.make("ttsim/ReturnBall-v0", task=ACCEL, overrides=dict(OVERRIDES, **{"shots.bank": 32, "shots.aim": False,
-                                                                            "observation.plan": True}))
+def test_default_task_is_the_intercept_mode_and_passes_gymnasiums_checker():
+    """``gymnasium.make("ttsim/ReturnBall-v0")`` without a task: the bundled default, the intercept
+    mode with the air in its prediction and the plan in its observation (a small unaimed bank)."""
+    env = gymnasium.make("ttsim/ReturnBall-v0", overrides={"shots.bank": 32, "shots.aim": False})
+    config = env.unwrapped.env.config
+    assert config.control.action == "intercept" and config.intercept.air and config.observation.plan
+    assert env.observation_space.shape == (33,)
     check_env(env.unwrapped, skip_render_check=True)
