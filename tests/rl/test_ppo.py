@@ -190,3 +190,23 @@ def test_a_checkpoint_of_other_shapes_than_its_task_now_is_refused_naming_the_le
         restore_runner(template, payload, "old.msgpack")
     same = {"runner": {"params": {"dense": {"kernel": np.ones((33, 64), np.float32)}}}}
     assert restore_runner(template, same, "new.msgpack")["params"]["dense"]["kernel"].shape == (33, 64)
+
+
+def test_a_checkpoint_from_before_the_plan_in_the_state_restores_with_zeros_there():
+    """Checkpoints written before the environment state carried the tracker's plan (derived state)
+    still restore: zeros there, which a resumed run recomputes and ``ttsim play`` does not read."""
+    from flax import serialization
+
+    from ttsim_jax.env.config import load_task_config
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    env = ReturnBall(load_task_config("return_ball", {"shots.bank": 8, "shots.aim": False}), 4)
+    params = env.default_params()
+    state = jax.eval_shape(lambda k: env.reset(k, params)[1], jax.random.PRNGKey(0))
+    assert state.plan.shape == (4, 8)
+    template = {"env_state": state}
+    old = jax.tree.map(lambda s: np.ones(s.shape, s.dtype), serialization.to_state_dict(template))
+    del old["env_state"]["plan"]
+    restored = restore_runner(template, {"runner": old}, "old.msgpack")
+    np.testing.assert_array_equal(restored["env_state"].plan, np.zeros((4, 8), np.float32))
+    np.testing.assert_array_equal(restored["env_state"].t, np.ones(4, np.int32))

@@ -337,20 +337,21 @@ def _invert(p: InterceptParams, v_in, spin, v_out):
     return angle, speed[:, None] * n
 
 
-def track(p: InterceptParams, limits, start, target, racket, ball_pos, ball_vel, ball_spin, bounced, hit, action):
+def track(p: InterceptParams, limits, start, target, racket, prediction, ball_spin, hit, action):
     """The racket's acceleration command (as :func:`~ttsim_jax.env.racket.command` reads it) for a
     policy action in intercept mode.
 
     Arguments:
         p: :class:`InterceptParams`; limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start: (3,)
         the racket's rest position; target: (2,) the return's target point (x, y);
-        racket: :class:`~ttsim_jax.env.racket.RacketState` (B, ...); ball_pos, ball_vel, ball_spin:
-        (B, 3) observed ball (spin 0 where it is not observed); bounced, hit: (B,) rally flags; action: (B, 5).
+        racket: :class:`~ttsim_jax.env.racket.RacketState` (B, ...); prediction: :func:`predict` of
+        the observed ball (point, velocity, time, valid); ball_spin: (B, 3) its observed spin (0 where
+        it is not observed); hit: (B,) the racket met the ball; action: (B, 5).
 
     Returns:
         (B, 5) accelerations of the face centre and angles as fractions of their limits, in [-1, 1].
     """
-    point, v_in, t_hit, valid = predict(p, ball_pos, ball_vel, bounced, ball_spin)
+    point, v_in, t_hit, valid = prediction
     flight, offset, angle_offset = stroke(p, action)
     angle, swing = mirror(p, point, v_in, ball_spin, target, flight)
     swing = jnp.clip(swing, -limits.max_speed, limits.max_speed)

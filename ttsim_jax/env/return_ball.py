@@ -85,6 +85,10 @@ class EnvState:
         seen: :class:`Ball` with (B, L + 1, 3) fields: the ball as measured (observation noise
             included) at the end of each of the last L + 1 control steps, oldest first, L the
             configured ``latency_steps``; the policy (and the intercept tracker) see the oldest.
+        plan: with ``[observation] plan``, (B, 8) the tracker's prediction from the ball seen now
+            (:func:`~ttsim_jax.env.intercept.predict`: point, velocity, time to it, valid as 0 / 1),
+            made once when the state is made and read by the observation and by the next step's
+            tracker; (B, 0) otherwise.
     """
 
     rally: RallyState
@@ -95,6 +99,7 @@ class EnvState:
     t: jnp.ndarray
     distance: jnp.ndarray
     seen: Ball
+    plan: jnp.ndarray
 
 
 @struct.dataclass
@@ -338,8 +343,9 @@ class ReturnBall:
         # nothing older than the first measurement exists: the history starts filled with it
         seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
         state = EnvState(rally=init_state(ball), racket=rk, progress=progress, model_values=values, shot=shot,
-                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen)
-        return self.observe(state, params), state
+                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None)
+        state = state.replace(plan=self.plan(state, params))
+        return self.observe(state), state
 
     @staticmethod
     def _distance(ball: Ball, rk):
@@ -352,13 +358,22 @@ class ReturnBall:
         ball = jax.tree.map(lambda a: a[:, 0], state.seen)
         return ball if self.config.observation.spin else ball.replace(spin=jnp.zeros_like(ball.spin))
 
-    def observe(self, state: EnvState, params: EnvParams):
+    def plan(self, state: EnvState, params: EnvParams):
+        """:attr:`EnvState.plan` of ``state`` (whose other fields are set): (B, 8) or (B, 0)."""
+        if not self.config.observation.plan:
+            return jnp.zeros((self.num_envs, 0), jnp.float32)
+        ball = self.seen_ball(state)
+        point, v_hit, t_hit, valid = intercept.predict(params.intercept, ball.pos, ball.vel, state.progress.bounced,
+                                                       ball.spin)
+        return jnp.concatenate([point, v_hit, t_hit[:, None], valid[:, None]], -1).astype(jnp.float32)
+
+    def observe(self, state: EnvState):
         """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300] (as
         :meth:`seen_ball`: noisy and ``latency_steps`` control steps old), racket position,
         velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced,
         hit (the racket's state and the rally's progress are current) [, with ``[observation] plan``:
         the tracker's predicted hit point, velocity there / 10, time to it [s] and whether one
-        exists (:func:`~ttsim_jax.env.intercept.predict` of the seen ball), 0 where none does].
+        exists (:attr:`EnvState.plan`, the prediction from the seen ball), 0 where none does].
 
         Every entry is finite (a non-finite state reads 0) and within +-1e3."""
         ball, rk = self.seen_ball(state), state.racket
@@ -371,11 +386,9 @@ class ReturnBall:
                   state.progress.bounced[:, None].astype(jnp.float32), state.progress.hit[:, None].astype(jnp.float32)]
         if self.config.observation.plan:
             # the hit the tracker aims at: the stroke's adjustments depend on it more simply than on the ball
-            point, v_hit, t_hit, valid = intercept.predict(params.intercept, pos, ball.vel, state.progress.bounced,
-                                                           ball.spin)
-            keep = valid[:, None]
-            parts += [jnp.where(keep, point, 0.0), jnp.where(keep, v_hit / 10.0, 0.0),
-                      jnp.where(valid, t_hit, 0.0)[:, None], keep.astype(jnp.float32)]
+            keep = state.plan[:, 7:] > 0.5
+            parts += [jnp.where(keep, state.plan[:, :3], 0.0), jnp.where(keep, state.plan[:, 3:6] / 10.0, 0.0),
+                      jnp.where(keep, state.plan[:, 6:7], 0.0), keep.astype(jnp.float32)]
         obs = jnp.concatenate([p.astype(jnp.float32) for p in parts], axis=-1)
         return jnp.clip(jnp.nan_to_num(obs, nan=0.0, posinf=OBS_BOUND, neginf=-OBS_BOUND), -OBS_BOUND, OBS_BOUND)
 
@@ -398,9 +411,12 @@ class ReturnBall:
         if self.config.control.action == "intercept":
             # the tracker reads the ball as the policy sees it (noise and latency included)
             seen = self.seen_ball(state)
+            if self.config.observation.plan:  # made with the state, from the same ball
+                pred = (state.plan[:, :3], state.plan[:, 3:6], state.plan[:, 6], state.plan[:, 7] > 0.5)
+            else:
+                pred = intercept.predict(params.intercept, seen.pos, seen.vel, state.progress.bounced, seen.spin)
             action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket,
-                                     seen.pos, seen.vel, seen.spin, state.progress.bounced, state.progress.hit,
-                                     action)
+                                     pred, seen.spin, state.progress.hit, action)
         rk, schedule, effort = jax.vmap(racket_kin.command, in_axes=(None, 0, 0, None, None))(
             params.limits, state.racket, action, self.period, self.substeps)
         model, axes = self.model_for(params, state.model_values)
@@ -439,11 +455,12 @@ class ReturnBall:
         seen = jax.tree.map(lambda h, now: jnp.concatenate([h[:, 1:], now[:, None]], 1), state.seen,
                             measure(k_obs, rally.ball, params))
         state = EnvState(rally=rally, racket=rk, progress=progress, model_values=state.model_values,
-                         shot=state.shot, t=t, distance=distance, seen=seen)
+                         shot=state.shot, t=t, distance=distance, seen=seen, plan=None)
+        state = state.replace(plan=self.plan(state, params))
         info = {"outcome": progress.outcome, "legal": legal, "contact": contact,
                 "landing_error": jnp.where(legal, err, -1.0), "shot_type": params.shot_type[state.shot]}
         reward = jnp.nan_to_num(reward.astype(jnp.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        return self.observe(state, params), state, reward, terminated, truncated, info
+        return self.observe(state), state, reward, terminated, truncated, info
 
     def step(self, key, state: EnvState, action, params: EnvParams):
         """:meth:`step_env`, then finished environments (terminated or truncated) start afresh.

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import serialization
 
 from ttsim_jax.io_atomic import atomic_write
@@ -59,9 +60,18 @@ def read_checkpoint(path) -> dict:
 
 def restore_runner(template, payload: dict, path=""):
     """The runner stored in ``payload``, in the structure of ``template`` (a fresh runner of the same
-    config); raises :class:`CheckpointError` when they do not match."""
+    config); raises :class:`CheckpointError` when they do not match.
+
+    A checkpoint written before the environment state carried the tracker's plan
+    (:attr:`~ttsim_jax.env.return_ball.EnvState.plan`, derived from the rest of the state) gets
+    zeros there; :func:`~ttsim_jax.rl.train.train` recomputes it on resuming."""
+    stored = payload["runner"]
+    state = stored.get("env_state") if isinstance(stored, dict) else None
+    if isinstance(state, dict) and "plan" not in state:
+        plan = np.zeros(serialization.to_state_dict(template)["env_state"]["plan"].shape, np.float32)
+        stored = dict(stored, env_state=dict(state, plan=plan))
     try:
-        runner = serialization.from_state_dict(template, payload["runner"])
+        runner = serialization.from_state_dict(template, stored)
     except (ValueError, KeyError, TypeError) as e:
         raise CheckpointError(f"{path}: the checkpoint does not match its config ({e})") from None
     # from_state_dict takes arrays of any shape: a task whose observation has changed since training

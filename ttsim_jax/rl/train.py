@@ -119,6 +119,8 @@ def train(config: PPOConfig, out, resume: bool = False, progress=print) -> dict:
     runner = jax.jit(lambda k: ppo.init_runner(env, env_params, config, k))(jax.random.PRNGKey(t.seed))
     if payload is not None:
         runner = restore_runner(runner, payload, out / CHECKPOINT)
+        # derived state, absent from older checkpoints: made again from the rest
+        runner = runner.replace(env_state=runner.env_state.replace(plan=jax.jit(env.plan)(runner.env_state, env_params)))
     chunk = ppo.make_chunk(env, config)
     evaluate = ppo.make_evaluate(eval_env, config) if eval_env else None
     per_chunk = config.batch_size * t.updates_per_chunk
