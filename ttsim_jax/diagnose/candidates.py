@@ -30,6 +30,10 @@ above :data:`MIN_REDUCTION` % and the RMS error falls by more than that phase's 
 and in no phase it acts in is the held-out error significantly worse (:func:`explains`);
 candidates are ranked by their largest held-out reduction, significant ones first.
 
+An effect whose parameters descent cannot start near their optimum gets a second descent from
+starts found otherwise (:data:`REFINE`): the gusts of ``air_flow`` from a periodogram of the
+flights' wind offsets (:mod:`ttsim_jax.diagnose.gusts`).
+
 A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
 its parameters are fitted is inferred (those whose typical value differs from the neutral one, at
 the scale of that difference) unless :data:`FREE` says otherwise.
@@ -62,13 +66,19 @@ HOOK_PHASES = {
     "racket_coefficients": ("racket",),
 }
 #: Fitted parameters and their scales where the default rule (typical != neutral) is not right:
-#: gusts need their frequencies, which are not identifiable by descent, so only the steady wind is
-#: fitted; the onsets of buckling are fitted too; the bumps keep their typical centres and widths.
+#: the gusts' frequencies are not found by descent, so the first descent fits the steady wind
+#: and the gusts follow in a second (:data:`REFINE`); the onsets of buckling are fitted too; the
+#: bumps keep their typical centres and widths.
 FREE = {
     "air_flow": {"wind": 0.2},
     "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0},
     "table_unevenness": {"amplitude": 0.0015, "center": 0.3},
 }
+#: Effects fitted in two descents: after the first, a function of (problem, model, specs, consts, u,
+#: flight states, index) gives the effect's spec and per-session starts for a second one (or None
+#: to keep the first): the gusts' frequencies are found by a periodogram of the flights' wind
+#: offsets, which descent cannot do (:mod:`ttsim_jax.diagnose.gusts`).
+REFINE = {"air_flow": lambda *a: _gusts().gust_stage(*a)}
 #: Parameters that start at their typical value (the others at neutral).
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
@@ -83,6 +93,12 @@ MIN_REDUCTION = 1.0
 MIN_GAIN = {"flight": 5e-5, "table": 0.01, "racket": 0.01}
 #: Least training items (segments and contacts) of the median session for per-session parameters.
 MIN_SESSION_ITEMS = 5
+
+
+def _gusts():
+    from ttsim_jax.diagnose import gusts
+
+    return gusts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,8 +157,9 @@ def initial_u(specs, n_sessions: int) -> tuple:
 def parameters(sp: Spec, const: dict, u: dict, sessions) -> dict:
     """The fitted values {param: value} (per session {session id: {...}} for per-session effects)."""
     def values(i):
-        return {k: (const["start"][k] + const["scale"][k] * np.asarray(u[k][i], np.float64)).tolist()
-                if k in u else np.asarray(const["start"][k]).tolist() for k in sp.cls.PARAMS}
+        return {k: (np.asarray(S.start_of(sp, const, k, i), np.float64) + const["scale"][k] *
+                    np.asarray(u[k][i], np.float64)).tolist()
+                if k in u else np.asarray(S.start_of(sp, const, k, i)).tolist() for k in sp.cls.PARAMS}
 
     if sp.per_session:
         return {int(s): values(i) for i, s in enumerate(sessions)}
@@ -312,8 +329,8 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
 
     zeros = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(loss, u0, x0)[1])
     n = steps + (FINAL_GN if "flight" in phases else 1)
-    (u, _, _, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, zeros), jnp.arange(n))
-    return u, history[:steps], errors
+    (u, _, x, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, zeros), jnp.arange(n))
+    return u, history[:steps], errors, x
 
 
 _fit = jax.jit(_fit_impl, static_argnames=("specs", "phases", "steps", "ridge"))
@@ -373,12 +390,27 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
     if not scored:
         raise ValueError(f"effects {list(names)}: none of the phases they act in "
                          f"({sorted({p for s in fitted for p in s.phases})}) has data")
-    c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), consts)
     norm = {p: jnp.asarray(pb.norm[p], jnp.float32) for p in phases}
     weight = {p: jnp.asarray(1.0 if p in scored else 0.0, jnp.float32) for p in phases}
     free = tuple(jnp.asarray(1.0 if s.name in names else 0.0, jnp.float32) for s in specs)
-    u, history, errors = _fit(model.replace(name=""), c32, initial_u(specs, pb.n_sessions), pb.data, pb.x0, norm,
-                              jnp.asarray(lr, jnp.float32), free, weight, specs, phases, steps, ridge)
+
+    def descend(specs, consts):
+        c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), consts)
+        return _fit(model.replace(name=""), c32, initial_u(specs, pb.n_sessions), pb.data, pb.x0, norm,
+                    jnp.asarray(lr, jnp.float32), free, weight, specs, phases, steps, ridge)
+
+    u, history, errors, x = descend(specs, consts)
+    for i, s in enumerate(specs):
+        refine = REFINE.get(s.name) if s.name in names else None
+        if refine is None:
+            continue
+        second = refine(pb, model, specs, consts, u, x, i)
+        if second is not None:  # a second descent from the starts the first one made possible
+            specs = specs[:i] + (second[0],) + specs[i + 1:]
+            consts = consts[:i] + (second[1],) + consts[i + 1:]
+            fitted = [specs[i] if f.name == s.name else f for f in fitted]
+            u, history2, errors, x = descend(specs, consts)
+            history = jnp.concatenate([history, history2])
     heldout = score(pb, {p: errors[p] for p in scored})
     u_np = jax.tree.map(np.asarray, u)
     params = {s.name: parameters(s, c, uk, pb.sessions) for s, c, uk in zip(specs, consts, u_np) if s.name in names}

@@ -47,12 +47,21 @@ GN_START = 6
 SPIN_STEPS = 4
 
 
+def start_of(sp, const: dict, k: str, session):
+    """The start of parameter ``k`` for ``session``'s items: a per-session effect's start may carry
+    a leading session axis (starts found per session, :data:`REFINE`)."""
+    start = const["start"][k]
+    if sp.per_session and jnp.ndim(start) > len(sp.cls.PARAMS[k].shape):
+        return start[session]
+    return start
+
+
 def effects_of(specs, consts, u, session):
     """The effects of one item (its session's parameters) as a tuple of effect instances."""
     out = []
     for spec, c, uk in zip(specs, consts, u):
         i = session if spec.per_session else 0
-        vals = {k: c["start"][k] + (c["scale"][k] * uk[k][i] if k in uk else 0.0) for k in spec.cls.PARAMS}
+        vals = {k: start_of(spec, c, k, i) + (c["scale"][k] * uk[k][i] if k in uk else 0.0) for k in spec.cls.PARAMS}
         out.append(spec.cls(**vals))
     return tuple(out)
 

@@ -1,0 +1,125 @@
+"""The gusts of the ``air_flow`` candidate (:mod:`ttsim_jax.diagnose.gusts`): the periodogram of
+per-segment wind offsets, the offsets themselves, and the two-descent fit of the candidate on
+flights flown through gusts in session time.
+
+The flights are made here with the diagnosis's own flight stage (one session, 96 segments of
+0.25 s spread over 60 s, 1 mm of position noise), so the test needs no generator run.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import effects as fx
+from ttsim_jax import load_model
+from ttsim_jax.diagnose import candidates as C
+from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose.gusts import MIN_CHI2, mean_times, periodogram_gusts, segment_winds
+from ttsim_jax.diagnose.phases import Flights, Phases, pad_rows
+
+WIND = np.array([0.25, -0.1, 0.0])
+GUST_AMP = np.array([[0.0, 0.3, 0.0], [0.2, 0.0, 0.0], [0.0, 0.0, 0.0]])
+GUST_FREQ = np.array([0.23, 0.61, 0.5])
+GUST_PHASE = np.array([0.7, -1.9, 0.0])
+
+
+def _sinusoids(t, amp, freq, phase):
+    return sum(a[None] * np.sin(2 * np.pi * f * t + p)[:, None] for a, f, p in zip(amp, freq, phase))
+
+
+def test_periodogram_finds_the_gusts_and_nothing_in_noise():
+    rng = np.random.default_rng(1)
+    t = np.sort(rng.uniform(0.0, 100.0, 140))
+    amp, freq, phase = np.array([[0.1, -0.05, 0.02], [0.0, 0.08, 0.0]]), np.array([0.137, 0.61]), np.array([0.4, -2.0])
+    noise = 0.02
+    info = np.broadcast_to(np.eye(3) / noise**2, (len(t), 3, 3))
+    w = 0.3 + _sinusoids(t, amp, freq, phase) + rng.normal(0.0, noise, (len(t), 3))
+    a, f, p, chi2 = periodogram_gusts(t, w, info)
+    assert np.all(chi2[:2] > MIN_CHI2) and not a[2].any(), chi2
+    for k in range(2):
+        assert abs(f[k] - freq[k]) < 0.003, f
+        # one sign of (amplitude, phase) or the other: the same sinusoid
+        fit = _sinusoids(t, a[k:k + 1], f[k:k + 1], p[k:k + 1])
+        true = _sinusoids(t, amp[k:k + 1], freq[k:k + 1], phase[k:k + 1])
+        assert np.sqrt(np.mean((fit - true) ** 2)) < 0.2 * np.sqrt(np.mean(true**2)), k
+    a0, _, _, chi0 = periodogram_gusts(t, rng.normal(0.0, noise, (len(t), 3)), info)
+    assert not a0.any() and chi0[0] < MIN_CHI2, chi0
+
+
+# ---------------------------------------------------------------------------------------------- flights
+@pytest.fixture(scope="module")
+def model():
+    return load_model("conti2026", dtype=jnp.float32)
+
+
+def _air(cls, **values):
+    vals = {k: jnp.asarray(np.broadcast_to(p.neutral, p.shape), jnp.float32) for k, p in cls.PARAMS.items()}
+    vals.update({k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
+    return cls(**vals)
+
+
+def _flights(model, air, n=96, samples=26, seed=0, noise=0.001):
+    """Flights of one session through ``air`` (an AirFlow), as the diagnosis's Phases."""
+    rng = np.random.default_rng(seed)
+    rows = pad_rows(n)
+    t0 = np.sort(rng.uniform(0.0, 60.0, n))
+    tau = np.broadcast_to(np.arange(samples) * 0.01, (n, samples))
+    p0 = np.stack([rng.uniform(-1.4, -1.0, n), rng.uniform(-0.3, 0.3, n), rng.uniform(0.2, 0.35, n)], -1)
+    v0 = np.stack([rng.uniform(6.0, 11.0, n), rng.uniform(-1.0, 1.0, n), rng.uniform(0.5, 2.0, n)], -1)
+    w0 = np.stack([rng.uniform(-30, 30, n), rng.uniform(-150, 150, n), rng.uniform(-30, 30, n)], -1)
+    fly = jax.jit(jax.vmap(lambda p, v, w, t, ta: S._path(model, model.effects + (air,), p, v, w, t, ta)[0]))
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    pos = np.asarray(fly(f32(p0), f32(v0), f32(w0), f32(t0), f32(tau)), np.float64)
+    pos = pos + rng.normal(0.0, noise, pos.shape)
+    pad = lambda a: np.concatenate([a, np.repeat(a[-1:], rows - n, 0)])  # noqa: E731
+    mask = np.zeros((rows, samples))
+    mask[:n] = 1.0
+    # the measured spin is the flight's mean; its change over 0.25 s is negligible here
+    fl = Flights(t0=pad(t0), tau=pad(np.asarray(tau)), pos=pad(pos), mask=mask, spin=pad(w0),
+                 session=np.zeros(rows, np.int64), segment_id=np.arange(rows), n=n)
+    return Phases(flights=fl, table=None, racket=None, sessions=np.array([0]), skipped={})
+
+
+def test_segment_offsets_measure_a_steady_wind(model):
+    cls = fx.effect_class("air_flow")
+    ph = _flights(model, _air(cls, wind=WIND), n=32, noise=0.0)
+    pb = C.problem(ph, model)
+    w, info, _ = segment_winds(model, (), (), (), pb.data["flight"], pb.x0)
+    n = ph.flights.n
+    # along the flight (x) the drag resolves the wind to millimetres per second without noise
+    assert np.abs(w[:n, 0] - WIND[0]).max() < 0.02, w[:n, 0]
+    assert abs(np.median(w[:n, 1]) - WIND[1]) < 0.02, w[:n, 1]
+    eig = np.linalg.eigvalsh(info[:n])
+    assert np.all(eig[:, -1] > 0), eig
+
+
+@pytest.fixture(scope="module")
+def gusty(model):
+    cls = fx.effect_class("air_flow")
+    air = _air(cls, wind=WIND, gust_amp=GUST_AMP, gust_freq=GUST_FREQ, gust_phase=GUST_PHASE)
+    pb = C.problem(_flights(model, air, n=160), model)
+    return pb, C.fit(pb, ["air_flow"], model, steps=40)
+
+
+def test_air_flow_candidate_finds_the_gusts_frequencies_and_amplitudes(gusty):
+    _, cand = gusty
+    p = cand.params["air_flow"][0]
+    freq, amp = np.asarray(p["gust_freq"]), np.linalg.norm(p["gust_amp"], axis=1)
+    for f_true, a_true in zip(GUST_FREQ[:2], np.linalg.norm(GUST_AMP[:2], axis=1)):
+        k = int(np.argmin(np.abs(freq - f_true) + (amp < 0.05)))
+        assert abs(freq[k] - f_true) < 0.005 and abs(amp[k] - a_true) < 0.3 * a_true, (freq, amp)
+    assert np.linalg.norm(np.asarray(p["wind"]) - WIND) < 0.08, p["wind"]
+
+
+def test_the_gusts_lower_the_held_out_error_to_the_noise_beyond_a_steady_wind(gusty, model, monkeypatch):
+    pb, cand = gusty
+    h = cand.heldout["flight"]
+    assert cand.significant, h
+    # 1 mm per axis of noise leaves a 3-D residual of about sqrt(3 (1 - 6 / 78)) = 1.66 mm
+    assert h["after_rms"] < 0.0017, h
+    monkeypatch.setattr(C, "REFINE", {})  # the first descent alone: the steady wind
+    steady = C.fit(pb, ["air_flow"], model, steps=40)
+    assert "gust_freq" not in steady.spec.free
+    # which leaves 1.9 mm: the gusts' part above the noise
+    assert h["after_rms"] < 0.92 * steady.heldout["flight"]["after_rms"], (h, steady.heldout)
