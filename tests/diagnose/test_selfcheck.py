@@ -130,3 +130,19 @@ def test_a_candidate_that_worsens_another_phase_is_not_significant():
     assert explains({"racket": gain, "table": held(0.2, lo=-0.5)})
     assert not explains({"racket": gain, "table": dict(held(-1.1), ci95=[-1.5, -0.6]),
                          "flight": held(0.0, before=0.003, lo=-0.3)})
+
+
+def test_figure_colours_each_case_by_its_outcome(tmp_path):
+    oracle = {"table": held(40.0)}
+    found = SC.score("single", ["table_tilt"], [cand("table_tilt", table=held(30.0))], NO_WHERE, oracle)
+    missed = SC.score("single", ["table_tilt"], [cand("worn_ball", table=held(30.0))], NO_WHERE, oracle)
+    quiet = SC.score("single", ["buckling"], [], NO_WHERE, {"table": held(0.1, lo=-1.0)})
+    alarm = SC.score("single", ["buckling"], [cand("worn_ball", table=held(5.0))], NO_WHERE, {"table": held(0.1, lo=-1.0)})
+    where = dict(NO_WHERE, racket={"flagged": [("speed", "above 9 m/s")]})
+    outside = SC.score("outside", ["racket_edge"], [], where, {"racket": held(30.0)})
+    verdicts = [SC._verdict(dict(r, kind=k)) for r, k in ((found, "single"), (missed, "single"), (quiet, "single"),
+                                                          (alarm, "single"), (outside, "outside"))]
+    assert verdicts == ["right", "wrong", "undetectable", "wrong", "right"]
+    rows = [dict(r, kind="single", effects=["table_tilt"]) for r in (found, missed)]
+    path = SC.plot(dict(cases=rows + [dict(outside, kind="outside", effects=["racket_edge"])]), tmp_path / "s.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000

@@ -108,7 +108,8 @@ def register(subparsers) -> None:
                    "--quick 8)")
     s.add_argument("--seed", type=seed, default=0, help="seed of the generated datasets (default: %(default)s)")
     s.add_argument("--out", metavar="DIR", type=writable_dir, default=None,
-                   help="also write selfcheck.md and selfcheck.json here")
+                   help="also write selfcheck.md, selfcheck.json and selfcheck.png (found against the "
+                   "oracle, per case) here")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_selfcheck)
 
@@ -160,7 +161,7 @@ def cmd_selfcheck(args) -> int:
 
     from ttsim_jax.diagnose.candidates import candidate_names
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.diagnose.selfcheck import GAMES, PAIRS, QUICK, SEGMENTS, cases, selfcheck, table
+    from ttsim_jax.diagnose.selfcheck import GAMES, PAIRS, QUICK, SEGMENTS, cases, plot, selfcheck, table
 
     size = "quick" if args.quick else "full"
     if args.quick:
@@ -178,4 +179,5 @@ def cmd_selfcheck(args) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "selfcheck.md").write_text(text + "\n")
         (args.out / "selfcheck.json").write_text(json.dumps(jsonable(result), indent=1))
+        plot(result, args.out / "selfcheck.png")
     return 0

@@ -279,6 +279,50 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
                 cpu_seconds=time.process_time() - c0)
 
 
+#: Colours of the figure's outcomes (found / right: green; missed or a false alarm: red).
+OUTCOME_COLOURS = {"right": "#2ca02c", "wrong": "#d62728", "undetectable": "#7f7f7f"}
+
+
+def _verdict(r: dict) -> str:
+    if r["kind"] == "outside":
+        return "right" if r["unexplained"] and r["phase_right"] else "wrong"
+    if not r["detectable"]:
+        return "undetectable" if r["unexplained"] else "wrong"
+    return "right" if r["rank1"] and r["phase_right"] else "wrong"
+
+
+def plot(result: dict, path):
+    """Per case, the held-out reduction the diagnosis found against the oracle's, in the oracle's
+    best phase (bars), coloured by the outcome; written to ``path`` (PNG)."""
+    from ttsim_jax.plots import _pyplot, _save
+
+    plt = _pyplot()
+    rows = [r for r in result["cases"] if "error" not in r]
+    fig, ax = plt.subplots(figsize=(7.5, 0.38 * max(len(rows), 3) + 1.2))
+    y = np.arange(len(rows))[::-1]
+    for k, r in enumerate(rows):
+        ax.barh(y[k] + 0.18, r["oracle_pct"], height=0.34, color="#c7c7c7", edgecolor="k", lw=0.5)
+        ax.barh(y[k] - 0.18, r["found_pct"], height=0.34, color=OUTCOME_COLOURS[_verdict(r)])
+        label = f"{r['oracle_phase'] or '-'}"
+        if r["kind"] == "outside":
+            label = r["outcome"]
+        elif math.isfinite(r["shrink"]):
+            label += f", {r['shrink']:.2f} of the oracle"
+        elif not r["detectable"]:
+            label += ", " + r["outcome"]
+        ax.text(max(r["oracle_pct"], r["found_pct"], 0.0) + 0.5, y[k], label, va="center", fontsize=7)
+    ax.set_yticks(y)
+    ax.set_yticklabels([f"{r['kind']}: {' + '.join(r['effects'])}" for r in rows], fontsize=8)
+    ax.set_xlabel("held-out RMS error reduction [%]: oracle (grey) and diagnosis (coloured)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in OUTCOME_COLOURS.values()]
+    ax.legend(handles, ["found, phase right / unexplained and located", "missed or false alarm",
+                        "undetectable, nothing found"], fontsize=7, loc="upper center", ncol=3,
+              bbox_to_anchor=(0.5, -0.12 - 0.5 / max(len(rows), 3)), frameon=False)
+    ax.set_xlim(0, 1.45 * max([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0]))
+    ax.set_title("withheld-effect selfcheck: what the diagnosis recovers of the oracle's shrink", fontsize=9)
+    return _save(fig, path)
+
+
 def table(result: dict) -> str:
     """The per-case Markdown table of a selfcheck and its summary."""
     lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | shrink recovered |",
