@@ -28,6 +28,10 @@ from ttsim_jax.fit.aero import _spd_solve
 #: degrees of freedom (a sine and a cosine vector) at the best frequency of the grid reach a median
 #: of 20 and a 99th percentile of 31 on pure noise (200 sessions of 85 segments over 100 s).
 MIN_CHI2 = 40.0
+#: Segments left out of the periodogram: residual RMS after the offset above OUTLIER times the
+#: median segment's. (A wild offset along a direction the segment hardly resolves needs no
+#: filter: its information there is small, and so is its weight.)
+OUTLIER = 3.0
 #: Frequency band searched [Hz] (the catalogue draws 0.05-1 Hz) and grid points per 1 / duration.
 BAND = (0.02, 1.2)
 OVERSAMPLE = 6
@@ -168,9 +172,13 @@ def gust_stage(pb, model, specs, consts, u, x, i):
     fl = pb.data["flight"]
     w, info, sse = segment_winds(model, specs, consts, u, fl, x)
     mask = np.asarray(fl["mask"], np.float64)
-    train = (np.asarray(fl["train"]) > 0) & (mask.sum(1) >= 6)
     dof = np.maximum(3.0 * mask.sum(1) - 9.0, 0.0)
-    sigma2 = max(float(sse[train].sum() / max(dof[train].sum(), 1.0)), 1e-12)
+    reduced = sse / np.maximum(dof, 1.0)
+    train = (np.asarray(fl["train"]) > 0) & (mask.sum(1) >= 6)
+    # the noise from the typical segment; a segment that the offset leaves far above it (a flight
+    # the segmentation cut wrongly, a contact inside) would pull the periodogram with a wild offset
+    sigma2 = max(float(np.median(reduced[train])) if train.any() else 0.0, 1e-12)
+    train &= reduced < OUTLIER**2 * sigma2
     t, session = mean_times(fl), np.asarray(fl["session"])
     n = pb.n_sessions
     start = {k: np.broadcast_to(np.asarray(S.start_of(sp, const, k, 0), np.float64), (n,) + p.shape).copy()

@@ -298,7 +298,8 @@ def plot(result: dict, path):
 
     plt = _pyplot()
     rows = [r for r in result["cases"] if "error" not in r]
-    fig, ax = plt.subplots(figsize=(7.5, 0.38 * max(len(rows), 3) + 1.2))
+    height = 0.38 * max(len(rows), 3) + 1.6
+    fig, ax = plt.subplots(figsize=(8.5, height))
     y = np.arange(len(rows))[::-1]
     for k, r in enumerate(rows):
         ax.barh(y[k] + 0.18, r["oracle_pct"], height=0.34, color="#c7c7c7", edgecolor="k", lw=0.5)
@@ -310,15 +311,16 @@ def plot(result: dict, path):
             label += f", {r['shrink']:.2f} of the oracle"
         elif not r["detectable"]:
             label += ", " + r["outcome"]
-        ax.text(max(r["oracle_pct"], r["found_pct"], 0.0) + 0.5, y[k], label, va="center", fontsize=7)
+        ax.text(max(r["oracle_pct"], r["found_pct"], 0.0) + 0.5, y[k], label, va="center", fontsize=7,
+                color=OUTCOME_COLOURS["wrong"] if _verdict(r) == "wrong" else "k")
     ax.set_yticks(y)
     ax.set_yticklabels([f"{r['kind']}: {' + '.join(r['effects'])}" for r in rows], fontsize=8)
     ax.set_xlabel("held-out RMS error reduction [%]: oracle (grey) and diagnosis (coloured)")
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in OUTCOME_COLOURS.values()]
     ax.legend(handles, ["found, phase right / unexplained and located", "missed or false alarm",
                         "undetectable, nothing found"], fontsize=7, loc="upper center", ncol=3,
-              bbox_to_anchor=(0.5, -0.12 - 0.5 / max(len(rows), 3)), frameon=False)
-    ax.set_xlim(0, 1.45 * max([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0]))
+              bbox_to_anchor=(0.4, -0.75 / (height - 1.4)), frameon=False)
+    ax.set_xlim(0, 1.6 * max([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0]))
     ax.set_title("withheld-effect selfcheck: what the diagnosis recovers of the oracle's shrink", fontsize=9)
     return _save(fig, path)
 
