@@ -8,7 +8,9 @@ segment's initial state and the offset together, with the offset's information m
 session a weighted least-squares periodogram of those offsets against the segments' mean times
 picks the gust components one at a time (:func:`periodogram_gusts`). A component is kept only
 when it lowers the offsets' chi-square by more than :data:`MIN_CHI2` (noise alone, over the
-frequency grid, stays below it); the others start at zero amplitude. The descent then refines
+frequency grid, stays below it), the offsets' information first scaled down by their
+overdispersion about their mean (other unmodelled effects scatter them too); the others start at
+zero amplitude. The descent then refines
 wind, amplitudes, phases and frequencies together from those starts
 (:func:`ttsim_jax.diagnose.candidates.fit`).
 
@@ -129,6 +131,13 @@ def periodogram_gusts(t, w, info, components: int = 3, min_chi2: float = MIN_CHI
     amp, freq, phase, chi2 = np.zeros((components, 3)), np.zeros(components), np.zeros(components), np.zeros(components)
     if len(t) < 8:
         return amp, freq, phase, chi2
+    # the offsets scatter more than the noise alone predicts wherever the model misses something
+    # else segment by segment (other effects, estimated spins): scale the information down by that
+    # overdispersion, so that such scatter is not taken for gusts
+    c = np.linalg.solve(info.sum(0) + 1e-30 * np.eye(3), np.einsum("ijk,ik->j", info, w))
+    r = w - c
+    phi = max(float(np.einsum("ij,ijk,ik->", r, info, r)) / (3.0 * (len(t) - 1)), 1.0)
+    info = info / phi
     span = max(float(t.max() - t.min()), 1.0)
     freqs = np.arange(BAND[0], BAND[1], 1.0 / (OVERSAMPLE * span))
     for k in range(components):
