@@ -47,6 +47,22 @@ def test_periodogram_finds_the_gusts_and_nothing_in_noise():
     assert not a0.any() and chi0[0] < MIN_CHI2, chi0
 
 
+def test_scatter_beyond_the_stated_noise_is_not_taken_for_gusts():
+    """Offsets scattered 5 times more than their information says (other unmodelled effects, segment
+    by segment): no component, though their raw chi-square at the best frequency is far above the
+    threshold."""
+    rng = np.random.default_rng(2)
+    t = np.sort(rng.uniform(0.0, 100.0, 85))
+    info = np.broadcast_to(np.eye(3) / 0.01**2, (len(t), 3, 3))
+    w = 0.3 + rng.normal(0.0, 0.05, (len(t), 3))
+    a, _, _, chi2 = periodogram_gusts(t, w, info)
+    assert not a.any() and chi2[0] < MIN_CHI2, chi2
+    # a real gust of the same size as that scatter is still found
+    w = w + _sinusoids(t, np.array([[0.1, 0.1, 0.0]]), np.array([0.3]), np.array([0.5]))
+    a, f, _, _ = periodogram_gusts(t, w, info)
+    assert np.linalg.norm(a[0]) > 0.05 and abs(f[0] - 0.3) < 0.005, (a, f)
+
+
 # ---------------------------------------------------------------------------------------------- flights
 @pytest.fixture(scope="module")
 def model():

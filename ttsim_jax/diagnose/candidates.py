@@ -50,6 +50,7 @@ import numpy as np
 import optax
 
 from ttsim_jax import effects as fx
+from ttsim_jax.diagnose import gusts
 from ttsim_jax.diagnose import stages as S
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.phases import Phases, pad_rows
@@ -78,7 +79,7 @@ FREE = {
 #: flight states, index) gives the effect's spec and per-session starts for a second one (or None
 #: to keep the first): the gusts' frequencies are found by a periodogram of the flights' wind
 #: offsets, which descent cannot do (:mod:`ttsim_jax.diagnose.gusts`).
-REFINE = {"air_flow": lambda *a: _gusts().gust_stage(*a)}
+REFINE = {"air_flow": gusts.gust_stage}
 #: Parameters that start at their typical value (the others at neutral).
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
@@ -93,12 +94,6 @@ MIN_REDUCTION = 1.0
 MIN_GAIN = {"flight": 5e-5, "table": 0.01, "racket": 0.01}
 #: Least training items (segments and contacts) of the median session for per-session parameters.
 MIN_SESSION_ITEMS = 5
-
-
-def _gusts():
-    from ttsim_jax.diagnose import gusts
-
-    return gusts
 
 
 @dataclasses.dataclass(frozen=True)

@@ -19,6 +19,8 @@ Only the training segments enter, so the held-out score stays a fair test of the
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -56,7 +58,7 @@ def _segment_wind(model, effects, x, spin, t0, tau, pos, mask, changes):
 
     z = jnp.concatenate([x, jnp.zeros(3, x.dtype)])
     eye = jnp.eye(9, dtype=x.dtype)
-    r, jac = jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
+    r, jac = S.residual_jacobian(res, z)
     h = jac.T @ jac
     hr = h + 1e-9 * jnp.trace(h) * eye + 1e-30
     step = -_spd_solve(hr, jac.T @ r)
@@ -172,8 +174,6 @@ def gust_stage(pb, model, specs, consts, u, x, i):
     axis), or None when no session shows a gust (then the first descent's result stands).
 
     Used by :func:`ttsim_jax.diagnose.candidates.fit` through its ``REFINE`` table."""
-    from ttsim_jax.diagnose.candidates import Spec
-
     sp, const = specs[i], consts[i]
     if "flight" not in pb.data or not sp.per_session or not {"wind", "gust_amp", "gust_freq", "gust_phase"} <= set(
             sp.cls.PARAMS):
@@ -206,4 +206,4 @@ def gust_stage(pb, model, specs, consts, u, x, i):
     if not found:
         return None
     scale = {k: np.float64(SCALES.get(k, 0.0)) for k in sp.cls.PARAMS}
-    return Spec(sp.name, sp.cls, tuple(k for k in SCALES if k in sp.cls.PARAMS), True), dict(start=start, scale=scale)
+    return dataclasses.replace(sp, free=tuple(k for k in SCALES if k in sp.cls.PARAMS)), dict(start=start, scale=scale)

@@ -94,13 +94,19 @@ def _segment_residual(model, effects, x, spin, t0, tau, pos, mask, spin_changes:
     return (ps - pos) * mask[:, None]
 
 
+def residual_jacobian(res, z):
+    """(res(z), its Jacobian (n, len(z))) by forward mode, one tangent per parameter."""
+    eye = jnp.eye(z.shape[0], dtype=z.dtype)
+    return jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
+
+
 def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, iterations):
     def res(z):
         return _segment_residual(model, effects, z, spin, t0, tau, pos, mask, spin_changes).ravel()
 
     def body(_, z):
         eye = jnp.eye(6, dtype=z.dtype)
-        r, jac = jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
+        r, jac = residual_jacobian(res, z)
         h = jac.T @ jac
         cand = z - _spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
         return jnp.where(jnp.all(jnp.isfinite(cand)), cand, z)
