@@ -75,8 +75,9 @@ def _air(cls, **values):
     return cls(**vals)
 
 
-def _flights(model, air, n=96, samples=26, seed=0, noise=0.001):
-    """Flights of one session through ``air`` (an AirFlow), as the diagnosis's Phases."""
+def _flights(model, air, n=96, samples=26, seed=0, noise=0.001, cut=()):
+    """Flights of one session through ``air`` (an AirFlow), as the diagnosis's Phases; the segments
+    ``cut`` are cut wrongly: their second half is a mirrored flight, as if a bounce fell inside."""
     rng = np.random.default_rng(seed)
     rows = pad_rows(n)
     t0 = np.sort(rng.uniform(0.0, 60.0, n))
@@ -88,6 +89,9 @@ def _flights(model, air, n=96, samples=26, seed=0, noise=0.001):
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     pos = np.asarray(fly(f32(p0), f32(v0), f32(w0), f32(t0), f32(tau)), np.float64)
     pos = pos + rng.normal(0.0, noise, pos.shape)
+    half = samples // 2
+    for i in cut:
+        pos[i, half:, 2] = 2.0 * pos[i, half - 1, 2] - pos[i, half:, 2]
     pad = lambda a: np.concatenate([a, np.repeat(a[-1:], rows - n, 0)])  # noqa: E731
     mask = np.zeros((rows, samples))
     mask[:n] = 1.0
@@ -110,16 +114,31 @@ def test_segment_offsets_measure_a_steady_wind(model):
     assert np.all(eig[:, -1] > 0), eig
 
 
-@pytest.fixture(scope="module")
-def gusty(model):
+#: Segments cut wrongly in the second set of flights (tens of millimetres RMS against one).
+CUT = (5, 70, 140)
+
+
+def _gusty(model, cut=()):
     cls = fx.effect_class("air_flow")
     air = _air(cls, wind=WIND, gust_amp=GUST_AMP, gust_freq=GUST_FREQ, gust_phase=GUST_PHASE)
-    pb = C.problem(_flights(model, air, n=160), model)
+    pb = C.problem(_flights(model, air, n=160, cut=cut), model)
     return pb, C.fit(pb, ["air_flow"], model, steps=40)
 
 
-def test_air_flow_candidate_finds_the_gusts_frequencies_and_amplitudes(gusty):
-    _, cand = gusty
+@pytest.fixture(scope="module")
+def gusty(model):
+    return _gusty(model)
+
+
+@pytest.fixture(scope="module")
+def gusty_cut(model):
+    return _gusty(model, CUT)
+
+
+@pytest.mark.parametrize("flights", ["gusty", "gusty_cut"])
+def test_air_flow_candidate_finds_the_gusts_frequencies_and_amplitudes(flights, request):
+    """Also where a few segments were cut wrongly: the robust loss keeps them from pulling the fit."""
+    _, cand = request.getfixturevalue(flights)
     p = cand.params["air_flow"][0]
     freq, amp = np.asarray(p["gust_freq"]), np.linalg.norm(p["gust_amp"], axis=1)
     for f_true, a_true in zip(GUST_FREQ[:2], np.linalg.norm(GUST_AMP[:2], axis=1)):
@@ -139,3 +158,18 @@ def test_the_gusts_lower_the_held_out_error_to_the_noise_beyond_a_steady_wind(gu
     assert "gust_freq" not in steady.spec.free
     # which leaves 1.9 mm: the gusts' part above the noise
     assert h["after_rms"] < 0.92 * steady.heldout["flight"]["after_rms"], (h, steady.heldout)
+
+
+def test_wrongly_cut_segments_do_not_spoil_the_fit_of_the_others(gusty_cut):
+    """The held-out error of the segments cut right falls to the noise, as without the cut ones."""
+    pb, cand = gusty_cut
+    n = pb.data["flight"]["mask"].shape[0]
+    keep = np.ones(n, bool)
+    keep[list(CUT)] = False
+    test = np.asarray(pb.data["flight"]["test"]) > 0
+    sse, count = C.item_sums(pb, "flight", cand.errors["flight"])
+    base, _ = C.item_sums(pb, "flight", pb.base["flight"])
+    assert test[list(CUT)].any() and (~test[list(CUT)]).any(), test[list(CUT)]  # cut ones on both sides
+    rows = test & keep
+    rms = np.sqrt(sse[rows].sum() / count[rows].sum())
+    assert rms < 0.0017 and rms < 0.8 * np.sqrt(base[rows].sum() / count[rows].sum()), rms

@@ -18,7 +18,9 @@ fitted on one throw could be scored only on that throw.
 The effects of one compilation group (:func:`groups`) are all attached in one compiled program,
 and a fit frees only its own (the others stay exactly neutral), so a group costs one compilation.
 The loss is the sum over the effect's phases of the training split's mean squared error divided by
-the model's own (so each phase counts equally), plus a small ridge on ``u``. The whole descent
+the model's own (so each phase counts equally), plus a small ridge on ``u``. A flight segment's
+mean squared error counts robustly (:func:`_mse`): a few segments that the segmentation cut wrongly
+err fifty times more than the rest and would otherwise pull every fit towards themselves. The whole descent
 (``steps`` Adam steps, a cosine-decayed step size, one warm-started Gauss-Newton step of each
 flight segment's initial state per step) is one ``lax.scan`` in one jitted call, the data padded to
 one capacity per phase.
@@ -94,6 +96,10 @@ MIN_REDUCTION = 1.0
 MIN_GAIN = {"flight": 5e-5, "table": 0.01, "racket": 0.01}
 #: Least training items (segments and contacts) of the median session for per-session parameters.
 MIN_SESSION_ITEMS = 5
+#: Scale of the robust flight loss, in units of the median training segment's RMS error under the
+#: model being fitted (:func:`_mse`); the gust periodogram leaves out segments beyond the same
+#: multiple.
+ROBUST = gusts.OUTLIER
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,10 +287,27 @@ def _errors(model, specs, consts, u, data, x, phases, iterations):
     return out, x
 
 
-def _mse(phase, e, d, w):
-    """Weighted mean squared error norm per item, as :func:`item_sums` counts them."""
+def _mse(phase, e, d, w, robust=False):
+    """Weighted mean squared error norm per item, as :func:`item_sums` counts them.
+
+    ``robust`` (flight): a segment of n samples and mean squared error m counts as
+    n c2 log(1 + m / c2) instead of n m, with c2 = ROBUST^2 times the median m of the weighted
+    segments (held fixed in the gradient): about the same for a typical segment (m = c2 / 9 counts
+    0.95 m), while a segment far above the scale weighs c2 / m of its plain weight in the gradient.
+    The scale follows the errors of the model being fitted, so a segment that the effect explains
+    regains its full weight, and where the model plus effect is right (all segments at the noise)
+    the fit is that of the plain loss."""
     if phase == "flight":
-        return jnp.sum(w[:, None, None] * e**2) / jnp.maximum(jnp.sum(w[:, None] * d["mask"]), 1.0)
+        n = jnp.sum(d["mask"], 1)
+        sse = jnp.sum(e**2, axis=(1, 2))
+        if robust:
+            m = sse / jnp.maximum(n, 1.0)
+            used = (w > 0) & (n > 0)
+            order = jnp.sort(jnp.where(used, m, jnp.inf))
+            median = order[jnp.maximum(jnp.sum(used) - 1, 0) // 2]
+            c2 = jax.lax.stop_gradient(jnp.maximum(ROBUST**2 * median, 1e-20))
+            sse = n * c2 * jnp.log1p(m / c2)
+        return jnp.sum(w * sse) / jnp.maximum(jnp.sum(w * n), 1.0)
     return jnp.sum(w[:, None] * e**2) / jnp.maximum(jnp.sum(w), 1.0)
 
 
@@ -308,7 +331,7 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
 
     def loss(u, x):
         errs, _ = _errors(model, specs, consts, u, data, x, phases, 0)
-        total = sum(weight[p] * _mse(p, errs[p], data[p], data[p]["train"]) / norm[p] for p in phases)
+        total = sum(weight[p] * _mse(p, errs[p], data[p], data[p]["train"], robust=True) / norm[p] for p in phases)
         return total + ridge * sum(jnp.sum(v**2) for uk in u for v in uk.values()), errs
 
     def body(carry, i):
