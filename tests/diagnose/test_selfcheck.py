@@ -2,6 +2,7 @@
 undetectable cases, rank 1, the located phase, the shrink recovered, pairs, the outside case, the
 summary's rates, and the magnitudes drawn per effect."""
 
+import json
 import math
 
 import numpy as np
@@ -146,3 +147,59 @@ def test_figure_colours_each_case_by_its_outcome(tmp_path):
     rows = [dict(r, kind="single", effects=["table_tilt"]) for r in (found, missed)]
     path = SC.plot(dict(cases=rows + [dict(outside, kind="outside", effects=["racket_edge"])]), tmp_path / "s.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000
+
+
+# ---------------------------------------------------------------------------------------------- resume
+class _Interrupted(Exception):
+    pass
+
+
+def _fake_cases(monkeypatch, calls, stop_at=None):
+    """run_case replaced by a scorer of hand-made results (no simulation), raising at ``stop_at``."""
+    def run_case(kind, names, seed, settings, games, present):
+        if len(calls) == stop_at:
+            raise _Interrupted
+        calls.append((kind, tuple(names), seed))
+        found = SC.score(kind, list(names), [cand(names[0], table=held(20.0 + seed / 100))], NO_WHERE,
+                         {"table": held(40.0)})
+        return dict(found, kind=kind, effects=list(names), seed=seed)
+
+    monkeypatch.setattr(SC, "run_case", run_case)
+
+
+def test_an_interrupted_selfcheck_resumes_from_its_stored_cases(tmp_path, monkeypatch):
+    from ttsim_jax.diagnose.diagnosis import Settings
+
+    plan = SC.cases(("spin_decay", "air_flow", "table_tilt"), (), None)
+    settings = Settings.quick()
+    calls = []
+    _fake_cases(monkeypatch, calls, stop_at=2)
+    with pytest.raises(_Interrupted):
+        SC.selfcheck(plan, settings, seed=5, store=tmp_path)
+    assert [p.name for p in SC.stored_cases(tmp_path)] == ["00_spin_decay.json", "01_air_flow.json"]
+    calls.clear()
+    _fake_cases(monkeypatch, calls)
+    resumed = SC.selfcheck(plan, settings, seed=5, store=tmp_path, resume=True)
+    assert calls == [("single", ("table_tilt",), 205)] and resumed["resumed"] == 2
+    calls.clear()
+    fresh = SC.selfcheck(plan, settings, seed=5)
+    assert len(calls) == 3
+    # the same rows and summary (as JSON: NaN, the score of an undetectable case, equals itself there)
+    same = lambda r: json.dumps([{k: v for k, v in c.items() if k != "wall_seconds"} for c in r["cases"]] +  # noqa: E731
+                                [r["summary"]])
+    assert same(resumed) == same(fresh)
+    # stored cases of other options are refused, naming the file and the option
+    with pytest.raises(SC.ResumeError, match=r"00_spin_decay\.json: stored with seed = 5"):
+        SC.selfcheck(plan, settings, seed=6, store=tmp_path, resume=True)
+
+
+def test_selfcheck_command_refuses_to_overwrite_stored_cases(tmp_path, capsys):
+    from ttsim_jax.cli import main
+
+    (tmp_path / "cases").mkdir()
+    (tmp_path / "cases" / "00_spin_decay.json").write_text("{}")
+    assert main(["diagnose", "selfcheck", "--quick", "--out", str(tmp_path), "--quiet"]) == 2
+    assert "pass --resume to continue that run, or --force" in capsys.readouterr().err
+    assert main(["diagnose", "selfcheck", "--quick", "--resume", "--out", str(tmp_path), "--quiet"]) == 2
+    assert "00_spin_decay.json: stored with" in capsys.readouterr().err
+    assert main(["diagnose", "selfcheck", "--quick", "--resume", "--quiet"]) == 2

@@ -9,6 +9,7 @@ The work is in :mod:`ttsim_jax.diagnose.diagnosis` and :mod:`ttsim_jax.diagnose.
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ttsim_jax.cli import UsageError, existing_dir, model_name_or_file, positive_int, seed, writable_dir
 
@@ -109,7 +110,13 @@ def register(subparsers) -> None:
     s.add_argument("--seed", type=seed, default=0, help="seed of the generated datasets (default: %(default)s)")
     s.add_argument("--out", metavar="DIR", type=writable_dir, default=None,
                    help="also write selfcheck.md, selfcheck.json and selfcheck.png (found against the "
-                   "oracle, per case) here")
+                   "oracle, per case) here, and each case as it finishes to DIR/cases/ (see --resume)")
+    mode = s.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue an interrupted run in --out DIR: the cases "
+                      "stored in DIR/cases/ are taken as they are (they must have been run with the same options), "
+                      "the others are run")
+    mode.add_argument("--force", action="store_true", help="discard the cases stored in --out DIR/cases/ and run "
+                      "every case again")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_selfcheck)
 
@@ -161,8 +168,20 @@ def cmd_selfcheck(args) -> int:
 
     from ttsim_jax.diagnose.candidates import candidate_names
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.diagnose.selfcheck import GAMES, PAIRS, QUICK, SEGMENTS, cases, plot, selfcheck, table
+    from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, plot, selfcheck,
+                                              stored_cases, table)
 
+    if (args.resume or args.force) and args.out is None:
+        raise UsageError("ttsim diagnose selfcheck: --resume and --force need --out DIR")
+    stored = stored_cases(args.out) if args.out is not None else []
+    if stored and not (args.resume or args.force):
+        raise UsageError(f"--out {args.out}: {len(stored)} cases of an earlier run are stored in "
+                         f"{args.out / 'cases'}: pass --resume to continue that run, or --force to run every case again")
+    if args.resume and not stored:
+        raise UsageError(f"--resume: no stored cases in {args.out / 'cases'} to continue")
+    if args.force:
+        for path in stored:
+            path.unlink()
     size = "quick" if args.quick else "full"
     if args.quick:
         plan = cases(args.effects or QUICK)
@@ -171,8 +190,17 @@ def cmd_selfcheck(args) -> int:
         plan = cases(args.effects or candidate_names(), PAIRS)
         settings = Settings(landing=False, steps=Settings.quick().steps, max_segments=SEGMENTS[size])
     with tqdm(total=len(plan), desc="selfcheck", unit="case", disable=args.quiet) as bar:
-        result = selfcheck(plan, settings, seed=args.seed, progress=lambda name: bar.update(1),
-                           games=args.games or GAMES[size])
+        try:
+            result = selfcheck(plan, settings, seed=args.seed, progress=lambda name: bar.update(1),
+                               games=args.games or GAMES[size], store=args.out, resume=args.resume)
+        except ResumeError as e:
+            raise UsageError(str(e)) from None
+        except KeyboardInterrupt:
+            if args.out is None:
+                raise
+            print(f"error: interrupted; the finished cases are stored in {args.out / 'cases'}: rerun with --resume",
+                  file=sys.stderr)
+            return 1
     text = table(result)
     print(text)
     if args.out is not None:

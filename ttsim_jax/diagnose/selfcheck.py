@@ -34,8 +34,10 @@ here, and only here: the diagnosis itself never sees it.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
+from pathlib import Path
 from typing import Callable
 
 import jax.numpy as jnp
@@ -261,22 +263,80 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     return row
 
 
+class ResumeError(ValueError):
+    """A stored case of ``--resume`` that does not belong to the run asked for (message names it)."""
+
+
+def _case_key(kind: str, names, seed: int, games: int, settings, present) -> dict:
+    """What a case's result depends on, besides the code: stored with it, compared on resume."""
+    from ttsim_jax.diagnose.diagnosis import jsonable
+
+    return jsonable(dict(kind=kind, effects=list(names), seed=int(seed), games=int(games), present=list(present),
+                         settings=repr(settings)))
+
+
+def case_path(store, i: int, names) -> Path:
+    """The file of case ``i`` in a run folder's ``cases/``."""
+    return Path(store) / "cases" / f"{i:02d}_{'+'.join(names)}.json"
+
+
+def stored_cases(store) -> list:
+    """The case files a run folder holds (sorted)."""
+    return sorted((Path(store) / "cases").glob("*.json"))
+
+
+def _load_case(path: Path, key: dict) -> dict:
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ResumeError(f"{path}: not a readable case file ({e}); remove it to rerun that case") from None
+    got = stored.get("key", {}) if isinstance(stored, dict) else {}
+    for field in key:
+        if got.get(field) != key[field]:
+            raise ResumeError(f"{path}: stored with {field} = {got.get(field)!r}, this run has {key[field]!r}; "
+                              "resume with the same options, or start over with --force")
+    return stored["row"]
+
+
 def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None = None,
-              games: int = GAMES["quick"]) -> dict:
-    """Every case of ``plan`` (:func:`cases`; default the quick one) and the :func:`summary`."""
-    from ttsim_jax.diagnose.diagnosis import Settings
+              games: int = GAMES["quick"], store=None, resume: bool = False) -> dict:
+    """Every case of ``plan`` (:func:`cases`; default the quick one) and the :func:`summary`.
+
+    Arguments:
+        store: a run folder: each finished case is written at once, atomically, to
+            ``store/cases/NN_<effects>.json`` (:func:`case_path`) with what it depends on.
+        resume: take the cases already in ``store`` instead of running them again (their options
+            must be this run's: :class:`ResumeError` names the file and the option otherwise).
+
+    Returns:
+        {"cases": rows, "summary", "seconds" (wall, this call), "cpu_seconds", "resumed" (cases
+        taken from ``store``)}; each row's ``wall_seconds`` is its case's own wall time.
+    """
+    from ttsim_jax.diagnose.diagnosis import Settings, jsonable
+    from ttsim_jax.io_atomic import atomic_write
 
     settings = settings or Settings.quick(max_segments=SEGMENTS["quick"])
     plan = plan if plan is not None else cases()
     t0, c0 = time.perf_counter(), time.process_time()
     present = tuple(sorted({n for _, names in plan for n in names}))
-    rows = []
+    rows, resumed = [], 0
     for i, (kind, names) in enumerate(plan):
-        rows.append(run_case(kind, names, seed + 100 * i, settings, games, present))
+        key = _case_key(kind, names, seed + 100 * i, games, settings, present)
+        path = case_path(store, i, names) if store is not None else None
+        if resume and path is not None and path.exists():
+            rows.append(_load_case(path, key))
+            resumed += 1
+        else:
+            start = time.perf_counter()
+            row = run_case(kind, names, seed + 100 * i, settings, games, present)
+            row["wall_seconds"] = time.perf_counter() - start
+            rows.append(row)
+            if path is not None:
+                atomic_write(path, json.dumps(jsonable(dict(key=key, row=row)), indent=1).encode())
         if progress:
             progress("+".join(names))
     return dict(cases=rows, summary=summary(rows), seconds=time.perf_counter() - t0,
-                cpu_seconds=time.process_time() - c0)
+                cpu_seconds=time.process_time() - c0, resumed=resumed)
 
 
 #: Colours of the figure's outcomes (found / right: green; missed or a false alarm: red).
@@ -344,5 +404,6 @@ def table(result: dict) -> str:
                  f"{s['n_undetectable']} (nothing found in {s['undetectable_nothing_found']}); pairs {s['n_pairs']}, "
                  f"one true effect first {s['pair_rank1_rate']:.2f}, both {s['pair_both_rate']:.2f}; outside the "
                  f"catalogue: unexplained {s['outside_unexplained']}, located {s['outside_located']}; "
-                 f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU")
+                 f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU"
+                 + (f" ({result['resumed']} cases taken from an earlier, interrupted run)" if result.get("resumed") else ""))
     return "\n".join(lines)
