@@ -156,3 +156,14 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
     g_fused = jax.grad(landing)(v0, True)
     np.testing.assert_allclose(np.asarray(g_fused), np.asarray(g_ref), rtol=1e-10)
     assert np.all(np.asarray(g_ref) != 0.0)
+
+
+def test_auto_takes_the_fused_path_where_it_was_measured_to_pay():
+    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls, on a GPU always."""
+    from ttsim_jax.kernel.rollout import FUSED_AUTO_MIN_BATCH_CPU as n
+    from ttsim_jax.kernel.rollout import fused_pays
+
+    if jax.default_backend() == "cpu":
+        assert not fused_pays(n - 1) and fused_pays(n) and fused_pays(1 << 20)
+    else:
+        assert fused_pays(1) == (jax.default_backend() == "gpu")

@@ -343,6 +343,19 @@ def default_buffering() -> str:
     return "loop" if jax.default_backend() == "cpu" else "single"
 
 
+#: Least batch at which ``fused="auto"`` takes the fused path on a CPU. Measured on 2 cores (flight
+#: + table, ``benchmarks/README.md``): 2.0x the reference path at 1,024 balls and 1.5-2.0x up to
+#: 262,144, 0.88-0.94x the hand-written numba loop; below 1,024 balls it was not measured idle.
+FUSED_AUTO_MIN_BATCH_CPU = 1024
+
+
+def fused_pays(batch: int) -> bool:
+    """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
+    on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls."""
+    backend = jax.default_backend()
+    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU)
+
+
 def default_capacity(batch: int) -> int:
     """Contact buffer rows: B/32, at least 8 (a ball has a contact every ~100-300 steps)."""
     return min(batch, max(8, math.ceil(batch / 32)))
@@ -352,7 +365,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
             contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
             reference: bool = False, block_size: int | None = None, buffering: str | None = None,
-            fused: bool | str = False, until_events: int = 0,
+            fused: bool | str = "auto", until_events: int = 0,
             memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
@@ -387,11 +400,12 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             see :func:`~ttsim_jax.kernel.step.step`.
         fused: the fused flight path (:mod:`~ttsim_jax.kernel.fused`: a Pallas kernel flies the balls
             many steps per launch up to their next possible event; same results within float32
-            rounding): True (refused with the reason where it does not cover the rollout), False
-            (default), or ``"auto"`` (on a GPU wherever it covers the rollout). Pallas runs
-            compiled (Triton) on a GPU and in interpret mode elsewhere (on 2 CPU cores it ran at
-            0.7x the reference path at 1,024 balls, 0.9x and 2x at 4,096 in two runs, 1.6x at 65,536;
-            benchmarks/README.md).
+            rounding): ``"auto"`` (default: wherever it covers the rollout and pays,
+            :func:`fused_pays`: on a GPU, and on a CPU from 1,024 balls), True (refused with the
+            reason where it does not cover the rollout) or False (the reference path). Pallas runs
+            compiled (Triton) on a GPU and in interpret mode elsewhere, which on a CPU lowers to
+            ordinary XLA loops (2 cores, flight + table: 1.5-2.0x the reference path from 1,024 to
+            262,144 balls, 0.88-0.94x a hand-written numba loop; benchmarks/README.md).
             ``jax.grad`` always differentiates the reference path.
         until_events: each ball stops advancing once this rollout's event log has counted that many
             of its events (its state is frozen there, still ``alive``; a later rollout, with a fresh
@@ -442,7 +456,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
-        fused = why is None and not reference and (fused is True or jax.default_backend() == "gpu")
+        fused = why is None and not reference and (fused is True or fused_pays(batch))
     block = default_block(batch) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
@@ -460,7 +474,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
              record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
              sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
-             model_axes=None, fused: bool | str = False, memory_budget_bytes: int = 2 << 30) -> RallyResult:
+             model_axes=None, fused: bool | str = "auto", memory_budget_bytes: int = 2 << 30) -> RallyResult:
     """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
     :func:`rollout`.
 
