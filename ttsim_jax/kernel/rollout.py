@@ -345,7 +345,8 @@ def default_buffering() -> str:
 
 #: Least batch at which ``fused="auto"`` takes the fused path on a CPU. Measured on 2 cores (flight
 #: + table, ``benchmarks/README.md``): 2.0x the reference path at 1,024 balls and 1.5-2.0x up to
-#: 262,144, 0.88-0.94x the hand-written numba loop; below 1,024 balls it was not measured idle.
+#: 262,144, 0.88-0.94x the hand-written numba loop. Below, it runs 1.4-1.6x faster but compiles
+#: about 3 s longer than the reference path, more than a small batch's run takes.
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
 
