@@ -201,5 +201,5 @@ def test_selfcheck_command_refuses_to_overwrite_stored_cases(tmp_path, capsys):
     assert main(["diagnose", "selfcheck", "--quick", "--out", str(tmp_path), "--quiet"]) == 2
     assert "pass --resume to continue that run, or --force" in capsys.readouterr().err
     assert main(["diagnose", "selfcheck", "--quick", "--resume", "--out", str(tmp_path), "--quiet"]) == 2
-    assert "00_spin_decay.json: stored with" in capsys.readouterr().err
+    assert "00_spin_decay.json: no 'row' in the case file" in capsys.readouterr().err
     assert main(["diagnose", "selfcheck", "--quick", "--resume", "--quiet"]) == 2

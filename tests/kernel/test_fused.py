@@ -158,12 +158,20 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
     assert np.all(np.asarray(g_ref) != 0.0)
 
 
-def test_auto_takes_the_fused_path_where_it_was_measured_to_pay():
-    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls, on a GPU always."""
-    from ttsim_jax.kernel.rollout import FUSED_AUTO_MIN_BATCH_CPU as n
-    from ttsim_jax.kernel.rollout import fused_pays
+def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
+    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls, on a GPU always;
+    and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
+    import importlib
 
+    R = importlib.import_module("ttsim_jax.kernel.rollout")
+    n = R.FUSED_AUTO_MIN_BATCH_CPU
     if jax.default_backend() == "cpu":
-        assert not fused_pays(n - 1) and fused_pays(n) and fused_pays(1 << 20)
+        assert not R.fused_pays(n - 1) and R.fused_pays(n) and R.fused_pays(1 << 20)
     else:
-        assert fused_pays(1) == (jax.default_backend() == "gpu")
+        assert R.fused_pays(1) == (jax.default_backend() == "gpu")
+    taken = []
+    monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
+    runs = ((n - 1, "auto"), (n, "auto"), (n, False))
+    for batch, choice in runs:
+        rollout(model, init_state(shots(batch)), 10, fused=choice)
+    assert taken == [fused.SUBSTEPS if c == "auto" and R.fused_pays(b) else 0 for b, c in runs], taken

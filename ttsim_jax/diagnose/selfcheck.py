@@ -290,7 +290,9 @@ def _load_case(path: Path, key: dict) -> dict:
         stored = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ResumeError(f"{path}: not a readable case file ({e}); remove it to rerun that case") from None
-    got = stored.get("key", {}) if isinstance(stored, dict) else {}
+    if not isinstance(stored, dict) or not isinstance(stored.get("row"), dict):
+        raise ResumeError(f"{path}: no 'row' in the case file; remove it to rerun that case")
+    got = stored.get("key", {})
     for field in key:
         if got.get(field) != key[field]:
             raise ResumeError(f"{path}: stored with {field} = {got.get(field)!r}, this run has {key[field]!r}; "
@@ -321,14 +323,15 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
     present = tuple(sorted({n for _, names in plan for n in names}))
     rows, resumed = [], 0
     for i, (kind, names) in enumerate(plan):
-        key = _case_key(kind, names, seed + 100 * i, games, settings, present)
+        case_seed = seed + 100 * i
+        key = _case_key(kind, names, case_seed, games, settings, present)
         path = case_path(store, i, names) if store is not None else None
         if resume and path is not None and path.exists():
             rows.append(_load_case(path, key))
             resumed += 1
         else:
             start = time.perf_counter()
-            row = run_case(kind, names, seed + 100 * i, settings, games, present)
+            row = run_case(kind, names, case_seed, settings, games, present)
             row["wall_seconds"] = time.perf_counter() - start
             rows.append(row)
             if path is not None:
