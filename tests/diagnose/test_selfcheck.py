@@ -110,7 +110,19 @@ def test_drawn_magnitudes_are_valid_parameters_in_the_upper_realistic_range(name
         cls.from_dict(d)  # raises naming the parameter when a draw has the wrong shape
     if name == "table_tilt":
         slope = np.linalg.norm([d["slope"] for d in draws], axis=1)
-        assert slope.min() >= 0.004 and slope.max() <= 0.009
+        assert slope.min() >= 0.009 and slope.max() <= 0.0125
+    if name == "table_unevenness":
+        for d in draws:
+            h, c = np.abs(d["amplitude"]), np.array(d["center"])
+            bumps = c[h > 0]
+            assert len(bumps) == 4 and h[h > 0].min() >= 0.0045 and h.max() <= 0.0065
+            # where the balls land, apart from each other
+            assert np.all((np.abs(bumps[:, 0]) >= 0.5) & (np.abs(bumps[:, 0]) <= 1.25) & (np.abs(bumps[:, 1]) <= 0.55))
+            gaps = np.linalg.norm(bumps[:, None] - bumps[None], axis=-1) + np.eye(len(bumps))
+            assert gaps.min() >= 0.6
+    if name == "buckling":
+        onsets = np.array([[d["table_onset"], d["racket_onset"]] for d in draws])
+        assert onsets[:, 0].max() <= 3.0 and onsets[:, 1].max() <= 8.0
     if name == "air_flow":
         wind = np.array([d["wind"] for d in draws])
         assert np.all(wind[:, 2] == 0.0) and 0.2 <= np.linalg.norm(wind, axis=1).min() <= 0.4

@@ -34,7 +34,8 @@ candidates are ranked by their largest held-out reduction, significant ones firs
 
 An effect whose parameters descent cannot start near their optimum gets a second descent from
 starts found otherwise (:data:`REFINE`): the gusts of ``air_flow`` from a periodogram of the
-flights' wind offsets (:mod:`ttsim_jax.diagnose.gusts`).
+flights' wind offsets (:mod:`ttsim_jax.diagnose.gusts`), the bumps of ``table_unevenness`` from a
+scan of the table contacts' errors (:mod:`ttsim_jax.diagnose.bumps`).
 
 A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
 its parameters are fitted is inferred (those whose typical value differs from the neutral one, at
@@ -52,7 +53,7 @@ import numpy as np
 import optax
 
 from ttsim_jax import effects as fx
-from ttsim_jax.diagnose import gusts
+from ttsim_jax.diagnose import bumps, gusts
 from ttsim_jax.diagnose import stages as S
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.phases import Phases, pad_rows
@@ -80,8 +81,9 @@ FREE = {
 #: Effects fitted in two descents: after the first, a function of (problem, model, specs, consts, u,
 #: flight states, index) gives the effect's spec and per-session starts for a second one (or None
 #: to keep the first): the gusts' frequencies are found by a periodogram of the flights' wind
-#: offsets, which descent cannot do (:mod:`ttsim_jax.diagnose.gusts`).
-REFINE = {"air_flow": gusts.gust_stage}
+#: offsets, which descent cannot do (:mod:`ttsim_jax.diagnose.gusts`); the bumps' centres by a scan
+#: of the table contacts' errors linearised in the surface's slope (:mod:`ttsim_jax.diagnose.bumps`).
+REFINE = {"air_flow": gusts.gust_stage, "table_unevenness": bumps.bump_stage}
 #: Parameters that start at their typical value (the others at neutral).
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
