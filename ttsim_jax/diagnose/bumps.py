@@ -39,6 +39,8 @@ KEEP = 25.0
 PRIOR = 0.005
 #: Step scales of the second descent (amplitude, centre, width) [m].
 SCALES = {"amplitude": 0.0015, "center": 0.1, "width": 0.05}
+#: Scanned bumps per chunk (memory: CHUNK x contacts x 2 floats).
+CHUNK = 512
 #: Half length and half width of the playing surface [m].
 HALF = (1.37, 0.7625)
 
@@ -89,18 +91,27 @@ def scan(xy, jac, resid, n_bumps: int, keep: float = KEEP):
     grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
     centers = np.concatenate([grid] * len(WIDTHS))
     widths = np.repeat(np.asarray(WIDTHS, np.float64), len(grid))
-    # a (K, N, 6): each candidate's error change per metre of height, built once
-    a = np.einsum("knj,nij->kni", _gaussian_gradient(xy, centers, widths), jac)
-    aa = np.einsum("kni,kni->k", a, a) + sigma2 / PRIOR**2
+    # a bump's error change per metre of height is a_kn = J_n g_kn; its products with the residuals
+    # and itself go through J^T r (N, 2) and J^T J (N, 2, 2), in chunks of bumps, so that memory
+    # stays O(chunk x N) on a dataset of tens of thousands of bounces
+    jtj = np.einsum("nij,nil->njl", jac, jac)
+    chunks = [slice(k, k + CHUNK) for k in range(0, len(widths), CHUNK)]
+
+    def gradients(sl):
+        return _gaussian_gradient(xy, centers[sl], widths[sl])
+
+    aa = np.concatenate([np.einsum("knj,njl,knl->k", g, jtj, g) for g in map(gradients, chunks)])
+    aa = aa + sigma2 / PRIOR**2
     out = []
     for _ in range(n_bumps):
-        ra = np.einsum("kni,ni->k", a, r)
+        jtr = np.einsum("nij,ni->nj", jac, r)
+        ra = np.concatenate([np.einsum("knj,nj->k", gradients(sl), jtr) for sl in chunks])
         fall = ra**2 / aa
         k = int(np.argmax(fall))
         if fall[k] < keep * sigma2:
             break
         height = -ra[k] / aa[k]
-        r = r + height * a[k]
+        r = r + height * np.einsum("nij,nj->ni", jac, gradients(slice(k, k + 1))[0])
         out.append((centers[k], widths[k], height, fall[k] / sigma2))
     if not out:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0)
