@@ -4,7 +4,8 @@ Reports, in JSON:
 
 * bytes per ball of the rally state, of one event-log slot and of one recorded step;
 * the kernel's working memory per ball for a forward rollout (XLA's own buffer assignment of the
-  compiled program: arguments, outputs and temporaries), hence the largest batch per GiB;
+  compiled program: arguments, outputs and temporaries), hence the largest batch per GiB, of the
+  reference path and of the fused path;
 * the memory of a reverse-mode gradient of a landing point over 1,000 steps for 1,024 balls, with
   rematerialisation on (the default) and off;
 * first-call compile time of each model family with two rackets.
@@ -54,11 +55,10 @@ def program_bytes(compiled) -> dict:
     return out
 
 
-def forward_bytes(model, batch, n_steps, dtype):
+def forward_bytes(model, batch, n_steps, dtype, fused=False):
+    """The program of a forward rollout: the reference path (``fused=False``) or the fused one."""
     state = init_state(shots(batch, dtype))
-    # the reference path's program, as in the committed figures (the default, "auto", takes the
-    # fused path from 1,024 balls on a CPU)
-    lowered = jax.jit(lambda m, s: rollout(m, s, n_steps, 1e-3, max_events=8, fused=False)).lower(model, state)
+    lowered = jax.jit(lambda m, s: rollout(m, s, n_steps, 1e-3, max_events=8, fused=fused)).lower(model, state)
     return program_bytes(lowered.compile())
 
 
@@ -107,6 +107,10 @@ def main(argv=None) -> int:
     fwd = {str(n): forward_bytes(model, n, 1000, dtype) for n in (4096, 65536)}
     slope = (fwd["65536"]["total_bytes"] - fwd["4096"]["total_bytes"]) / (65536 - 4096)
     print("forward program bytes:", fwd, f"-> {slope:.0f} bytes per ball", flush=True)
+    # the fused path ("auto" takes it from 1,024 balls on a CPU, always on a GPU)
+    fused = {str(n): forward_bytes(model, n, 1000, dtype, fused=True) for n in (4096, 65536)}
+    fused_slope = (fused["65536"]["total_bytes"] - fused["4096"]["total_bytes"]) / (65536 - 4096)
+    print("fused forward program bytes:", fused, f"-> {fused_slope:.0f} bytes per ball", flush=True)
     grad = {"remat": gradient_bytes(model, b, 1000, dtype, True), "no_remat": gradient_bytes(model, b, 1000, dtype, False)}
     for k, v in grad.items():
         v["bytes_per_ball_step"] = v["total_bytes"] / (b * 1000)
@@ -119,7 +123,9 @@ def main(argv=None) -> int:
     result = dict(
         device=str(jax.devices()[0]), platform=platform.platform(), jax=jax.__version__, dtype="float32",
         bytes_per_ball=per_ball, forward_rollout_1000_steps=fwd, forward_bytes_per_ball=slope,
-        largest_batch_per_gib=int(2**30 // slope), gradient_1000_steps_1024_balls=grad,
+        largest_batch_per_gib=int(2**30 // slope), fused_forward_rollout_1000_steps=fused,
+        fused_forward_bytes_per_ball=fused_slope, fused_largest_batch_per_gib=int(2**30 // fused_slope),
+        gradient_1000_steps_1024_balls=grad,
         compile_seconds_two_rackets=compile_s)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
