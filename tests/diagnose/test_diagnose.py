@@ -75,7 +75,7 @@ def test_oracle_shrink_of_the_selfcheck(withheld):
 def clean_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("diagnose") / "out"
     status = main(["diagnose", "--data", str(CLEAN), "--model", "durr2026", "--out", str(out), "--quick", "--effects",
-                   "spin_decay,worn_ball,table_tilt,racket_logo", "--quiet"])
+                   "spin_decay,worn_ball,table_tilt,table_unevenness,racket_logo", "--quiet"])
     return status, out
 
 
