@@ -12,7 +12,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import effects as fx
 from ttsim_jax import load_model
 from ttsim_jax.data import load
 from ttsim_jax.diagnose import bumps as B
@@ -66,10 +65,7 @@ def table():
 def test_slope_jacobian_equals_finite_differences(table):
     model, c, n = table
     jac = np.asarray(B._jacobian(model.replace(name=""), c), np.float64)[:n]
-    cls = fx.effect_class("table_tilt")
-    spec = C.Spec("table_tilt", cls, ("slope",), False)
-    const = dict(start={k: jnp.zeros(p.shape, jnp.float32) for k, p in cls.PARAMS.items()},
-                 scale={k: jnp.float32(1.0) for k in cls.PARAMS})
+    spec, const = B.tilt_candidate()
     h = 2e-3
 
     def errors(slope):

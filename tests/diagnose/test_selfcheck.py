@@ -205,6 +205,18 @@ def test_an_interrupted_selfcheck_resumes_from_its_stored_cases(tmp_path, monkey
         SC.selfcheck(plan, settings, seed=6, store=tmp_path, resume=True)
 
 
+def test_a_stored_case_of_other_draws_is_not_resumed(tmp_path, monkeypatch):
+    """The key holds the drawn parameters: cases stored before a change of DRAWS are refused."""
+    from ttsim_jax.diagnose.diagnosis import Settings
+
+    plan = SC.cases(("spin_decay",), (), None)
+    _fake_cases(monkeypatch, [])
+    SC.selfcheck(plan, Settings.quick(), seed=5, store=tmp_path)
+    monkeypatch.setitem(SC.DRAWS, "spin_decay", lambda r: {"rate": r.uniform(0.05, 0.1), "quadratic": 0.0})
+    with pytest.raises(SC.ResumeError, match=r"00_spin_decay\.json: stored with params = "):
+        SC.selfcheck(plan, Settings.quick(), seed=5, store=tmp_path, resume=True)
+
+
 def test_selfcheck_command_refuses_to_overwrite_stored_cases(tmp_path, capsys):
     from ttsim_jax.cli import main
 

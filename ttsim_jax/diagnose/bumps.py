@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.diagnose import stages as S
+from ttsim_jax.effects.physical import _TABLE_HALF
 
 #: Grid step of the scanned centres [m] and the scanned widths [m].
 STEP = 0.05
@@ -41,22 +42,24 @@ PRIOR = 0.005
 SCALES = {"amplitude": 0.0015, "center": 0.1, "width": 0.05}
 #: Scanned bumps per chunk (memory: CHUNK x contacts x 2 floats).
 CHUNK = 512
-#: Half length and half width of the playing surface [m].
-HALF = (1.37, 0.7625)
+
+
+def tilt_candidate():
+    """(spec, consts) of the ``table_tilt`` candidate with its slope in plain units (scale 1): the
+    local slope that :func:`scan` differentiates in."""
+    from ttsim_jax.diagnose.candidates import spec
+
+    sp, const = spec("table_tilt")
+    return sp, dict(const, scale=dict(const["scale"], slope=np.float64(1.0)))
 
 
 def _slope_jacobian(model, c: dict):
     """(N, 6, 2) derivative of each table contact's error in the surface's slope at zero slope."""
-    from ttsim_jax import effects as fx
-    from ttsim_jax.diagnose.candidates import Spec
-
-    cls = fx.effect_class("table_tilt")
-    spec = Spec("table_tilt", cls, ("slope",), False)
-    const = dict(start={k: jnp.zeros(p.shape, jnp.float32) for k, p in cls.PARAMS.items()},
-                 scale={k: jnp.float32(1.0) for k in cls.PARAMS})
+    sp, const = tilt_candidate()
+    const = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), const)
 
     def errors(slope):
-        return S.table_errors(model, (spec,), (const,), ({"slope": slope[None]},), c)
+        return S.table_errors(model, (sp,), (const,), ({"slope": slope[None]},), c)
 
     return jax.jacfwd(errors)(jnp.zeros(2, jnp.float32))
 
@@ -86,8 +89,8 @@ def scan(xy, jac, resid, n_bumps: int, keep: float = KEEP):
     xy, jac, r = (np.asarray(a, np.float64) for a in (xy, jac, resid))
     used = np.abs(jac).sum(axis=2) > 0  # error components a slope moves
     sigma2 = max(float(np.sum(r[used] ** 2) / max(used.sum(), 1)), 1e-30)
-    gx = np.arange(-HALF[0], HALF[0] + 1e-9, STEP)
-    gy = np.arange(-HALF[1], HALF[1] + 1e-9, STEP)
+    gx = np.arange(-_TABLE_HALF[0], _TABLE_HALF[0] + 1e-9, STEP)
+    gy = np.arange(-_TABLE_HALF[1], _TABLE_HALF[1] + 1e-9, STEP)
     grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
     centers = np.concatenate([grid] * len(WIDTHS))
     widths = np.repeat(np.asarray(WIDTHS, np.float64), len(grid))
@@ -138,8 +141,7 @@ def bump_stage(pb, model, specs, consts, u, x, i):
         return None
     start = {k: np.broadcast_to(np.asarray(const["start"][k], np.float64), p.shape).copy()
              for k, p in sp.cls.PARAMS.items()}
-    m = len(heights)
+    m = len(heights)  # the other bumps keep their neutral (flat) start
     start["center"][:m], start["width"][:m], start["amplitude"][:m] = centers, widths, heights
-    start["amplitude"][m:] = 0.0
     scale = {k: np.float64(SCALES.get(k, 0.0)) for k in sp.cls.PARAMS}
     return dataclasses.replace(sp, free=tuple(k for k in SCALES if k in sp.cls.PARAMS)), dict(start=start, scale=scale)

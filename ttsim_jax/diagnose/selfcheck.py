@@ -103,7 +103,7 @@ def _warp(rng, bumps: int = 4, apart: float = 0.6) -> dict:
 #: * table_tilt: slope 0.009-0.0125 (0.5-0.7 degrees: a table on an unlevelled floor; the largest
 #:   the catalogue draws), any direction, the surface's height at the centre unchanged. A slope of
 #:   0.0072 lowers the table errors by 1.8-2.4 %: below the significance rule;
-#: * table_unevenness: a warped top (:func:`_warp`): three bumps or dips of 4-6 mm (the catalogue's
+#: * table_unevenness: a warped top (:func:`_warp`): four bumps or dips of 4.5-6.5 mm (the catalogue's
 #:   heights have a 1.2 mm spread), 0.2-0.35 m wide, at least 0.6 m apart, centred where the balls
 #:   land (0.5-1.25 m from the net, at most 0.55 m from the centre line: 90 % of the games'
 #:   bounces); their flanks slope by up to 0.015, as table_tilt's draw. Six bumps of 1-2 mm anywhere
