@@ -9,6 +9,7 @@ Each dataset is diagnosed once per module; the candidates are a few effects that
 same phases (table and racket restitution, a table tilt, a racket region, a flight effect).
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -103,3 +104,80 @@ def test_cli_writes_every_file(clean_run):
     for fig in FIGURES.values():
         assert f"]({fig})" in report
     assert "## Where" in report and "## Which effect" in report
+
+
+def test_forward_selection_keeps_an_effect_only_when_it_adds(withheld):
+    """``select``: on data with buckling alone, a worn ball (a lower restitution at every speed) adds
+    nothing on top of buckling, while buckling on top of a worn ball lowers the table errors
+    significantly (a loss that grows with the impact speed); the accepted ones' joint fit is kept."""
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose.diagnosis import select
+
+    pb, model = withheld["problem"], withheld["model"]
+    st = Settings.quick(effects=CANDIDATES)
+    group = tuple(c for c in C.candidate_names(CANDIDATES))  # the withheld run's compiled group
+    fits = {n: C.fit(pb, [n], model, group=group, steps=st.steps, lr=st.lr) for n in ("buckling", "worn_ball")}
+    group_of = {n: group for n in group}
+    accepted, best, adds = select(pb, [fits["buckling"], fits["worn_ball"]], model, group_of, st)
+    assert [c.spec.name for c in accepted] == ["buckling"] and best is fits["buckling"]
+    assert not adds["worn_ball"]["accepted"] and adds["worn_ball"]["on_top_of"] == ["buckling"]
+    assert adds["worn_ball"]["interchangeable_with"] == []  # buckling does add on top of a worn ball
+    accepted, best, adds = select(pb, [fits["worn_ball"], fits["buckling"]], model, group_of, st)
+    assert [c.spec.name for c in accepted] == ["worn_ball", "buckling"], adds
+    assert adds["buckling"]["heldout"]["table"]["ci95"][0] > 10.0
+    assert best.spec.name == "worn_ball+buckling" and set(best.params) == {"worn_ball", "buckling"}
+
+
+def test_forward_selection_does_not_refit_effects_of_disjoint_phases(withheld, monkeypatch):
+    """An effect acting in phases that none of the accepted ones acts in is taken with its own fit
+    (the joint fit would be the same); the combined result holds both fits' phases."""
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose.diagnosis import select
+
+    pb, model = withheld["problem"], withheld["model"]
+    assert "flight" in pb.phases
+    st = Settings.quick(effects=CANDIDATES)
+    group = tuple(C.candidate_names(CANDIDATES))
+    buckling = C.fit(pb, ["buckling"], model, group=group, steps=st.steps, lr=st.lr)
+    # the noise-free flights err by less than the flight's resolution: give them a 2 mm error, and a
+    # flight effect that halves it (stands in for a fitted air_flow)
+    mask = np.asarray(pb.data["flight"]["mask"])[..., None]
+    monkeypatch.setitem(pb.base, "flight", np.asarray(pb.base["flight"]) + 0.002 * mask)
+    errors = {"flight": pb.base["flight"] * 0.5}
+    flight = C.Candidate(spec=C.spec("air_flow")[0], consts=(), u=(), history=np.zeros(1), errors=errors,
+                         heldout=C.score(pb, errors), params={"air_flow": {}})
+    monkeypatch.setattr(C, "fit", lambda *a, **k: pytest.fail("refitted an effect of disjoint phases"))
+    accepted, best, adds = select(pb, [buckling, flight], model, {n: group for n in group}, st)
+    assert [c.spec.name for c in accepted] == ["buckling", "air_flow"] and adds["air_flow"]["accepted"]
+    assert adds["air_flow"]["heldout"]["flight"]["pct"] == pytest.approx(50.0, abs=0.1)
+    assert best.spec.name == "buckling+air_flow" and set(best.heldout) == {"flight", "table", "racket"}
+    assert best.errors["table"] is buckling.errors["table"] and set(best.params) == {"buckling", "air_flow"}
+
+
+def test_forward_selection_reports_interchangeable_effects(withheld, monkeypatch):
+    """Two candidates that explain the same errors (their joint fit no better than either alone):
+    the second is not accepted, and each adding nothing on top of the other, they are reported as
+    interchangeable (in the verdict's text too)."""
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose.diagnosis import _candidate_json, select, verdict
+
+    pb, model = withheld["problem"], withheld["model"]
+    mask = np.asarray(pb.data["flight"]["mask"])[..., None]
+    monkeypatch.setitem(pb.base, "flight", np.asarray(pb.base["flight"]) + 0.002 * mask)
+    errors = {"flight": pb.base["flight"] * 0.5}
+
+    def fitted(name):
+        return C.Candidate(spec=C.spec(name)[0], consts=(), u=(), history=np.zeros(1), errors=errors,
+                           heldout=C.score(pb, errors), params={name: {}})
+
+    wind, ball = fitted("air_flow"), fitted("ball_variation")
+    monkeypatch.setattr(C, "fit", lambda pb, names, *a, **k: dataclasses.replace(fitted(names[0]), params={
+        n: {} for n in names}))
+    st = Settings.quick(effects=CANDIDATES)
+    accepted, best, adds = select(pb, [wind, ball], model, {}, st)
+    assert [c.spec.name for c in accepted] == ["air_flow"] and best is wind
+    assert not adds["ball_variation"]["accepted"] and adds["ball_variation"]["interchangeable_with"] == ["air_flow"]
+    out = dict(where={}, dependence={}, candidates=[dict(_candidate_json(wind, 1)),
+                                                    dict(_candidate_json(ball, 2), adds=adds["ball_variation"])])
+    text = verdict(out, accepted, [ball])["text"]
+    assert "air_flow and ball_variation are interchangeable" in text, text

@@ -134,15 +134,22 @@ def test_cases_plan():
 
 
 def test_a_candidate_that_worsens_another_phase_is_not_significant():
-    """A gain in one phase bought with a significant loss in another (the signature of a fit to a
-    bias of the racket contact estimates) does not explain the data; an insignificant loss does not
+    """A gain in one phase bought with a material loss in another (the signature of a fit to a bias
+    of the racket contact estimates) does not explain the data; a loss that is insignificant, or
+    consistent but below the phase's resolution (a side of the effect left near neutral), does not
     matter."""
-    from ttsim_jax.diagnose.candidates import explains
+    from ttsim_jax.diagnose.candidates import MIN_GAIN, explains
 
     gain = held(10.0, before=0.3)
+    material = dict(held(-12.0, before=0.3), ci95=[-15.0, -9.0])
+    assert material["after_rms"] - material["before_rms"] > MIN_GAIN["table"]
+    assert not explains({"racket": gain, "table": material, "flight": held(0.0, before=0.003, lo=-0.3)})
     assert explains({"racket": gain, "table": held(0.2, lo=-0.5)})
-    assert not explains({"racket": gain, "table": dict(held(-1.1), ci95=[-1.5, -0.6]),
-                         "flight": held(0.0, before=0.003, lo=-0.3)})
+    # consistent (interval below -1 %) but 0.5 mm/s: under the table's resolution
+    assert explains({"racket": gain, "table": dict(held(-0.5, before=0.1), ci95=[-0.6, -0.4])})
+    assert explains({"racket": gain, "table": dict(held(-5.0, before=0.05), ci95=[-6.0, -4.0])})
+    # above the resolution, but the interval reaches above -1 %
+    assert explains({"racket": gain, "table": dict(held(-12.0, before=0.3), ci95=[-15.0, -0.5])})
 
 
 def test_figure_colours_each_case_by_its_outcome(tmp_path):
@@ -227,3 +234,20 @@ def test_selfcheck_command_refuses_to_overwrite_stored_cases(tmp_path, capsys):
     assert main(["diagnose", "selfcheck", "--quick", "--resume", "--out", str(tmp_path), "--quiet"]) == 2
     assert "00_spin_decay.json: no 'row' in the case file" in capsys.readouterr().err
     assert main(["diagnose", "selfcheck", "--quick", "--resume", "--quiet"]) == 2
+
+
+def test_an_effect_reported_interchangeable_with_the_first_counts_as_found():
+    """A worn ball's lower restitution and a buckling loss starting below every impact explain the
+    same errors: when the diagnosis reports them interchangeable, the case counts as found, says
+    so, and is counted apart in the summary; a merely redundant second candidate does not count."""
+    first = cand("buckling", racket=held(14.0))
+    same = dict(cand("worn_ball", racket=held(13.5)), adds=dict(accepted=False, on_top_of=["buckling"],
+                                                                heldout={}, interchangeable_with=["buckling"]))
+    oracle = {"racket": held(14.0)}
+    r = SC.score("single", ["worn_ball"], [first, same], NO_WHERE, oracle)
+    assert r["rank1"] and r["interchangeable"] and r["outcome"] == "found as interchangeable with buckling"
+    redundant = dict(same, adds=dict(same["adds"], interchangeable_with=[]))
+    r2 = SC.score("single", ["worn_ball"], [first, redundant], NO_WHERE, oracle)
+    assert not r2["rank1"] and r2["outcome"] == "missed"
+    s = SC.summary([dict(r, kind="single"), dict(r2, kind="single")])
+    assert s["n_interchangeable"] == 1 and s["rank1_rate"] == 0.5

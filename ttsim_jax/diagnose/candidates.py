@@ -29,13 +29,14 @@ Held-out score (:func:`score`): per phase, the reduction of the held-out RMS err
 model's, 100 (1 - RMS_after / RMS_before) [%], with a 95 % paired bootstrap interval over held-out
 segments / contacts. A candidate is *significant* when in some phase the interval's lower end is
 above :data:`MIN_REDUCTION` % and the RMS error falls by more than that phase's :data:`MIN_GAIN`,
-and in no phase it acts in is the held-out error significantly worse (:func:`explains`);
+and in no phase it acts in is the held-out error materially worse (by as much, :func:`explains`);
 candidates are ranked by their largest held-out reduction, significant ones first.
 
 An effect whose parameters descent cannot start near their optimum gets a second descent from
 starts found otherwise (:data:`REFINE`): the gusts of ``air_flow`` from a periodogram of the
 flights' wind offsets (:mod:`ttsim_jax.diagnose.gusts`), the bumps of ``table_unevenness`` from a
-scan of the table contacts' errors (:mod:`ttsim_jax.diagnose.bumps`).
+scan of the table contacts' errors (:mod:`ttsim_jax.diagnose.bumps`), the onsets of ``buckling``
+from a grid (:mod:`ttsim_jax.diagnose.onsets`).
 
 A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
 its parameters are fitted is inferred (those whose typical value differs from the neutral one, at
@@ -53,7 +54,7 @@ import numpy as np
 import optax
 
 from ttsim_jax import effects as fx
-from ttsim_jax.diagnose import bumps, gusts
+from ttsim_jax.diagnose import bumps, gusts, onsets
 from ttsim_jax.diagnose import stages as S
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.phases import Phases, pad_rows
@@ -82,8 +83,9 @@ FREE = {
 #: flight states, index) gives the effect's spec and per-session starts for a second one (or None
 #: to keep the first): the gusts' frequencies are found by a periodogram of the flights' wind
 #: offsets, which descent cannot do (:mod:`ttsim_jax.diagnose.gusts`); the bumps' centres by a scan
-#: of the table contacts' errors linearised in the surface's slope (:mod:`ttsim_jax.diagnose.bumps`).
-REFINE = {"air_flow": gusts.gust_stage, "table_unevenness": bumps.bump_stage}
+#: of the table contacts' errors linearised in the surface's slope (:mod:`ttsim_jax.diagnose.bumps`);
+#: the onsets and widths of buckling by a grid over them (:mod:`ttsim_jax.diagnose.onsets`).
+REFINE = {"air_flow": gusts.gust_stage, "table_unevenness": bumps.bump_stage, "buckling": onsets.onset_stage}
 #: Parameters that start at their typical value (the others at neutral).
 START_TYPICAL = {"table_unevenness": ("center", "width")}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
@@ -447,12 +449,14 @@ def groups(names, phases) -> list:
     return [g for g in (flight, other) if g]
 
 
-def score(pb: Problem, errors: dict, seed: int = 0) -> dict:
-    """Held-out RMS reduction per phase of ``errors`` against the model's (see the module docstring)."""
+def score(pb: Problem, errors: dict, seed: int = 0, base: dict | None = None) -> dict:
+    """Held-out RMS reduction per phase of ``errors`` against the model's (see the module docstring),
+    or against ``base`` {phase: per-row errors} where it has the phase (an effect on top of others)."""
+    base = base or {}
     out = {}
     for p, e in errors.items():
         test = np.asarray(pb.data[p]["test"]) > 0
-        before, n = item_sums(pb, p, pb.base[p])
+        before, n = item_sums(pb, p, base.get(p, pb.base[p]))
         after, _ = item_sums(pb, p, e)
         before, after, n = before[test], after[test], n[test]
         w = group_weights(len(n), seed=seed)
@@ -467,18 +471,22 @@ def significant(phase: str, h: dict) -> bool:
     return bool(h["ci95"][0] > MIN_REDUCTION and h["before_rms"] - h["after_rms"] > MIN_GAIN[phase])
 
 
-def worse(h: dict) -> bool:
-    """Whether a held-out score ``h`` of :func:`score` is significantly worse than the model's (the
-    whole 95 % interval of the reduction below 0)."""
-    return bool(h["ci95"][1] < 0.0)
+def worse(phase: str, h: dict) -> bool:
+    """Whether a held-out score ``h`` of :func:`score` is materially worse than the model's, the mirror
+    of :func:`significant`: the whole 95 % interval of the reduction below -:data:`MIN_REDUCTION` %
+    and the RMS error up by more than the phase's :data:`MIN_GAIN`. A loss below the phase's
+    resolution is no evidence against an effect: a candidate acting on both contact kinds whose
+    parameters for one kind stay near neutral (no data at the speeds where it acts) changes that
+    kind's errors by a hair, consistently, and its interval then excludes zero."""
+    return bool(h["ci95"][1] < -MIN_REDUCTION and h["after_rms"] - h["before_rms"] > MIN_GAIN[phase])
 
 
 def explains(heldout: dict) -> bool:
     """Whether a candidate's held-out scores {phase: score} make it significant: significant in some
-    phase and significantly worse in none. An effect acting in several phases is fitted to all of
-    them at once; one that buys a gain in one phase with a loss in another is fitting something
-    else there (e.g. a bias of the contact state estimates), not a physical effect."""
-    return any(significant(p, h) for p, h in heldout.items()) and not any(worse(h) for h in heldout.values())
+    phase and materially worse in none (:func:`worse`). An effect acting in several phases is fitted
+    to all of them at once; one that buys a gain in one phase with a loss in another is fitting
+    something else there (e.g. a bias of the contact state estimates), not a physical effect."""
+    return any(significant(p, h) for p, h in heldout.items()) and not any(worse(p, h) for p, h in heldout.items())
 
 
 def rank(cands: list) -> list:

@@ -60,9 +60,11 @@ def register(subparsers) -> None:
         "mean. WHICH EFFECT: every simulator effect of the catalogue ('python -m ttsim_jax.effects') is fitted by "
         "gradient descent through the phase it acts in on a training split and scored by the reduction of the "
         f"held-out RMS error (significant: 95 % interval above {MIN_REDUCTION:g} % and a fall above the phase's "
-        "resolution, and no phase it acts in significantly worse); effects on the record (noise, "
+        "resolution, and no phase it acts in materially worse); effects on the record (noise, "
         "missing frames, racket-state error) are sized instead. When no candidate is significant, the report says "
-        "'unexplained' and where the gap is. HOW FAR: the significant effects fitted together, before and after. "
+        "'unexplained' and where the gap is. HOW FAR: forward selection: each further significant effect is "
+        "fitted together with those accepted before it and kept only when it adds significantly on top of them; "
+        "the accepted effects fitted together, before and after (--quick: no joint fits). "
         "Writes report.md, diagnosis.json and PNG figures to --out.")
     p = subparsers.add_parser("diagnose", help="where the sim-to-real gap lies and which effect causes it",
                               description=description)
@@ -75,7 +77,7 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true",
                    help=f"a faster, coarser run: {q.steps} descent steps per candidate instead of {d.steps}, at most "
                    f"{q.max_segments} flight segments instead of {d.max_segments}, no landing rollouts, the "
-                   "significant effects not refitted together")
+                   "no forward selection (every significant effect reported; none fitted together)")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
                    help=f"Adam steps per candidate (default: {d.steps}, with --quick {q.steps})")
     p.add_argument("--test-fraction", type=fraction, default=d.test_fraction, metavar="F",

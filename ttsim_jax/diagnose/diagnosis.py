@@ -10,11 +10,13 @@
    (:mod:`ttsim_jax.diagnose.residuals`);
 4. *which effect* (:mod:`ttsim_jax.diagnose.candidates`): every candidate fitted on the training
    part, scored on the held-out part, ranked;
-5. *how far*: the significant candidates (at most :data:`TOP` of them) fitted jointly, their
-   held-out errors against the model's per phase and regime, and the landing error of the model
-   with them (per-session parameters averaged over the sessions);
-6. the verdict: the significant effects by rank, or "unexplained" with where the gap is (flagged
-   regimes and significant dependences) when no candidate reduces a held-out error significantly.
+5. *how far*: forward selection among the significant candidates (:func:`select`: each fitted
+   jointly with those accepted before it and kept when it adds significantly, at most :data:`TOP`),
+   the accepted ones' held-out errors against the model's per phase and regime, and the landing
+   error of the model with them (per-session parameters averaged over the sessions);
+6. the verdict: the accepted effects by rank (and those significant alone that add nothing on top
+   of them), or "unexplained" with where the gap is (flagged regimes and significant dependences)
+   when no candidate reduces a held-out error significantly.
 
 Nothing here reads a generator's truth files.
 """
@@ -40,7 +42,7 @@ class NoData(ValueError):
     """The dataset has no usable item in any phase; the message gives each phase's reason."""
 
 
-#: Most significant candidates fitted jointly for the before/after.
+#: Most effects accepted by the forward selection (fitted jointly for the before/after).
 TOP = 3
 #: Phases of the "where" analysis.
 PHASES = C.PHASES + ("landing",)
@@ -56,7 +58,10 @@ class Settings:
         seed: seed of the split and the bootstraps.
         steps: Adam steps per candidate; lr: initial step size (units of each parameter's scale).
         landing: run the landing rollouts (where, and before/after).
-        combine: fit the significant candidates jointly for the before/after (else the first alone).
+        combine: forward selection among the significant candidates (:func:`select`): each fitted
+            jointly with those accepted before it, kept when it adds significantly; the accepted
+            ones' joint fit is the before/after (else every significant candidate is reported and
+            the first alone is the before/after).
         max_segments: flight segments used at most (a seeded random subset of more).
         fit: contact state estimation.
     """
@@ -188,12 +193,13 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     significant = [c for c in ranked if c.significant]
 
     # how far
-    best = None
+    accepted, best = significant, None
     if len(significant) > 1 and settings.combine:
-        top = [c.spec.name for c in significant[:TOP]]
-        group = next((g for g in set(group_of.values()) if set(top) <= set(g)), None)
-        best = C.fit(pb, top, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(top))
-        out["combined"] = _candidate_json(best, 0)
+        accepted, best, adds = select(pb, significant, model, group_of, settings)
+        for entry in out["candidates"]:
+            if entry["name"] in adds:
+                entry["adds"] = adds[entry["name"]]
+        out["combined"] = _candidate_json(best, 0 if len(accepted) > 1 else 1)
     elif significant:
         best = significant[0]
         out["combined"] = _candidate_json(best, 1)
@@ -219,12 +225,74 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             arrays["after_landing"] = after[np.isfinite(after)]
         out["landing"] = entry
     tick("landing after", 1)
-    out["verdict"] = verdict(out, significant)
+    out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted])
     out["pooled_sessions"] = pb.pooled
     out["seconds"] = time.perf_counter() - t_start
     out["arrays"] = arrays
     out["histories"] = {c.spec.name: c.history for c in ranked}
     return out
+
+
+def select(pb, significant: list, model, group_of: dict, settings: Settings) -> tuple[list, C.Candidate, dict]:
+    """Forward selection among the significant candidates (ranked): the first is accepted; each next
+    one is fitted jointly with those accepted so far and accepted when, on top of them, it lowers a
+    held-out error significantly (:func:`~ttsim_jax.diagnose.candidates.explains`, against the
+    accepted ones' joint fit), until :data:`TOP` are accepted.
+
+    A candidate fitted alone against the model can absorb part of another effect that acts in the
+    same phase (a lower restitution of a worn ball mimics part of a buckling loss): significant
+    alone, it adds nothing once the other is in the model.
+
+    Effects acting in disjoint phases do not interact in the fit (the loss is a sum over phases and
+    each effect's parameters move only its own phases' errors), so the accepted ones are kept as
+    blocks of effects that share a phase, and a candidate is refitted only with the blocks it shares
+    a phase with: alone (its own fit) where it shares none.
+
+    Two effects can explain the same errors (a buckling loss that starts below nearly every impact is
+    a worn ball's lower restitution): when a redundant candidate's accepted neighbours add nothing on
+    top of it either, the two are *interchangeable* on these data, and the report says so rather
+    than naming the one that happened to rank first.
+
+    Returns:
+        (accepted candidates, the joint fit of the accepted ones (the first alone when it is the
+        only one), {name: {"accepted", "on_top_of", "heldout", "interchangeable_with"}} of each
+        candidate tried on top).
+    """
+    accepted, blocks, adds = [significant[0]], [significant[0]], {}
+    for c in significant[1:]:
+        if len(accepted) >= TOP:
+            break
+        near = [b for b in blocks if set(b.heldout) & set(c.heldout)]
+        block = c
+        if near:
+            names = [n for b in near for n in b.params] + [c.spec.name]
+            group = next((g for g in set(group_of.values()) if set(names) <= set(g)), None)
+            block = C.fit(pb, names, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(names))
+        current = {p: e for b in blocks for p, e in b.errors.items()}
+        on_top = C.score(pb, block.errors, base=current)
+        ok = C.explains(on_top)
+        # redundant, and the accepted ones it shares phases with add nothing on top of it either:
+        # the data cannot tell them apart
+        same = [] if ok or not near else [n for b in near for n in b.params]
+        if same and C.explains(C.score(pb, block.errors, base=c.errors)):
+            same = []
+        adds[c.spec.name] = dict(accepted=ok, on_top_of=[a.spec.name for a in accepted], heldout=on_top,
+                                 interchangeable_with=same)
+        if ok:
+            accepted.append(c)
+            blocks = [b for b in blocks if not any(b is n for n in near)] + [block]
+    return accepted, _merged(blocks, accepted), adds
+
+
+def _merged(blocks: list, accepted: list) -> C.Candidate:
+    """One candidate of fits in disjoint phases (its loss history left empty)."""
+    if len(blocks) == 1:
+        return blocks[0]
+    first = blocks[0].spec
+    return C.Candidate(spec=C.Spec("+".join(c.spec.name for c in accepted), first.cls, (), False), consts=(), u=(),
+                       history=np.zeros(0), errors={p: e for b in blocks for p, e in b.errors.items()},
+                       heldout={p: h for b in blocks for p, h in b.heldout.items()},
+                       params={n: v for b in blocks for n, v in b.params.items()})
 
 
 def no_data(skipped: dict, landing: bool = True) -> dict:
@@ -258,22 +326,36 @@ def _where_text(out: dict) -> list:
     return lines
 
 
-def verdict(out: dict, significant: list) -> dict:
-    """{"explained": bool, "effects": [names by rank], "text": one paragraph, "where": [lines]}."""
+def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
+    """{"explained": bool, "effects": [names by rank], "redundant": [names], "text": one paragraph,
+    "where": [lines]}: ``significant`` the accepted effects (:func:`select`), ``redundant`` those
+    significant alone that add nothing on top of them."""
     where = _where_text(out)
+
+    def part(c):
+        p = max(c.heldout, key=lambda k: c.heldout[k]["pct"])
+        h = c.heldout[p]
+        return (f"{c.spec.name} ({p}: held-out RMS error {h['pct']:.1f} % lower, 95 % interval "
+                f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
+
     if significant:
-        parts = []
-        for c in significant:
-            p = max(c.heldout, key=lambda k: c.heldout[k]["pct"])
-            h = c.heldout[p]
-            parts.append(f"{c.spec.name} ({p}: held-out RMS error {h['pct']:.1f} % lower, 95 % interval "
-                         f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
-        text = "Explained by: " + "; ".join(parts) + "."
-        return dict(explained=True, effects=[c.spec.name for c in significant], text=text, where=where)
+        text = "Explained by: " + "; ".join(part(c) for c in significant) + "."
+        same = {}
+        for c in out.get("candidates", []):
+            for n in c.get("adds", {}).get("interchangeable_with", []):
+                same.setdefault(n, []).append(c["name"])
+        for n, others in same.items():
+            text += (f" {n} and {', '.join(others)} are interchangeable on these data: each adds nothing significant "
+                     "on top of the other.")
+        if redundant:
+            text += (" Significant alone but adding nothing significant on top of those: " +
+                     "; ".join(part(c) for c in redundant) + ".")
+        return dict(explained=True, effects=[c.spec.name for c in significant],
+                    redundant=[c.spec.name for c in redundant], text=text, where=where)
     text = ("Unexplained: no candidate effect reduces a held-out error significantly. " +
             (("The gap lies in: " + "; ".join(where) + ".") if where else "No regime stands out and no residual "
              "dependence is significant: what remains looks like noise."))
-    return dict(explained=False, effects=[], text=text, where=where)
+    return dict(explained=False, effects=[], redundant=[], text=text, where=where)
 
 
 def jsonable(obj):

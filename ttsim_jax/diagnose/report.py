@@ -110,6 +110,19 @@ def _pm(v, ci, f=1.0, fmt="{:.3g}") -> str:
     return f"{fmt.format(v * f)} [{fmt.format(ci[0] * f)}, {fmt.format(ci[1] * f)}]"
 
 
+def _significance(c: dict) -> str:
+    """'yes', 'no', or for a candidate tried on top of accepted ones what it adds there."""
+    if not c["significant"]:
+        return "no"
+    adds = c.get("adds")
+    if not adds:
+        return "yes"
+    p = max(adds["heldout"], key=lambda k: adds["heldout"][k]["pct"])
+    h = adds["heldout"][p]
+    word = "yes" if adds["accepted"] else "alone only"
+    return f"{word}; on top of {'+'.join(adds['on_top_of'])}: {p} {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} %"
+
+
 def markdown(out: dict, data: str = "", model: str = "") -> str:
     """The report's Markdown."""
     v = out["verdict"]
@@ -145,7 +158,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
         for p in c["phases"]:
             h = c["heldout"][p]
             lines.append(f"| {c['rank']} | {c['name']} | {p} | {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} | "
-                         f"{'yes' if c['significant'] else 'no'} | `{params}` |")
+                         f"{_significance(c)} | `{params}` |")
     lines += ["", f"![ranked effects]({FIGURES['effects']})", "", "Effects on the record (sizes, not physics):", ""]
     rec = out["record"]
     if "position_noise" in rec:

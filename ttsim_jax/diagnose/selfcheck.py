@@ -18,8 +18,11 @@ truth, so that it is testable without simulation):
   effects act in. An undetectable case (the effect, at its drawn magnitude, changes the held-out
   errors by less than the data resolves) cannot be found by any method; it is reported apart, and
   scored right when nothing is significant ("nothing found") and as a false alarm otherwise;
-* *rank 1*: the first candidate is significant and is the true effect (pairs: one of the two;
-  *both*: the two true effects are the two first candidates and significant);
+* *rank 1*: the first candidate is significant and is the true effect, or one the diagnosis reports
+  as interchangeable with it on these data (each adds nothing on top of the other; counted, and
+  named in the outcome) (pairs: one of the two;
+  *both*: the two true effects are the diagnosis's first two accepted effects: significant, and
+  the second adding significantly on top of the first, :func:`ttsim_jax.diagnose.diagnosis.select`);
 * *phase*: the located phase, the phase where the first candidate's held-out reduction is largest
   among its significant ones, is one the true effects act in. For an *outside* case the located
   phases are those where the "where" analysis flags a regime; right when the true phase is among
@@ -204,7 +207,8 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
     """
     names = tuple(names)
     true_phases = _phases(names)
-    sig = [c for c in candidates if c["significant"]]
+    # the diagnosis's accepted effects: significant, and not redundant on top of those before them
+    sig = [c for c in candidates if c["significant"] and c.get("adds", {}).get("accepted", True)]
     oracle = {p: h for p, h in oracle.items() if p in true_phases}
     detectable = any(C.significant(p, h) for p, h in oracle.items())
     best = max(oracle, key=lambda p: oracle[p]["pct"]) if oracle else None
@@ -212,12 +216,20 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
     found = max([c["heldout"][best]["pct"] for c in sig if best in c["heldout"]], default=0.0)
     top = sig[0]["name"] if sig else None
     phase = located_phase(sig[0]) if sig else None
-    out = dict(detectable=bool(detectable), top=top or "none significant", rank1=bool(top in names),
+    same = {c["name"]: c["adds"]["interchangeable_with"] for c in candidates if c.get("adds", {}).get("interchangeable_with")}
+
+    def among(c):  # an accepted effect and those the diagnosis found interchangeable with it
+        return {c["name"]} | {n for n, others in same.items() if c["name"] in others}
+
+    out = dict(detectable=bool(detectable), top=top or "none significant",
+               rank1=bool(sig and among(sig[0]) & set(names)), interchangeable=bool(sig and top not in names
+                                                                                   and among(sig[0]) & set(names)),
                phase=phase, phase_right=bool(phase in true_phases), unexplained=not sig,
                found_pct=float(found), oracle_pct=float(ref), oracle_phase=best,
                shrink=float(found / ref) if detectable and ref > 0 else math.nan)
     if kind == "pair":
-        out["both"] = bool(len(sig) >= 2 and {sig[0]["name"], sig[1]["name"]} == set(names))
+        out["both"] = bool(len(sig) >= 2 and all(any(n in among(c) for c in sig[:2]) for n in names)
+                           and len(among(sig[0]) & set(names)) and len(among(sig[1]) & set(names)))
     if kind == "outside":
         located = [p for p in C.PHASES if where.get(p, {}).get("flagged")]
         out.update(located=located, phase=located[0] if located else None,
@@ -230,7 +242,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
     elif kind == "pair":
         out["outcome"] = "both found" if out["both"] else "one found" if out["rank1"] else "missed"
     else:
-        out["outcome"] = "found" if out["rank1"] else "missed"
+        out["outcome"] = ("found" if top in names else f"found as interchangeable with {top}") if out["rank1"] else "missed"
     return out
 
 
@@ -248,6 +260,7 @@ def summary(rows: list) -> dict:
         return float(np.mean([r[key] for r in rs])) if rs else math.nan
 
     return dict(n_single=len(single), rank1_rate=rate(single, "rank1"), phase_rate=rate(single, "phase_right"),
+                n_interchangeable=sum(bool(r.get("interchangeable")) for r in single),
                 median_shrink=float(np.median(shrink)) if shrink else math.nan,
                 n_undetectable=len(undet), undetectable_nothing_found=sum(r["unexplained"] for r in undet),
                 n_pairs=len(pairs), pair_rank1_rate=rate(pairs, "rank1"), pair_both_rate=rate(pairs, "both"),
@@ -453,7 +466,8 @@ def table(result: dict) -> str:
         lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
                      f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} |")
     s = result["summary"]
-    lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f}, phase right "
+    lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f} "
+                 f"(of them {s.get('n_interchangeable', 0)} as interchangeable with the first), phase right "
                  f"{s['phase_rate']:.2f}, median shrink recovered {s['median_shrink']:.2f}; undetectable cases "
                  f"{s['n_undetectable']} (nothing found in {s['undetectable_nothing_found']}); pairs {s['n_pairs']}, "
                  f"one true effect first {s['pair_rank1_rate']:.2f}, both {s['pair_both_rate']:.2f}; outside the "
