@@ -42,7 +42,8 @@ def summary(out: dict, counts: dict, wall: float, cpu: float) -> dict:
              for p, w in out["where"].items()}
     cands = [dict(name=c["name"], significant=c["significant"],
                   heldout={p: dict(pct=h["pct"], ci95=h["ci95"], before_rms=h["before_rms"], after_rms=h["after_rms"],
-                                   n=h["n"]) for p, h in c["heldout"].items()}) for c in out["candidates"]]
+                                   n=h["n"]) for p, h in c["heldout"].items()},
+                  **({"adds": c["adds"]} if "adds" in c else {})) for c in out["candidates"]]
     return dict(dataset=counts, items=out["counts"], no_data=out["no_data"], pooled_sessions=out["pooled_sessions"],
                 where=where, dependence={p: d[:4] for p, d in out["dependence"].items()}, candidates=cands,
                 record={k: v for k, v in out["record"].items() if k in ("position_noise", "missing_frames", "spin_noise")},

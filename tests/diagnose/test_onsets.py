@@ -29,6 +29,11 @@ def test_best_onset_closed_form():
     k, depth, fall = O.best_onset(e0, probe, weight)
     assert k == 3 and abs(depth - 0.2) < 0.01
     np.testing.assert_allclose(fall, np.sum(e0**2) - np.sum((e0 + depth * jac[3]) ** 2), rtol=1e-9)
+    # a loss beyond DEPTH_MAX is clipped to it (the fall is that of the clipped depth)
+    e_big = -0.5 * jac[3]
+    k, depth, fall = O.best_onset(e_big, e_big[None] + O.PROBE * jac, weight)
+    assert k == 3 and depth == O.DEPTH_MAX
+    np.testing.assert_allclose(fall, np.sum(e_big**2) - np.sum((e_big + depth * jac[3]) ** 2), rtol=1e-9)
     # a loss that would have to be negative (a gain) is not taken: depth 0, no fall
     k, depth, fall = O.best_onset(-e0, -e0[None] + O.PROBE * jac[3:4], weight)
     assert depth == 0.0 and fall == 0.0
