@@ -1,0 +1,53 @@
+"""Part of the full withheld-effect selfcheck, at the full run's seeds: its four pairs, then chosen
+single effects.
+
+``ttsim diagnose selfcheck`` (full) runs every single effect, the pairs and the outside case in
+about 70 minutes; a change that concerns some cases only is checked here on those cases, with the
+same datasets: case ``i`` of a selfcheck is seeded ``seed + 100 i``, so the pairs (cases 10-13 of
+the full run) are run from seed 1000, and a single effect from 100 times its place in the
+catalogue. Each part keeps its cases in ``OUT/<part>/cases`` (``--resume`` semantics: an
+interrupted run continues) and writes ``OUT/<part>.json`` and its Markdown table to stdout.
+
+    python benchmarks/selfcheck_subset.py --out runs/selfcheck_subset
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose import selfcheck as SC
+    from ttsim_jax.diagnose.diagnosis import Settings, jsonable
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="run folder (cases, one JSON per part)")
+    p.add_argument("--singles", default="worn_ball,buckling",
+                   help="comma-separated single effects to run after the pairs, each at its full-run seed "
+                        "(default: %(default)s; '' for none)")
+    p.add_argument("--no-pairs", action="store_true", help="leave out the pairs")
+    args = p.parse_args(argv)
+    catalogue = C.candidate_names()
+    singles = [n for n in args.singles.split(",") if n]
+    unknown = [n for n in singles if n not in catalogue]
+    if unknown:
+        p.error(f"--singles: {unknown} not among the candidates {catalogue}")
+    settings = Settings(landing=False, steps=Settings.quick().steps, max_segments=SC.SEGMENTS["full"])
+    parts = [] if args.no_pairs else [("pairs", SC.cases((), SC.PAIRS, None), 100 * len(catalogue))]
+    # one part per single effect: its seed is 100 times its place in the full run's plan
+    parts += [(f"single_{n}", SC.cases((n,), (), None), 100 * catalogue.index(n)) for n in singles]
+    for name, plan, seed in parts:
+        store = args.out / name
+        res = SC.selfcheck(plan, settings, seed=seed, games=SC.GAMES["full"], store=store,
+                           resume=bool(SC.stored_cases(store)), progress=lambda n: print("done", n, flush=True))
+        (args.out / f"{name}.json").write_text(json.dumps(jsonable(res), indent=1))
+        print(SC.table(res), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
