@@ -21,8 +21,6 @@ widths scanned, noise alone lowers it by about 2 ln(thousands) ~ 17 variances at
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -143,5 +141,4 @@ def bump_stage(pb, model, specs, consts, u, x, i):
              for k, p in sp.cls.PARAMS.items()}
     m = len(heights)  # the other bumps keep their neutral (flat) start
     start["center"][:m], start["width"][:m], start["amplitude"][:m] = centers, widths, heights
-    scale = {k: np.float64(SCALES.get(k, 0.0)) for k in sp.cls.PARAMS}
-    return dataclasses.replace(sp, free=tuple(k for k in SCALES if k in sp.cls.PARAMS)), dict(start=start, scale=scale)
+    return S.second_descent(sp, start, SCALES)

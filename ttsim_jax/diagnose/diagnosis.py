@@ -263,19 +263,17 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
         if len(accepted) >= TOP:
             break
         near = [b for b in blocks if set(b.heldout) & set(c.heldout)]
+        neighbours = [n for b in near for n in b.params]  # the accepted effects it shares a phase with
         block = c
         if near:
-            names = [n for b in near for n in b.params] + [c.spec.name]
+            names = neighbours + [c.spec.name]
             group = next((g for g in set(group_of.values()) if set(names) <= set(g)), None)
             block = C.fit(pb, names, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(names))
         current = {p: e for b in blocks for p, e in b.errors.items()}
         on_top = C.score(pb, block.errors, base=current)
         ok = C.explains(on_top)
-        # redundant, and the accepted ones it shares phases with add nothing on top of it either:
-        # the data cannot tell them apart
-        same = [] if ok or not near else [n for b in near for n in b.params]
-        if same and C.explains(C.score(pb, block.errors, base=c.errors)):
-            same = []
+        # redundant, and its neighbours add nothing on top of it either: the data cannot tell them apart
+        same = neighbours if near and not ok and not C.explains(C.score(pb, block.errors, base=c.errors)) else []
         adds[c.spec.name] = dict(accepted=ok, on_top_of=[a.spec.name for a in accepted], heldout=on_top,
                                  interchangeable_with=same)
         if ok:
@@ -326,6 +324,16 @@ def _where_text(out: dict) -> list:
     return lines
 
 
+def interchangeable(candidates: list) -> dict:
+    """{accepted effect: [candidates reported interchangeable with it]} from the ranked candidates'
+    JSON (their ``adds``, :func:`select`)."""
+    same = {}
+    for c in candidates:
+        for n in c.get("adds", {}).get("interchangeable_with", []):
+            same.setdefault(n, []).append(c["name"])
+    return same
+
+
 def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
     """{"explained": bool, "effects": [names by rank], "redundant": [names], "text": one paragraph,
     "where": [lines]}: ``significant`` the accepted effects (:func:`select`), ``redundant`` those
@@ -340,11 +348,7 @@ def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
 
     if significant:
         text = "Explained by: " + "; ".join(part(c) for c in significant) + "."
-        same = {}
-        for c in out.get("candidates", []):
-            for n in c.get("adds", {}).get("interchangeable_with", []):
-                same.setdefault(n, []).append(c["name"])
-        for n, others in same.items():
+        for n, others in interchangeable(out.get("candidates", [])).items():
             text += (f" {n} and {', '.join(others)} are interchangeable on these data: each adds nothing significant "
                      "on top of the other.")
         if redundant:

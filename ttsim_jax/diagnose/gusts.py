@@ -19,8 +19,6 @@ Only the training segments enter, so the held-out score stays a fair test of the
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -205,5 +203,4 @@ def gust_stage(pb, model, specs, consts, u, x, i):
         start["gust_phase"][s] = np.where(kept, phase, start["gust_phase"][s])
     if not found:
         return None
-    scale = {k: np.float64(SCALES.get(k, 0.0)) for k in sp.cls.PARAMS}
-    return dataclasses.replace(sp, free=tuple(k for k in SCALES if k in sp.cls.PARAMS)), dict(start=start, scale=scale)
+    return S.second_descent(sp, start, SCALES)

@@ -85,6 +85,8 @@ def onset_stage(pb, model, specs, consts, u, x, i):
     start = {k: np.asarray(v, np.float64).copy() for k, v in const["start"].items()}
     scanned = False
     m = model.replace(name="")
+    neutral = dataclasses.replace(sp, free=())  # every parameter at its start: the grid's values
+    c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), const)
     for phase, (onsets, widths) in GRID.items():
         keys = (f"{phase}_onset", f"{phase}_width", f"{phase}_depth")
         if phase not in pb.data or not set(keys) <= set(sp.cls.PARAMS):
@@ -92,13 +94,10 @@ def onset_stage(pb, model, specs, consts, u, x, i):
         o, w = (a.ravel() for a in np.meshgrid(onsets, widths, indexing="ij"))
         values = {keys[0]: jnp.asarray(o, jnp.float32), keys[1]: jnp.asarray(w, jnp.float32),
                   keys[2]: jnp.full(o.shape, PROBE, jnp.float32)}
-        neutral = dataclasses.replace(sp, free=())
-        c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), dict(start=const["start"], scale=const["scale"]))
         probe = _grid_errors(m, neutral, c32, pb.data[phase], phase, values)
         k, depth, _ = best_onset(pb.base[phase], probe, pb.data[phase]["train"])
         start[keys[0]], start[keys[1]], start[keys[2]] = np.float64(o[k]), np.float64(w[k]), np.float64(depth)
         scanned = True
     if not scanned:
         return None
-    scale = {k: np.float64(SCALES.get(k, 0.0)) for k in sp.cls.PARAMS}
-    return dataclasses.replace(sp, free=tuple(k for k in SCALES if k in sp.cls.PARAMS)), dict(start=start, scale=scale)
+    return S.second_descent(sp, start, SCALES)

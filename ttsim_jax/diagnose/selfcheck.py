@@ -216,20 +216,22 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
     found = max([c["heldout"][best]["pct"] for c in sig if best in c["heldout"]], default=0.0)
     top = sig[0]["name"] if sig else None
     phase = located_phase(sig[0]) if sig else None
-    same = {c["name"]: c["adds"]["interchangeable_with"] for c in candidates if c.get("adds", {}).get("interchangeable_with")}
+    from ttsim_jax.diagnose.diagnosis import interchangeable
 
-    def among(c):  # an accepted effect and those the diagnosis found interchangeable with it
-        return {c["name"]} | {n for n, others in same.items() if c["name"] in others}
+    same = interchangeable(candidates)
 
-    out = dict(detectable=bool(detectable), top=top or "none significant",
-               rank1=bool(sig and among(sig[0]) & set(names)), interchangeable=bool(sig and top not in names
-                                                                                   and among(sig[0]) & set(names)),
+    def true_among(c):  # the true effects among an accepted one and those reported interchangeable with it
+        return ({c["name"]} | set(same.get(c["name"], ()))) & set(names)
+
+    hit = bool(sig and true_among(sig[0]))
+    out = dict(detectable=bool(detectable), top=top or "none significant", rank1=hit,
+               interchangeable=hit and top not in names,
                phase=phase, phase_right=bool(phase in true_phases), unexplained=not sig,
                found_pct=float(found), oracle_pct=float(ref), oracle_phase=best,
                shrink=float(found / ref) if detectable and ref > 0 else math.nan)
     if kind == "pair":
-        out["both"] = bool(len(sig) >= 2 and all(any(n in among(c) for c in sig[:2]) for n in names)
-                           and len(among(sig[0]) & set(names)) and len(among(sig[1]) & set(names)))
+        first, second = (true_among(c) for c in sig[:2]) if len(sig) >= 2 else (set(), set())
+        out["both"] = bool(first and second and first | second == set(names))
     if kind == "outside":
         located = [p for p in C.PHASES if where.get(p, {}).get("flagged")]
         out.update(located=located, phase=located[0] if located else None,

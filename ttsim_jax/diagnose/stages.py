@@ -34,8 +34,11 @@ free values ``u`` (a tuple of dicts of arrays with a leading session axis; the a
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ttsim_jax.fit.aero import _spd_solve
 from ttsim_jax.physics import hooks
@@ -54,6 +57,13 @@ def start_of(sp, const: dict, k: str, session):
     if sp.per_session and jnp.ndim(start) > len(sp.cls.PARAMS[k].shape):
         return start[session]
     return start
+
+
+def second_descent(sp, start: dict, scales: dict) -> tuple:
+    """(spec, consts) of a candidate's second descent (a ``REFINE`` stage): the parameters of
+    ``scales`` free at those step scales, from ``start`` ({param: value}); the others held there."""
+    scale = {k: np.float64(scales.get(k, 0.0)) for k in sp.cls.PARAMS}
+    return dataclasses.replace(sp, free=tuple(k for k in scales if k in sp.cls.PARAMS)), dict(start=start, scale=scale)
 
 
 def effects_of(specs, consts, u, session):
