@@ -251,3 +251,19 @@ def test_an_effect_reported_interchangeable_with_the_first_counts_as_found():
     assert not r2["rank1"] and r2["outcome"] == "missed"
     s = SC.summary([dict(r, kind="single"), dict(r2, kind="single")])
     assert s["n_interchangeable"] == 1 and s["rank1_rate"] == 0.5
+
+
+def test_a_case_keeps_each_candidate_and_what_it_added_on_top():
+    """A case's row keeps the ranked candidates, so a pair's missing effect can be examined
+    afterwards: whether it was significant alone and what it added on top of the accepted ones."""
+    first = dict(cand("spin_decay", table=held(52.0)), best_reduction_pct=52.0, params={"rate": [0.2]})
+    tilt = dict(cand("table_tilt", table=held(6.0)),
+                adds=dict(accepted=False, on_top_of=["spin_decay"], heldout={"table": held(0.4, lo=-0.3)},
+                          interchangeable_with=[]))
+    digest = SC.candidate_digest([first, tilt, cand("worn_ball", significant=False, racket=held(0.1, lo=-1.0))])
+    assert [c["name"] for c in digest] == ["spin_decay", "table_tilt", "worn_ball"]
+    assert digest[0] == dict(name="spin_decay", significant=True, heldout={"table": dict(pct=52.0, ci95=[50.0, 54.0])})
+    assert digest[1]["adds"] == dict(accepted=False, on_top_of=["spin_decay"],
+                                     heldout={"table": dict(pct=0.4, ci95=[-0.3, 2.4])}, interchangeable_with=[])
+    assert not digest[2]["significant"] and "adds" not in digest[2]
+    json.dumps(digest)  # stored in the case file as is

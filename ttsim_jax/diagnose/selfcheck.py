@@ -324,8 +324,29 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     out = diagnose(gen.dataset, model, settings, keep=keep)
     oracle = oracle_scores(keep["problem"], model, names, gen.truth)
     row.update(score(kind, names, out["candidates"], out["where"], oracle), counts=out["counts"],
-               seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names})
+               seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
+               candidates=candidate_digest(out["candidates"]))
     return row
+
+
+def candidate_digest(candidates: list) -> list:
+    """What a case keeps of the diagnosis's ranked candidates (its JSON ``candidates``): each one's
+    name, significance, held-out reduction and interval per phase, and, where the forward selection
+    ran, whether it was accepted, on top of which effects and what it added there; enough to see
+    why a true effect was not among the accepted ones without rerunning the case."""
+    def phases(heldout):
+        return {p: dict(pct=h["pct"], ci95=h["ci95"]) for p, h in heldout.items()}
+
+    out = []
+    for c in candidates:
+        row = dict(name=c["name"], significant=bool(c["significant"]), heldout=phases(c["heldout"]))
+        if "adds" in c:
+            a = c["adds"]
+            row["adds"] = dict(accepted=bool(a.get("accepted", True)), on_top_of=list(a.get("on_top_of", [])),
+                               heldout=phases(a.get("heldout", {})),
+                               interchangeable_with=list(a.get("interchangeable_with", [])))
+        out.append(row)
+    return out
 
 
 class ResumeError(ValueError):
