@@ -7,10 +7,13 @@ from pathlib import Path
 import numpy as np
 
 
-def _table(ax_top, ax_side, table_length=2.74, table_width=1.525, net_height=0.1525):
+def draw_table(ax_top, ax_side, table_length=2.74, table_width=1.525, net_height=0.1525):
+    """The table, its centre line and the net in a top (x, y) and a side (x, z) view [m]."""
+    from matplotlib.patches import Rectangle
+
     hl, hw = table_length / 2, table_width / 2
-    ax_top.add_patch(__import__("matplotlib.patches", fromlist=["Rectangle"]).Rectangle(
-        (-hl, -hw), table_length, table_width, facecolor="#1f4e79", alpha=0.25, edgecolor="#1f4e79"))
+    ax_top.add_patch(Rectangle((-hl, -hw), table_length, table_width, facecolor="#1f4e79", alpha=0.25,
+                               edgecolor="#1f4e79"))
     ax_top.plot([0, 0], [-hw - 0.15, hw + 0.15], color="k", lw=1.5)
     ax_top.plot([-hl, hl], [0, 0], color="white", lw=0.8)
     ax_side.plot([-hl, hl], [0, 0], color="#1f4e79", lw=3)
@@ -34,7 +37,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
     plt = _pyplot()
     positions = np.asarray(positions)[:max_balls]
     fig, (ax_top, ax_side) = plt.subplots(2, 1, figsize=(10, 8), gridspec_kw={"height_ratios": [1.1, 1]})
-    _table(ax_top, ax_side)
+    draw_table(ax_top, ax_side)
     names = None if labels is None else np.asarray(labels)[:max_balls]
     colours = {}
     cmap = plt.get_cmap("tab10")
@@ -167,8 +170,8 @@ def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_
     measured = np.asarray(measured)[:max_points]
     fig, axes = plt.subplots(1, len(names), figsize=(5.2 * len(names), 4.2), squeeze=False)
     for ax, name in zip(axes[0], names):
-        side = plt.figure().add_subplot()  # _table draws a top and a side view; only the top is kept
-        _table(ax, side)
+        side = plt.figure().add_subplot()  # draw_table draws a top and a side view; only the top is kept
+        draw_table(ax, side)
         plt.close(side.figure)
         p = np.asarray(landing[name])[:max_points]
         ax.scatter(measured[:, 0], measured[:, 1], s=6, color="k", alpha=0.5, label="measured")

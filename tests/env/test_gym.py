@@ -15,7 +15,7 @@ OVERRIDES = {"shots.bank": 32, "shots.aim": False}
 
 @pytest.fixture(scope="module")
 def env():
-    return gymnasium.make("ttsim/ReturnBall-v0", task=TASK, overrides=OVERRIDES)
+    return gymnasium.make("ttsim/ReturnBall-v0", task=TASK, overrides=OVERRIDES, render_mode="rgb_array")
 
 
 def test_registered_on_import():
@@ -26,7 +26,7 @@ def test_registered_on_import():
 
 def test_single_env_passes_gymnasiums_checker(env):
     assert isinstance(env.unwrapped, ReturnBallEnv)
-    check_env(env.unwrapped, skip_render_check=True)
+    check_env(env.unwrapped)  # with its render check (rgb_array)
 
 
 def test_single_env_episode_ends_and_reports_its_outcome(env):
@@ -41,6 +41,25 @@ def test_single_env_episode_ends_and_reports_its_outcome(env):
     assert info["outcome"] != 0 or truncated
     with pytest.raises(gymnasium.error.ResetNeeded):
         ReturnBallEnv(task=TASK, overrides=OVERRIDES).step(np.zeros(5, np.float32))
+
+
+def test_single_env_renders_its_rally_for_recording(env):
+    """``render_mode="rgb_array"``: one uint8 frame per call, the ball's path growing with the
+    episode; the same seed draws the same first frame; gymnasium's RecordVideo wrapper accepts it."""
+    assert env.metadata["render_fps"] == env.unwrapped.env.config.control.rate_hz
+    env.reset(seed=3)
+    first = env.render()
+    assert first.shape == (560, 640, 3) and first.dtype == np.uint8
+    for _ in range(30):
+        env.step(np.zeros(5, np.float32))
+    later = env.render()
+    assert not np.array_equal(later, first)
+    assert len(env.unwrapped._trails.paths[0]) == 31
+    env.reset(seed=3)
+    np.testing.assert_array_equal(env.render(), first)
+    assert ReturnBallEnv(task=TASK, overrides=OVERRIDES).render() is None  # no render mode, no frame
+    with pytest.raises(ValueError, match="render_mode"):
+        ReturnBallEnv(task=TASK, overrides=OVERRIDES, render_mode="human")
 
 
 def test_make_vec_builds_the_batched_env_with_batched_spaces():

@@ -169,15 +169,19 @@ def test_cli_refuses_to_overwrite_and_resumes(files, runs, capsys):
 def test_cli_plays_a_checkpoint(files, runs, capsys):
     """``ttsim play`` of the short run's checkpoint on its own task (as many episodes as it trained
     environments: the training shape is reused) prints the evaluation as JSON and draws rallies."""
-    plot = files / "rallies.png"
+    plot, gif = files / "rallies.png", files / "rally.gif"
     assert main(["play", "--policy", str(files / "straight" / CHECKPOINT), "--episodes", "16", "--json",
-                 "--plot", str(plot)]) == 0
+                 "--plot", str(plot), "--gif", str(gif)]) == 0
     text = capsys.readouterr().out
     s = json.loads(text[:text.rindex("}") + 1])
     assert 1 <= s["episodes"] <= 16 and 0.0 <= s["legal_rate"] <= 1.0
     assert sum(s["outcomes"].values()) == pytest.approx(1.0)
     assert s["task"].endswith("task.toml") and s["env_steps_trained"] == 10240
     assert plot.stat().st_size > 1000
+    from PIL import Image
+
+    with Image.open(gif) as im:
+        assert im.n_frames > 1 and im.size == (640, 560)
 
 
 def test_a_checkpoint_of_other_shapes_than_its_task_now_is_refused_naming_the_leaf():

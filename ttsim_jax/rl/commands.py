@@ -48,6 +48,9 @@ def register(subparsers) -> None:
     q.add_argument("--episodes", type=positive_int, default=1024, help="episodes (default: %(default)s)")
     q.add_argument("--seed", type=seed, default=0, help="seed (default: %(default)s)")
     q.add_argument("--plot", type=writable_file, default=None, metavar="PNG", help="draw sample rallies to this PNG")
+    q.add_argument("--gif", type=writable_file, default=None, metavar="GIF",
+                   help="animate the first episode (top and side views of the ball's path and the racket face, "
+                        "in real time, every second control step) to this GIF")
     q.add_argument("--json", action="store_true", help="print the results as JSON")
     q.set_defaults(func=cmd_play)
 
@@ -100,7 +103,7 @@ def cmd_play(args) -> int:
                                            jax.random.PRNGKey(0)), payload, args.policy)
     env, params = (train_env, train_params) if args.episodes == train_env.num_envs else build(
         config, args.episodes, args.task)
-    record = min(args.episodes, 12) if args.plot else 0
+    record = min(args.episodes, 12) if args.plot else 1 if args.gif else 0
     result = ppo.make_evaluate(env, config, record=record)(runner.params, runner.stats, params,
                                                           jax.random.PRNGKey(args.seed))
     s = ppo.summarise(result)
@@ -121,4 +124,14 @@ def cmd_play(args) -> int:
         labels = np.array([OUTCOME_NAMES[i] for i in np.asarray(result["outcome"])[:record]])
         plot_trajectories(ball, args.plot, labels=labels, title=f"sample rallies of {args.policy}")
         print(f"plot written to {args.plot}")
+    if args.gif:
+        from ttsim_jax.env.render import RallyFrames, episode_frames, save_gif
+
+        table = params.model.table
+        frames = RallyFrames(np.asarray(params.limits.face), float(table.length), float(table.width))
+        every = 2
+        shots = episode_frames(frames, *(np.asarray(result[k])[:, 0] for k in ("ball", "racket", "angle", "progress")),
+                               period=env.period, every=every)
+        save_gif(shots, args.gif, every * env.period)
+        print(f"animation of the first episode ({len(shots)} frames) written to {args.gif}")
     return 0

@@ -213,8 +213,10 @@ def make_evaluate(env: ReturnBall, config: PPOConfig, record: int = 0):
     ``env.num_envs`` environments with the policy's mean action.
 
     The dict holds (N,) ``outcome``, ``return``, ``landing_error`` (-1 unless legal), ``shot_type``
-    and, with ``record`` > 0, ``ball`` and ``racket`` positions (T, record, 3) of the first ``record``
-    environments at every control step.
+    and, with ``record`` > 0, of the first ``record`` environments after every control step: ``ball``
+    and ``racket`` positions (T, record, 3), the racket's ``angle`` (T, record, 2) and the rally's
+    ``progress`` (T, record, 3): bounced, hit, outcome (what a frame of
+    :mod:`ttsim_jax.env.render` shows).
     """
     return _make_evaluate(env, _program_key(config), int(record))
 
@@ -247,7 +249,10 @@ def episode_runner(env: ReturnBall, act, record: int = 0):
             newly = (terminated | truncated) & ~finished
             outcome = jnp.where(newly, info["outcome"], outcome)
             error = jnp.where(newly, info["landing_error"], error)
-            rec = (state.rally.ball.pos[:record], state.racket.pos[:record]) if record else None
+            p = state.progress
+            rec = (state.rally.ball.pos[:record], state.racket.pos[:record], state.racket.angle[:record],
+                   jnp.stack([p.bounced[:record].astype(jnp.int32), p.hit[:record].astype(jnp.int32),
+                              p.outcome[:record]], -1)) if record else None
             return (obs, state, finished | newly, ret, outcome, error), rec
 
         init = (obs, state, jnp.zeros(b, bool), jnp.zeros(b, jnp.float32), jnp.zeros(b, jnp.int32),
@@ -255,7 +260,7 @@ def episode_runner(env: ReturnBall, act, record: int = 0):
         (_, state, _, ret, outcome, error), rec = jax.lax.scan(body, init, jax.random.split(key, env.max_steps))
         out = {"outcome": outcome, "return": ret, "landing_error": error, "shot_type": env_params.shot_type[state.shot]}
         if record:
-            out["ball"], out["racket"] = rec
+            out["ball"], out["racket"], out["angle"], out["progress"] = rec
         return out
 
     return run
