@@ -153,3 +153,62 @@ def test_sampled_correction_depends_on_the_ball_not_on_its_buffer_slot(setup):
                          key=key)
     np.testing.assert_allclose(np.asarray(out.events.post.spin)[order], np.asarray(default.events.post.spin),
                                atol=1e-9)
+
+
+def test_single_buffering_runs_the_network_on_the_racket_rows_only(setup):
+    """Accelerators' buffering evaluates the network on B/256 rows, those with a racket contact
+    (``step.NET_FRACTION``): its events, sampled draws included, equal the CPU loop's (the network on
+    every buffer row), both when a step's racket balls fit those rows (shots spread in time) and
+    when they do not (copies of the same shots, meeting the racket in the same steps: the whole
+    batch runs)."""
+    from ttsim_jax.kernel import step as kstep
+
+    _, _, model, _ = setup
+    b, key = 128, jax.random.key(7)
+    copy = jnp.arange(b) // 4
+    four = jax.tree.map(lambda a: a[jnp.arange(b) % 4], balls())
+    spread = four.replace(pos=four.pos.at[:, 0].add(-0.012 * copy))  # a copy per 1.5 ms or so
+    same = four.replace(pos=four.pos.at[:, 1].add(1e-4 * copy))
+    assert 64 // kstep.NET_FRACTION < 32  # the copies of a shot do not fit the network's rows at once
+    for shots, spread_out in ((spread, True), (same, False)):
+        kw = dict(sample_residual=True, key=key, contact_capacity=64)
+        s0, o0 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), buffering="loop", **kw)
+        s1, o1 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), buffering="single", **kw)
+        kind = np.asarray(o0.events.kind)
+        step = np.floor(np.asarray(o0.events.time)[kind == RACKET] / 1e-3 + 1e-9).astype(int)
+        assert len(step) > 40  # many racket contacts, with their network corrections
+        assert (np.bincount(step).max() <= 3) == spread_out, np.bincount(step).max()
+        np.testing.assert_array_equal(np.asarray(o1.events.kind), kind)
+        np.testing.assert_allclose(np.asarray(o1.events.time), np.asarray(o0.events.time), atol=1e-12)
+        for field in ("vel", "spin"):
+            np.testing.assert_allclose(np.asarray(getattr(o1.events.post, field)),
+                                       np.asarray(getattr(o0.events.post, field)), atol=1e-9)
+        np.testing.assert_allclose(np.asarray(o1.events.sigma), np.asarray(o0.events.sigma), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(s1.ball.as_array()), np.asarray(s0.ball.as_array()), atol=1e-9)
+
+
+def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
+    """The contact buffer's rows in one step, ten table bounces first and two racket contacts
+    last: the network evaluated on two rows gathered from the racket contacts gives what it gives
+    on every row (sampled draws included), and nothing on the table rows."""
+    from ttsim_jax.kernel.rollout import _resolve_axes
+    from ttsim_jax.kernel.step import _events, flight
+
+    _, _, model, _ = setup
+    rk = jax.tree.map(lambda a: a[None], racket_at(0.0))  # one racket, normal -x, face centre (1.6, 0, 0.2)
+    n_table = 10
+    pos = [[-1.0 + 0.1 * i, 0.1, 0.0215] for i in range(n_table)] + [[1.5755, 0.01, 0.2], [1.5755, -0.02, 0.21]]
+    vel = [[1.0, 0.0, -2.0]] * n_table + [[6.0, 0.0, 0.2], [5.0, 0.1, 0.0]]
+    ball = Ball.create(pos, vel, [[0.0, 50.0, 0.0]] * len(pos))
+    b = len(pos)
+    axes = _resolve_axes(model, None)
+    free = jax.vmap(flight, in_axes=(None, 0, None, None))(model.replace(residual=None), ball, 0.0, 1e-3)
+    args = (model, axes, ball, jnp.ones(b, bool), free, rk, False, jnp.arange(b), jnp.arange(b) + 100, 0.0, 1e-3,
+            jax.random.key(2), True)
+    every = _events(*args)
+    gathered = _events(*args, net_rows=2)
+    kind = np.asarray(every[1])
+    assert list(kind) == [TABLE] * n_table + [RACKET] * 2
+    for a, g in zip(jax.tree.leaves(every), jax.tree.leaves(gathered)):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(a), atol=1e-12)
+    assert np.all(np.asarray(every[7])[n_table:] != 0.0) and np.all(np.asarray(every[7])[:n_table] == 0.0)  # sigma

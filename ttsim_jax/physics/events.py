@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import safe_divide
+from ttsim_jax.physics.numerics import safe_divide, safe_norm
 
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
@@ -165,12 +165,26 @@ def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
     return Candidate(hit=hit, tau=tau)
 
 
-def racket_may_hit(racket, radius, p0, p1, dt):
-    """Cheap superset of :func:`racket_candidate`'s hits: the gap to the face's plane closes."""
+def racket_may_hit(racket, radius, p0, v0, p1, v1, dt):
+    """Cheap superset of :func:`racket_candidate`'s hits: the gap to the face's plane closes, and
+    the ball passes within the face's reach.
+
+    A hit's contact point lies on the step's Hermite path, which stays in the hull of its Bezier
+    control points (p0, p0 + v0 dt / 3, p1 - v1 dt / 3, p1), so within D = |p1 - p0| + dt (|v0| +
+    |v1|) / 3 of p0; and inside the face's ellipse, so across the face normal within its larger
+    semi-axis of the face centre, which moves dt |v_racket| in the step. At the start of the step the
+    ball is therefore within that semi-axis + D + dt |v_racket| (+ 1 mm for rounding) of the centre
+    across the normal. Without this test a tracking racket's plane, which sweeps through the whole
+    court, flagged every ball it crossed.
+    """
     n = racket.rot[:, 0]
-    h0, h1 = jnp.dot(n, p0 - racket.pos), jnp.dot(n, p1 - racket.pos - dt * racket.vel)
+    rel = p0 - racket.pos
+    h0, h1 = jnp.dot(n, rel), jnp.dot(n, p1 - racket.pos - dt * racket.vel)
     side = jnp.where(h0 >= 0.0, 1.0, -1.0)
-    return _crossing(side * h0 - radius, side * h1 - radius, radius)
+    across = rel - h0 * n
+    reach = (jnp.max(racket.face) + safe_norm(p1 - p0) + dt * (safe_norm(v0) + safe_norm(v1)) / 3.0
+             + dt * safe_norm(racket.vel) + 1e-3)
+    return _crossing(side * h0 - radius, side * h1 - radius, radius) & (jnp.sum(across * across) <= reach * reach)
 
 
 def net_candidate(table, radius, p0, v0, p1, v1, dt):
