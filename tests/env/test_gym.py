@@ -63,8 +63,14 @@ def test_single_env_renders_its_rally_for_recording(env):
 
 
 def test_make_vec_builds_the_batched_env_with_batched_spaces():
-    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=4096, task=TASK, overrides=OVERRIDES)
+    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=4096, task=TASK, overrides=OVERRIDES,
+                             render_mode="rgb_array", render_envs=2)
     assert isinstance(vec, ReturnBallVectorEnv) and vec.num_envs == 4096
+    assert vec.render_mode == "rgb_array" and vec._trails.n == 2 and vec.metadata["render_fps"] == 100.0
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        vec.render()
+    with pytest.raises(ValueError, match="render_envs"):
+        ReturnBallVectorEnv(4, task=TASK, overrides=OVERRIDES, render_mode="rgb_array", render_envs=5)
     assert vec.observation_space.shape == (4096, 25) and vec.action_space.shape == (4096, 5)
     assert vec.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.SAME_STEP
     assert vec.env.reference is False  # large batches step the kernel's lean path
