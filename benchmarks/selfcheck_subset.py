@@ -2,13 +2,14 @@
 single effects.
 
 ``ttsim diagnose selfcheck`` (full) runs every single effect, the pairs and the outside case in
-about 70 minutes; a change that concerns some cases only is checked here on those cases, with the
-same datasets: case ``i`` of a selfcheck is seeded ``seed + 100 i``, so the pairs (cases 10-13 of
-the full run) are run from seed 1000, and a single effect from 100 times its place in the
-catalogue. Each part keeps its cases in ``OUT/<part>/cases`` (``--resume`` semantics: an
+about two hours on two cores; a change that concerns some cases only is checked here on those
+cases, with the same datasets: case ``i`` of a selfcheck is seeded ``seed + 100 i``, so the pairs
+(cases 10-13 of the full run) are run from seed 1000, and a single effect from 100 times its place
+in the catalogue. Each part keeps its cases in ``OUT/<part>/cases`` (``--resume`` semantics: an
 interrupted run continues) and writes ``OUT/<part>.json`` and its Markdown table to stdout.
 
     python benchmarks/selfcheck_subset.py --out runs/selfcheck_subset
+    python benchmarks/selfcheck_subset.py --out runs/tilt --pairs spin_decay+table_tilt --singles ''
 """
 
 from __future__ import annotations
@@ -29,6 +30,10 @@ def main(argv=None) -> int:
     p.add_argument("--singles", default="worn_ball,buckling",
                    help="comma-separated single effects to run after the pairs, each at its full-run seed "
                         "(default: %(default)s; '' for none)")
+    every_pair = ",".join("+".join(q) for q in SC.PAIRS)
+    p.add_argument("--pairs", default=every_pair,
+                   help="comma-separated pairs to run, each as a+b from the full run's pairs, each at its "
+                        "full-run seed (default: all of them, as one part: %(default)s)")
     p.add_argument("--no-pairs", action="store_true", help="leave out the pairs")
     args = p.parse_args(argv)
     catalogue = C.candidate_names()
@@ -36,8 +41,18 @@ def main(argv=None) -> int:
     unknown = [n for n in singles if n not in catalogue]
     if unknown:
         p.error(f"--singles: {unknown} not among the candidates {catalogue}")
+    pairs = [tuple(q.split("+")) for q in args.pairs.split(",") if q]
+    unknown = ["+".join(q) for q in pairs if q not in SC.PAIRS]
+    if unknown:
+        p.error(f"--pairs: {unknown} not among the full run's pairs {every_pair}")
     settings = Settings(landing=False, steps=Settings.quick().steps, max_segments=SC.SEGMENTS["full"])
-    parts = [] if args.no_pairs else [("pairs", SC.cases((), SC.PAIRS, None), 100 * len(catalogue))]
+    first = 100 * len(catalogue)  # the first pair's seed
+    if args.no_pairs:
+        parts = []
+    elif args.pairs == every_pair:
+        parts = [("pairs", SC.cases((), SC.PAIRS, None), first)]
+    else:  # one part per pair, at its place among the pairs
+        parts = [("pair_" + "+".join(q), SC.cases((), [q], None), first + 100 * SC.PAIRS.index(q)) for q in pairs]
     # one part per single effect: its seed is 100 times its place in the full run's plan
     parts += [(f"single_{n}", SC.cases((n,), (), None), 100 * catalogue.index(n)) for n in singles]
     for name, plan, seed in parts:

@@ -181,3 +181,36 @@ def test_forward_selection_reports_interchangeable_effects(withheld, monkeypatch
                                                     dict(_candidate_json(ball, 2), adds=adds["ball_variation"])])
     text = verdict(out, accepted, [ball])["text"]
     assert "air_flow and ball_variation are interchangeable" in text, text
+
+
+def test_interchangeable_is_asked_of_each_neighbour_with_the_others_beside(withheld, monkeypatch):
+    """A redundant candidate with two accepted neighbours in its phase (as a tilt beside spin decay
+    and a warped top): it is interchangeable with the neighbour it can stand in for (that one adds
+    nothing on top of it and the other neighbour), not with the one that explains other errors."""
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose.diagnosis import select
+
+    pb, model = withheld["problem"], withheld["model"]
+    mask = np.asarray(pb.data["flight"]["mask"])[..., None]
+    monkeypatch.setitem(pb.base, "flight", np.asarray(pb.base["flight"]) + 0.002 * mask)
+    # spin_decay takes half the error; ball_variation and air_flow the same quarter of it
+    def errors(names):
+        share = 0.5 * ("spin_decay" in names) + 0.25 * bool({"ball_variation", "air_flow"} & set(names))
+        return {"flight": pb.base["flight"] * (1.0 - share)}
+
+    fits = []
+
+    def fit(pb, names, *a, **k):
+        fits.append(tuple(names))
+        e = errors(names)
+        return C.Candidate(spec=C.spec(names[-1])[0], consts=(), u=(), history=np.zeros(1), errors=e,
+                           heldout=C.score(pb, e), params={n: {} for n in names})
+
+    ranked = [fit(pb, [n]) for n in ("spin_decay", "ball_variation", "air_flow")]
+    monkeypatch.setattr(C, "fit", fit)
+    accepted, best, adds = select(pb, ranked, model, {}, Settings.quick(effects=CANDIDATES))
+    assert [c.spec.name for c in accepted] == ["spin_decay", "ball_variation"], adds
+    assert not adds["air_flow"]["accepted"]
+    assert adds["air_flow"]["interchangeable_with"] == ["ball_variation"], adds["air_flow"]
+    # one joint fit for the redundant one, then one per neighbour, each without it
+    assert ("ball_variation", "air_flow") in fits and ("spin_decay", "air_flow") in fits

@@ -249,9 +249,11 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
     a phase with: alone (its own fit) where it shares none.
 
     Two effects can explain the same errors (a buckling loss that starts below nearly every impact is
-    a worn ball's lower restitution): when a redundant candidate's accepted neighbours add nothing on
-    top of it either, the two are *interchangeable* on these data, and the report says so rather
-    than naming the one that happened to rank first.
+    a worn ball's lower restitution; a warped top where the balls land, a tilt): when an accepted
+    neighbour of a redundant candidate adds nothing on top of it either (with the other accepted
+    neighbours beside both, refitted without that one), the two are *interchangeable* on these data,
+    and the report says so rather than naming the one that happened to rank first. This costs one
+    joint fit per neighbour where a redundant candidate has more than one.
 
     Returns:
         (accepted candidates, the joint fit of the accepted ones (the first alone when it is the
@@ -267,19 +269,33 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
         block = c
         if near:
             names = neighbours + [c.spec.name]
-            group = next((g for g in set(group_of.values()) if set(names) <= set(g)), None)
-            block = C.fit(pb, names, model, group=group, steps=settings.steps, lr=settings.lr, name="+".join(names))
+            block = C.fit(pb, names, model, group=_group(group_of, names), steps=settings.steps, lr=settings.lr,
+                          name="+".join(names))
         current = {p: e for b in blocks for p, e in b.errors.items()}
         on_top = C.score(pb, block.errors, base=current)
         ok = C.explains(on_top)
-        # redundant, and its neighbours add nothing on top of it either: the data cannot tell them apart
-        same = neighbours if near and not ok and not C.explains(C.score(pb, block.errors, base=c.errors)) else []
+        same = []
+        if near and not ok:
+            # redundant; a neighbour that adds nothing on top of it (and the other neighbours) either
+            # is one the data cannot tell it apart from
+            for n in neighbours:
+                names = [m for m in neighbours if m != n] + [c.spec.name]
+                swap = c if len(names) == 1 else C.fit(pb, names, model, group=_group(group_of, names),
+                                                       steps=settings.steps, lr=settings.lr,
+                                                       name="+".join(names))
+                if not C.explains(C.score(pb, block.errors, base=swap.errors)):
+                    same.append(n)
         adds[c.spec.name] = dict(accepted=ok, on_top_of=[a.spec.name for a in accepted], heldout=on_top,
                                  interchangeable_with=same)
         if ok:
             accepted.append(c)
             blocks = [b for b in blocks if not any(b is n for n in near)] + [block]
     return accepted, _merged(blocks, accepted), adds
+
+
+def _group(group_of: dict, names: list):
+    """The compiled group of candidates holding all of ``names`` (None: a group of their own)."""
+    return next((g for g in set(group_of.values()) if set(names) <= set(g)), None)
 
 
 def _merged(blocks: list, accepted: list) -> C.Candidate:
