@@ -20,6 +20,26 @@ import sys
 from pathlib import Path
 
 
+def plan_parts(singles=(), pairs=None) -> list:
+    """[(part name, plan, first seed)] of a subset: the pairs (``None``: all of them, as one part;
+    otherwise one part per pair), then one part per single effect. A case's seed is its full run's:
+    100 times its place in the full run's plan (``selfcheck`` seeds case ``i`` of a part ``first +
+    100 i``)."""
+    from ttsim_jax.diagnose import candidates as C
+    from ttsim_jax.diagnose import selfcheck as SC
+
+    full = SC.cases(C.candidate_names(), SC.PAIRS, SC.OUTSIDE)
+
+    def part(name, plan):
+        return name, plan, 100 * full.index(plan[0])
+
+    if pairs is None:
+        out = [part("pairs", SC.cases((), SC.PAIRS, None))]
+    else:
+        out = [part("pair_" + "+".join(q), SC.cases((), [tuple(q)], None)) for q in pairs]
+    return out + [part(f"single_{n}", SC.cases((n,), (), None)) for n in singles]
+
+
 def main(argv=None) -> int:
     from ttsim_jax.diagnose import candidates as C
     from ttsim_jax.diagnose import selfcheck as SC
@@ -46,18 +66,13 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"--pairs: {unknown} not among the full run's pairs {every_pair}")
     settings = Settings(landing=False, steps=Settings.quick().steps, max_segments=SC.SEGMENTS["full"])
-    first = 100 * len(catalogue)  # the first pair's seed
-    if args.no_pairs:
-        parts = []
-    elif args.pairs == every_pair:
-        parts = [("pairs", SC.cases((), SC.PAIRS, None), first)]
-    else:  # one part per pair, at its place among the pairs
-        parts = [("pair_" + "+".join(q), SC.cases((), [q], None), first + 100 * SC.PAIRS.index(q)) for q in pairs]
-    # one part per single effect: its seed is 100 times its place in the full run's plan
-    parts += [(f"single_{n}", SC.cases((n,), (), None), 100 * catalogue.index(n)) for n in singles]
+    parts = plan_parts(singles, () if args.no_pairs else None if args.pairs == every_pair else pairs)
+    # the full run's generators have all its effects switched on (the others at neutral): the same
+    # compiled programs, so the same rounding and the same datasets, bit for bit
+    present = {n for _, names in SC.cases(catalogue, SC.PAIRS, SC.OUTSIDE) for n in names}
     for name, plan, seed in parts:
         store = args.out / name
-        res = SC.selfcheck(plan, settings, seed=seed, games=SC.GAMES["full"], store=store,
+        res = SC.selfcheck(plan, settings, seed=seed, games=SC.GAMES["full"], store=store, present=present,
                            resume=bool(SC.stored_cases(store)), progress=lambda n: print("done", n, flush=True))
         (args.out / f"{name}.json").write_text(json.dumps(jsonable(res), indent=1))
         print(SC.table(res), flush=True)

@@ -267,3 +267,25 @@ def test_a_case_keeps_each_candidate_and_what_it_added_on_top():
                                      heldout={"table": dict(pct=0.4, ci95=[-0.3, 2.4])}, interchangeable_with=[])
     assert not digest[2]["significant"] and "adds" not in digest[2]
     json.dumps(digest)  # stored in the case file as is
+
+
+def test_a_subset_runs_each_case_at_its_full_run_seed():
+    """``benchmarks/selfcheck_subset.py`` reruns cases of the full selfcheck on the same datasets: every
+    case of each part it plans gets the seed that case has in the full run (case i: seed 100 i)."""
+    import importlib.util
+    from pathlib import Path
+
+    from ttsim_jax.diagnose import candidates as C
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "selfcheck_subset.py"
+    spec = importlib.util.spec_from_file_location("selfcheck_subset", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    full = SC.cases(C.candidate_names(), SC.PAIRS, SC.OUTSIDE)
+    for pairs in (None, [SC.PAIRS[1]], SC.PAIRS[::-1]):
+        parts = mod.plan_parts(["worn_ball", "buckling"], pairs)
+        assert len(parts) == (1 if pairs is None else len(pairs)) + 2
+        for _, plan, first in parts:
+            for i, case in enumerate(plan):
+                assert first + 100 * i == 100 * full.index(case), case
+    assert [p[2] for p in mod.plan_parts([], [SC.PAIRS[1]])] == [1100]

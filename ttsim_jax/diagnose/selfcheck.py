@@ -388,10 +388,14 @@ def _load_case(path: Path, key: dict) -> dict:
 
 
 def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None = None,
-              games: int = GAMES["quick"], store=None, resume: bool = False) -> dict:
+              games: int = GAMES["quick"], store=None, resume: bool = False, present=None) -> dict:
     """Every case of ``plan`` (:func:`cases`; default the quick one) and the :func:`summary`.
 
     Arguments:
+        present: the effects switched on in every case's generator (:func:`run_case`; default every
+            effect of ``plan``). Those at neutral change the compiled programs, hence the float32
+            rounding (two games of a pair differed by up to 51 µm), not the physics: a case
+            reproduces another run's dataset bit for bit only with that run's ``present``.
         store: a run folder: each finished case is written at once, atomically, to
             ``store/cases/NN_<effects>.json`` (:func:`case_path`) with what it depends on.
         resume: take the cases already in ``store`` instead of running them again (their options
@@ -407,7 +411,7 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
     settings = settings or Settings.quick(max_segments=SEGMENTS["quick"])
     plan = plan if plan is not None else cases()
     t0, c0 = time.perf_counter(), time.process_time()
-    present = tuple(sorted({n for _, names in plan for n in names}))
+    present = tuple(sorted(set(present) if present is not None else {n for _, names in plan for n in names}))
     rows, resumed = [], 0
     for i, (kind, names) in enumerate(plan):
         case_seed = seed + 100 * i
