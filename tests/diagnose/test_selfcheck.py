@@ -253,6 +253,24 @@ def test_an_effect_reported_interchangeable_with_the_first_counts_as_found():
     assert s["n_interchangeable"] == 1 and s["rank1_rate"] == 0.5
 
 
+def test_a_pair_counts_an_effect_reported_interchangeable_with_the_second_accepted_one():
+    """spin_decay + table_tilt where a warped top, accepted second, absorbs the tilt: with the tilt
+    reported interchangeable with it both are found; merely redundant, one."""
+    first = cand("spin_decay", table=held(52.0))
+    warped = dict(cand("table_unevenness", table=held(2.7)),
+                  adds=dict(accepted=True, on_top_of=["spin_decay"], heldout={"table": held(6.6)},
+                            interchangeable_with=[]))
+    tilt = dict(cand("table_tilt", table=held(2.3)),
+                adds=dict(accepted=False, on_top_of=["spin_decay", "table_unevenness"],
+                          heldout={"table": held(0.7, lo=-0.6)}, interchangeable_with=["table_unevenness"]))
+    oracle = {"table": held(56.8)}
+    r = SC.score("pair", ["spin_decay", "table_tilt"], [first, warped, tilt], NO_WHERE, oracle)
+    assert r["both"] and r["outcome"] == "both found"
+    redundant = dict(tilt, adds=dict(tilt["adds"], interchangeable_with=[]))
+    r = SC.score("pair", ["spin_decay", "table_tilt"], [first, warped, redundant], NO_WHERE, oracle)
+    assert not r["both"] and r["outcome"] == "one found"
+
+
 def test_a_case_keeps_each_candidate_and_what_it_added_on_top():
     """A case's row keeps the ranked candidates, so a pair's missing effect can be examined
     afterwards: whether it was significant alone and what it added on top of the accepted ones."""

@@ -21,8 +21,9 @@ truth, so that it is testable without simulation):
 * *rank 1*: the first candidate is significant and is the true effect, or one the diagnosis reports
   as interchangeable with it on these data (each adds nothing on top of the other; counted, and
   named in the outcome) (pairs: one of the two;
-  *both*: the two true effects are the diagnosis's first two accepted effects: significant, and
-  the second adding significantly on top of the first, :func:`ttsim_jax.diagnose.diagnosis.select`);
+  *both*: the two true effects are the diagnosis's first two accepted effects (significant, and
+  the second adding significantly on top of the first, :func:`ttsim_jax.diagnose.diagnosis.select`)
+  or reported interchangeable with them, one each);
 * *phase*: the located phase, the phase where the first candidate's held-out reduction is largest
   among its significant ones, is one the true effects act in. For an *outside* case the located
   phases are those where the "where" analysis flags a regime; right when the true phase is among
