@@ -48,3 +48,25 @@ def test_sharded_equals_unsharded_on_four_host_devices():
     proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "SHARDED-OK" in proc.stdout
+
+
+IMPORT_SCRIPT = textwrap.dedent("""
+    import importlib, pkgutil
+    import jax
+    import ttsim_jax
+    for m in pkgutil.walk_packages(ttsim_jax.__path__, "ttsim_jax."):
+        if not m.name.endswith("__main__"):
+            importlib.import_module(m.name)
+    jax.config.update("jax_num_cpu_devices", 4)  # refused once a JAX backend has started
+    print("DEVICES", jax.device_count())
+""")
+
+
+def test_importing_the_package_leaves_the_device_count_to_the_user():
+    """Importing any module of the package starts no JAX backend (no device arrays at import), so a
+    user can still choose, after ``import ttsim_jax``, how many host devices to shard over."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("XLA_FLAGS", None)
+    proc = subprocess.run([sys.executable, "-c", IMPORT_SCRIPT], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "DEVICES 4" in proc.stdout, proc.stdout

@@ -21,6 +21,7 @@ The contact point is the point of the face under the ball centre (p_ball - r n).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from ttsim_jax.physics import hooks
@@ -29,9 +30,10 @@ from ttsim_jax.physics.numerics import safe_norm
 
 RACKET_KINDS = ("nakashima", "refined", "updated")
 
-# racket frame (x=normal, y, z) -> contact frame (y, z, x) and back
-_TO_CONTACT = jnp.array([1, 2, 0])
-_FROM_CONTACT = jnp.array([2, 0, 1])
+# racket frame (x=normal, y, z) -> contact frame (y, z, x) and back; numpy, so that importing the
+# module creates no device array (whose integer width would follow jax_enable_x64 at import time)
+_TO_CONTACT = np.array([1, 2, 0], dtype=np.int32)
+_FROM_CONTACT = np.array([2, 0, 1], dtype=np.int32)
 
 
 @struct.dataclass

@@ -39,6 +39,7 @@ below ``REST_SPEED``.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from ttsim_jax.physics import hooks
@@ -46,7 +47,7 @@ from ttsim_jax.physics.contact import (ContactCoefficients, apply_matrices, cont
                                        surface_velocity)
 from ttsim_jax.physics.numerics import safe_norm, safe_unit
 
-_Z = jnp.array([0.0, 0.0, 1.0])
+_Z = np.array([0.0, 0.0, 1.0])  # numpy: no device array at import; cast to the state's dtype at use
 
 # Depth of the table top [m] (not in the paper; ITTF tops are usually about 2.5 cm).
 THICKNESS = 0.025
@@ -95,7 +96,7 @@ class TableParams:
 
 def surface(effects, pos):
     """(height, unit normal) of the playing surface under ``pos``; (0, z) without effects."""
-    return hooks.apply(effects, "table_surface", (jnp.zeros_like(pos[2]), _Z.astype(pos.dtype)), pos=pos)
+    return hooks.apply(effects, "table_surface", (jnp.zeros_like(pos[2]), jnp.asarray(_Z, pos.dtype)), pos=pos)
 
 
 def box_distance(table: TableParams, effects, pos):
@@ -138,7 +139,7 @@ def residual_frame(vel):
     residual is faded out there, see :func:`residual_fade`).
     """
     vh = safe_unit(jnp.stack([vel[0], vel[1], jnp.zeros_like(vel[0])]), jnp.array([1.0, 0.0, 0.0], vel.dtype))
-    return jnp.stack([vh, jnp.cross(_Z.astype(vel.dtype), vh), _Z.astype(vel.dtype)])
+    return jnp.stack([vh, jnp.cross(jnp.asarray(_Z, vel.dtype), vh), jnp.asarray(_Z, vel.dtype)])
 
 
 def residual_fade(vel):
