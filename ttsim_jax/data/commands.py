@@ -33,7 +33,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         "import",
         help="convert a public dataset (or a CSV log) into the canonical format",
         description="Read PATH, convert it to the canonical table frame, detect contacts, segment, validate and "
-        "write a dataset directory (Parquet tables + metadata.json).",
+        "write a dataset directory (Parquet tables + metadata.json). Sessions are split where the tracker did not "
+        "follow one ball (pauses longer than 0.25 s, missing frames or jumps that no flight bridges); the import "
+        "prints what it found per session and warns about segments that no ballistic flight fits.",
     )
     imp.add_argument("path", metavar="PATH", type=existing_path, help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
     imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
@@ -63,11 +65,14 @@ def cmd_import(args) -> int:
     from .io import save
     from .segment import filter_segments
     from .summary import format_info, info
+    from .tracks import tracking_report
 
     try:
         ds = import_source(args.path, args.source, length_unit=args.length_unit, time_unit=args.time_unit)
     except UnicodeDecodeError as e:
         raise UsageError(f"{args.path}: not a {args.source} recording (a file is not UTF-8 text: {e})") from None
+    print("fitting a flight to every segment to check it ...", flush=True)
+    print(tracking_report(ds))
     if args.filter:
         conf = None if args.min_spin_conf < 0 else args.min_spin_conf
         ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)

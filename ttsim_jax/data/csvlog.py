@@ -147,12 +147,13 @@ def _check_long_axis(sid, t, pos, raw_y, file, lines) -> None:
     Nothing beside the table is at its height, so such bounces are rare in canonical data (a low
     racket lift at most); a quarter of all table-height bounces is taken as proof.
     """
-    from .segment import _session_slices, find_bounces
+    from .segment import find_bounces
+    from .tracks import session_slices
 
     half_l = schema.TABLE_LENGTH / 2 + schema.BALL_RADIUS
     half_w = schema.TABLE_WIDTH / 2 + schema.BALL_RADIUS
     on, swapped = 0, []
-    for _, a, b in _session_slices(sid):
+    for _, a, b in session_slices(sid):
         for c in find_bounces(t[a:b], pos[a:b], on_table=False):
             x, y = abs(c.pos[0]), abs(c.pos[1])
             if x <= half_l and y <= half_w:

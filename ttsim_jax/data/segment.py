@@ -26,6 +26,7 @@ import numpy as np
 
 from . import schema
 from .dataset import Dataset, concat_tables, fill_defaults, select_rows
+from .tracks import MIN_SAMPLES, find_breaks, robust_lines, session_slices, track_slices
 
 GRAVITY = 9.81
 
@@ -146,19 +147,6 @@ def find_bounces(
     return out
 
 
-def _robust_lines(tau, values):
-    """Theil-Sen lines per window: tau (K, w), values (K, w, 3) -> (a, b) of shape (K, 3).
-
-    A single bad sample (tracking outliers are common) cannot fake a velocity change this way.
-    """
-    w = tau.shape[-1]
-    i, j = np.triu_indices(w, 1)
-    slopes = (values[:, j] - values[:, i]) / (tau[:, j] - tau[:, i])[..., None]
-    b = np.median(slopes, axis=1)
-    a = np.median(values - b[:, None, :] * tau[..., None], axis=1)
-    return a, b
-
-
 def find_kinks(
     t, pos, *, window: int = 5, min_dv: float = 2.0, min_rel_dv: float = 0.5, max_gap: float = 0.03, exclude=()
 ) -> list[Contact]:
@@ -194,7 +182,7 @@ def find_kinks(
     p = pos.copy()
     p[:, 2] += 0.5 * GRAVITY * tau**2
     idx = np.arange(n - window + 1)[:, None] + np.arange(window)[None, :]
-    a, b = _robust_lines(tau[idx], p[idx])  # fit k covers samples k .. k+window-1
+    a, b = robust_lines(tau[idx], p[idx])  # fit k covers samples k .. k+window-1
     # Split s separates samples < s from samples >= s: pre fit starts at s-window, post at s.
     s = np.arange(window, n - window + 1)
     a1, b1, a2, b2 = a[s - window], b[s - window], a[s], b[s]
@@ -257,18 +245,12 @@ def detect_contacts(t, pos, *, bounce_kw: dict | None = None, kink_kw: dict | No
     return sorted(bounces + floor + kinks, key=lambda c: c.t)
 
 
-def _session_slices(session_id: np.ndarray) -> list[tuple[int, int, int]]:
-    """(session, start, stop) row ranges of contiguous session blocks."""
-    if len(session_id) == 0:
-        return []
-    cuts = np.flatnonzero(np.diff(session_id)) + 1
-    starts = np.concatenate([[0], cuts])
-    stops = np.concatenate([cuts, [len(session_id)]])
-    return [(int(session_id[a]), int(a), int(b)) for a, b in zip(starts, stops)]
-
-
 def detect_events(ds: Dataset, *, bounce_kw: dict | None = None, kink_kw: dict | None = None) -> Dataset:
     """Detects contacts in every session that has no labelled events, then re-derives segments.
+
+    Contacts are looked for in each track of a session (:mod:`ttsim_jax.data.tracks`): the samples
+    either side of a pause or a jump belong to different flights, and a fit across them would fake
+    a contact.
 
     Arguments:
         ds: dataset in the canonical frame (observations grouped by session, in time order).
@@ -276,40 +258,46 @@ def detect_events(ds: Dataset, *, bounce_kw: dict | None = None, kink_kw: dict |
 
     Returns:
         The dataset with detected events added (ids after the existing ones) and segments split at
-        all events (existing segment spins are recomputed from the observations).
+        all events and breaks (existing segment spins are recomputed from the observations).
     """
     obs = ds.observations
     labelled = set(np.unique(ds.events["session_id"]).tolist())
     next_id = int(ds.events["event_id"].max()) + 1 if len(ds.events["event_id"]) else 0
     rows = {"event_id": [], "session_id": [], "t": [], "kind": [], "x": [], "y": [], "z": []}
     pos = ds.positions
-    for sid, a, b in _session_slices(obs["session_id"]):
+    for sid, a, b in session_slices(obs["session_id"]):
         if sid in labelled:
             continue
-        for c in detect_contacts(obs["t"][a:b], pos[a:b], bounce_kw=bounce_kw, kink_kw=kink_kw):
-            rows["event_id"].append(next_id)
-            next_id += 1
-            rows["session_id"].append(sid)
-            rows["t"].append(c.t)
-            rows["kind"].append(c.kind)
-            rows["x"].append(c.pos[0])
-            rows["y"].append(c.pos[1])
-            rows["z"].append(c.pos[2])
+        t, p = obs["t"][a:b], pos[a:b]
+        for lo, hi in track_slices(b - a, find_breaks(t, p)):
+            for c in detect_contacts(t[lo:hi], p[lo:hi], bounce_kw=bounce_kw, kink_kw=kink_kw):
+                rows["event_id"].append(next_id)
+                next_id += 1
+                rows["session_id"].append(sid)
+                rows["t"].append(c.t)
+                rows["kind"].append(c.kind)
+                rows["x"].append(c.pos[0])
+                rows["y"].append(c.pos[1])
+                rows["z"].append(c.pos[2])
     new = fill_defaults("events", {k: np.asarray(v, object if k == "kind" else None) for k, v in rows.items()})
     events = concat_tables([ds.events, new], "events")
     order = np.lexsort((events["t"], events["session_id"]))
     return segments_from_events(ds.replace(events=select_rows(events, order)))
 
 
-def segments_from_events(ds: Dataset) -> Dataset:
-    """Splits every session at its events into flight segments.
+def segments_from_events(ds: Dataset, *, min_track: int = MIN_SAMPLES) -> Dataset:
+    """Splits every session at its events and at its breaks into flight segments.
 
-    Observations before the first event, between consecutive events and after the last event form
-    one segment each (empty spans make none). A segment's spin is the confidence-weighted mean of
-    its observations' spin, and its confidence the largest among them.
+    Observations between consecutive boundaries (events, and the breaks of
+    :func:`ttsim_jax.data.tracks.find_breaks`: pauses and jumps where the tracker did not follow one
+    ball) form one segment each (empty spans make none). A segment opened (closed) by a break has
+    start (end) event -1, as one at the start (end) of the session. A segment's spin is the
+    confidence-weighted mean of its observations' spin, and its confidence the largest among them.
 
     Arguments:
         ds: dataset whose observations are grouped by session and in time order.
+        min_track: samples of a track (a span between breaks) below which it forms no segment: its
+            observations keep ``segment_id = -1`` (:func:`track_report` counts them).
 
     Returns:
         The dataset with a new ``segments`` table and ``observations.segment_id`` filled in.
@@ -321,25 +309,39 @@ def segments_from_events(ds: Dataset) -> Dataset:
     ev_by_session: dict[int, np.ndarray] = {}
     if len(ev["t"]):
         order = np.lexsort((ev["t"], ev["session_id"]))
-        for sid, a, b in _session_slices(ev["session_id"][order]):
+        for sid, a, b in session_slices(ev["session_id"][order]):
             ev_by_session[sid] = order[a:b]
     spin = ds.spins
     conf = obs["spin_conf"]
+    pos = ds.positions
     next_id = 0
-    for sid, a, b in _session_slices(obs["session_id"]):
+    for sid, a, b in session_slices(obs["session_id"]):
         t = obs["t"][a:b]
         rows = ev_by_session.get(sid, np.zeros(0, int))
         et = ev["t"][rows]
-        part = np.searchsorted(et, t, side="right")  # number of events at or before each sample
-        for k in np.unique(part):
-            members = np.flatnonzero(part == k)
+        breaks = find_breaks(t, pos[a:b])
+        bt = np.array([br.t for br in breaks])
+        short = np.zeros(b - a, bool)
+        for lo, hi in track_slices(b - a, breaks):
+            short[lo:hi] = hi - lo < min_track
+        n_ev = np.searchsorted(et, t, side="right")  # number of events at or before each sample
+        n_br = np.searchsorted(bt, t, side="right")
+        part = n_ev + n_br  # both only grow along the session: one value per span between boundaries
+        for k in np.unique(part[~short]):
+            members = np.flatnonzero((part == k) & ~short)
+            first, last = members[0], members[-1]
+            # The boundary just before (after) the span is an event unless a break lies between.
+            prev_ev, next_ev = n_ev[first] - 1, n_ev[last]
+            prev_br, next_br = n_br[first] - 1, n_br[last]
+            opened = prev_ev >= 0 and (prev_br < 0 or et[prev_ev] > bt[prev_br])
+            closed = next_ev < len(rows) and (next_br >= len(bt) or et[next_ev] < bt[next_br])
             seg_id[a + members] = next_id
             cols["segment_id"].append(next_id)
             cols["session_id"].append(sid)
-            cols["start_event_id"].append(int(ev["event_id"][rows[k - 1]]) if k > 0 else -1)
-            cols["end_event_id"].append(int(ev["event_id"][rows[k]]) if k < len(rows) else -1)
-            cols["t_start"].append(et[k - 1] if k > 0 else t[members[0]])
-            cols["t_end"].append(et[k] if k < len(rows) else t[members[-1]])
+            cols["start_event_id"].append(int(ev["event_id"][rows[prev_ev]]) if opened else -1)
+            cols["end_event_id"].append(int(ev["event_id"][rows[next_ev]]) if closed else -1)
+            cols["t_start"].append(et[prev_ev] if opened else t[first])
+            cols["t_end"].append(et[next_ev] if closed else t[last])
             w = conf[a + members]
             if np.any(w > 0):
                 s = np.sum(spin[a + members] * w[:, None], axis=0) / np.sum(w)

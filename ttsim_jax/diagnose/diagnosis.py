@@ -153,6 +153,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
     tick("phases", 1)
     pb = C.problem(ph, model, settings.test_fraction, settings.seed)
+    refuse_non_finite(pb, ph)
     if keep is not None:
         keep["problem"] = pb
     tick("model errors", 1)
@@ -231,6 +232,35 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["arrays"] = arrays
     out["histories"] = {c.spec.name: c.history for c in ranked}
     return out
+
+
+def refuse_non_finite(pb, ph) -> None:
+    """Raises :class:`NoData` when the model's error on any item of a phase is not finite: a NaN
+    would make every score of that phase NaN and the verdict meaningless. The message names the
+    items, the likely cause and the remedy.
+
+    Arguments:
+        pb: the :class:`~ttsim_jax.diagnose.candidates.Problem` with the model's errors;
+        ph: its :class:`~ttsim_jax.diagnose.phases.Phases`.
+    """
+    bad = []
+    for p in pb.phases:
+        sse, _ = C.item_sums(pb, p, pb.base[p])
+        n = ph.flights.n if p == "flight" else len(getattr(ph, p))
+        rows = np.flatnonzero(~np.isfinite(sse[:n]))
+        if not len(rows):
+            continue
+        ids = ph.flights.segment_id[rows] if p == "flight" else getattr(ph, p).event_id[rows]
+        what = "segments" if p == "flight" else f"{p} contacts"
+        listed = ", ".join(str(int(i)) for i in ids[:8]) + (" ..." if len(ids) > 8 else "")
+        bad.append(f"{p}: the model's error is not finite on {len(rows)} of {n} {what} "
+                   f"({'segment' if p == 'flight' else 'event'} ids {listed})")
+    if bad:
+        raise NoData(
+            "; ".join(bad) + ". Such items usually hold more than one flight (a session whose pauses or "
+            "tracking jumps were not split, a missed contact) or samples of something other than the ball. "
+            "Import the log with `ttsim data import` (it splits sessions where the tracker lost the ball and "
+            "warns about segments that no flight fits) and add --filter to leave those segments out.")
 
 
 def select(pb, significant: list, model, group_of: dict, settings: Settings) -> tuple[list, C.Candidate, dict]:
