@@ -286,3 +286,49 @@ def test_rally_kernel_neutral_and_gradients():
         leaves = [np.asarray(x) for x in jax.tree.leaves(ge)]
         assert all(np.all(np.isfinite(x)) for x in leaves), name
         assert any(np.any(x != 0) for x in leaves), name
+
+
+def test_every_parameter_declares_a_plausible_range_holding_its_neutral_and_typical_values():
+    for name in SIM + REC:
+        cls = fx.effect_class(name)
+        assert cls.implausible(cls.default().to_dict()) == [], name
+        assert cls.implausible(cls.neutral().to_dict()) == [], name
+
+
+@pytest.mark.parametrize("name", SIM + REC)
+def test_the_generator_draws_only_plausible_effects(name):
+    cls = fx.effect_class(name)
+    rng = np.random.default_rng(0)
+    bad = [f for f in (cls.implausible(cls._draw(rng)) for _ in range(300)) if f]
+    assert not bad, bad[:3]
+
+
+def test_implausible_values_are_named_with_their_range():
+    tilt = fx.effect_class("table_tilt")
+    (b,) = tilt.implausible({"slope": [0.0164, -0.002], "offset": 0.0})  # 0.94 deg along x
+    assert (b["param"], b["index"], b["value"], b["high"]) == ("slope", [0], 0.0164, 0.0131)
+    air = fx.effect_class("air_flow")
+    (b,) = air.implausible({"wind": [0.1, 0.0, 0.08]})  # an 8 cm/s indoor updraft
+    assert (b["param"], b["index"]) == ("wind", [2])
+    assert air.implausible({"wind": [0.58, 0.0, 0.0]})[0]["index"] == [0]  # a 0.58 m/s draught
+    ball = fx.effect_class("ball_variation")
+    assert [b["param"] for b in ball.implausible({"d_radius": 3.0e-4, "d_mass": 8.0e-5})] == ["d_mass"]  # 2.78 g
+
+
+def test_a_parameter_without_a_plausible_range_is_refused():
+    from flax import struct
+
+    from ttsim_jax.effects.base import Effect, Param, register
+
+    @struct.dataclass
+    class Unbounded(Effect):
+        k: jnp.ndarray
+        NAME = "unbounded_test_effect"
+        PARAMS = {"k": Param("1", 0.0, 0.1, "a gain")}
+
+        def spin_derivative(self, value, **_):
+            return value
+
+    with pytest.raises(ValueError, match="plausible"):
+        register(Unbounded)
+    assert "unbounded_test_effect" not in fx.CATALOGUE

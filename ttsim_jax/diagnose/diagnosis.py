@@ -191,7 +191,13 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         tick(name, 1)
     ranked = C.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
-    significant = [c for c in ranked if c.significant]
+    beyond = {c.spec.name: implausible(c.params) for c in ranked}
+    for entry in out["candidates"]:
+        entry["implausible"] = beyond[entry["name"]]
+    # A fit that needs a 1-degree table tilt or an 8 cm/s indoor updraft is not the cause, however
+    # well it fits: it stands in for something the catalogue lacks.
+    out["implausible"] = [c.spec.name for c in ranked if c.significant and beyond[c.spec.name]]
+    significant = [c for c in ranked if c.significant and not beyond[c.spec.name]]
 
     # how far
     accepted, best = significant, None
@@ -226,11 +232,50 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             arrays["after_landing"] = after[np.isfinite(after)]
         out["landing"] = entry
     tick("landing after", 1)
-    out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted])
+    out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
+                             [c for c in ranked if c.spec.name in out["implausible"]])
     out["pooled_sessions"] = pb.pooled
     out["seconds"] = time.perf_counter() - t_start
     out["arrays"] = arrays
     out["histories"] = {c.spec.name: c.history for c in ranked}
+    return out
+
+
+#: Share of the sessions beyond which a per-session effect's implausible fits reject it (a session
+#: of few items can take a wild value while the effect holds elsewhere).
+IMPLAUSIBLE_SESSIONS = 0.25
+
+
+def implausible(params: dict) -> list[str]:
+    """What in a candidate's fitted parameters lies outside the catalogue's plausible ranges
+    (:meth:`~ttsim_jax.effects.base.Effect.implausible`), one line each; empty when all is plausible.
+
+    Arguments:
+        params: ``{effect: {param: value}}``, per-session effects ``{effect: {session: {param:
+            value}}}`` (a candidate's ``params``). A per-session effect counts as implausible when
+            more than :data:`IMPLAUSIBLE_SESSIONS` of its sessions are.
+
+    Returns:
+        Lines such as ``"table_tilt.slope[0] = 0.0164 (plausible -0.0131 to 0.0131)"``.
+    """
+    from ttsim_jax import effects as fx
+
+    def line(name, b, where=""):
+        idx = "".join(f"[{i}]" for i in b["index"])
+        unit = "" if b["unit"] == "1" else f" {b['unit']}"
+        return f"{name}.{b['param']}{idx} = {b['value']:.4g}{unit}{where} (plausible {b['low']:.4g} to {b['high']:.4g})"
+
+    out = []
+    for name, values in params.items():
+        cls = fx.effect_class(name)
+        if values and all(isinstance(k, int) for k in values):
+            found = [cls.implausible(v) for v in values.values()]
+            bad = [f for f in found if f]
+            if len(bad) > IMPLAUSIBLE_SESSIONS * len(found):
+                worst = max((b for f in bad for b in f), key=lambda b: max(b["low"] - b["value"], b["value"] - b["high"]))
+                out.append(line(name, worst, f" in {len(bad)} of {len(found)} sessions (the furthest)"))
+        else:
+            out += [line(name, b) for b in cls.implausible(values)]
     return out
 
 
@@ -380,10 +425,11 @@ def interchangeable(candidates: list) -> dict:
     return same
 
 
-def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
-    """{"explained": bool, "effects": [names by rank], "redundant": [names], "text": one paragraph,
-    "where": [lines]}: ``significant`` the accepted effects (:func:`select`), ``redundant`` those
-    significant alone that add nothing on top of them."""
+def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
+    """{"explained": bool, "effects": [names by rank], "redundant": [names], "implausible": [names],
+    "text": one paragraph, "where": [lines]}: ``significant`` the accepted effects (:func:`select`),
+    ``redundant`` those significant alone that add nothing on top of them, ``beyond`` those
+    significant alone whose fit needs implausible parameters (never accepted)."""
     where = _where_text(out)
 
     def part(c):
@@ -392,6 +438,11 @@ def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
         return (f"{c.spec.name} ({p}: held-out RMS error {h['pct']:.1f} % lower, 95 % interval "
                 f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
 
+    rejected = ""
+    if beyond:
+        rejected = (" Not accepted as causes, because their fits need parameters that no lab meets (they stand in for "
+                    "something the catalogue lacks): " + "; ".join(
+                        part(c) + ": " + ", ".join(implausible(c.params)) for c in beyond) + ".")
     if significant:
         text = "Explained by: " + "; ".join(part(c) for c in significant) + "."
         for n, others in interchangeable(out.get("candidates", [])).items():
@@ -401,11 +452,15 @@ def verdict(out: dict, significant: list, redundant: list = ()) -> dict:
             text += (" Significant alone but adding nothing significant on top of those: " +
                      "; ".join(part(c) for c in redundant) + ".")
         return dict(explained=True, effects=[c.spec.name for c in significant],
-                    redundant=[c.spec.name for c in redundant], text=text, where=where)
-    text = ("Unexplained: no candidate effect reduces a held-out error significantly. " +
+                    redundant=[c.spec.name for c in redundant], implausible=[c.spec.name for c in beyond],
+                    text=text + rejected, where=where)
+    lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
+            "no candidate effect reduces a held-out error significantly.")
+    text = ("Unexplained: " + lead + rejected + " " +
             (("The gap lies in: " + "; ".join(where) + ".") if where else "No regime stands out and no residual "
              "dependence is significant: what remains looks like noise."))
-    return dict(explained=False, effects=[], redundant=[], text=text, where=where)
+    return dict(explained=False, effects=[], redundant=[], implausible=[c.spec.name for c in beyond], text=text,
+                where=where)
 
 
 def jsonable(obj):

@@ -112,7 +112,7 @@ def _warp(rng, bumps: int = 4, apart: float = 0.6) -> dict:
 #:   land (0.5-1.25 m from the net, at most 0.55 m from the centre line: 90 % of the games'
 #:   bounces); their flanks slope by up to 0.015, as table_tilt's draw. Six bumps of 1-2 mm anywhere
 #:   on the table changed the table errors by 0.5 %, six of 3-4 mm where the balls land by 2.2 %;
-#: * ball_variation: radius +0.15 to +0.3 mm, mass +-0.025 to 0.05 g (ITTF tolerances);
+#: * ball_variation: radius +0.15 to +0.3 mm, mass +-0.025 to 0.033 g (within the ITTF tolerances: 2.67-2.77 g);
 #: * worn_ball: restitution loss 2-4 %;
 #: * buckling: a ball that buckles early (a soft or cracked shell): table onset 2-3 m/s, width
 #:   1-2 m/s, loss 6-10 %; racket onset 5-8 m/s, width 4-8 m/s, loss 10-15 %. The catalogue's
@@ -127,7 +127,7 @@ DRAWS = {
     "air_flow": lambda r: {"wind": np.append(r.uniform(0.2, 0.4) * _direction(r), 0.0)},
     "table_tilt": lambda r: {"slope": r.uniform(0.009, 0.0125) * _direction(r), "offset": 0.0},
     "table_unevenness": lambda r: _warp(r),
-    "ball_variation": lambda r: {"d_radius": r.uniform(1.5e-4, 3e-4), "d_mass": _signed(r, 2.5e-5, 5e-5)},
+    "ball_variation": lambda r: {"d_radius": r.uniform(1.5e-4, 3e-4), "d_mass": _signed(r, 2.5e-5, 3.3e-5)},
     "worn_ball": lambda r: {"loss": r.uniform(0.02, 0.04)},
     "buckling": lambda r: {"table_onset": r.uniform(2.0, 3.0), "table_width": r.uniform(1.0, 2.0),
                            "table_depth": r.uniform(0.06, 0.1), "racket_onset": r.uniform(5.0, 8.0),

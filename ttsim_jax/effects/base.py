@@ -11,7 +11,10 @@ An effect is a ``flax.struct`` dataclass whose fields are its parameters (pytree
   ``drop_frames``); they never change the simulated truth.
 
 Every parameter has a *neutral* value at which the effect changes nothing (exactly: the hooks then
-return their input bit for bit), a *typical* magnitude (:meth:`Effect.default`) and a unit.
+return their input bit for bit), a *typical* magnitude (:meth:`Effect.default`), a unit and a
+*plausible* range: what a lab can meet (an indoor updraft of a few cm/s, a ball within the ITTF
+tolerances, a table level to within a fraction of a degree). A fit beyond it is no explanation of a
+sim-to-real gap, however well it fits (:meth:`Effect.implausible`).
 :meth:`Effect.sample` draws a random instance of realistic magnitude for the generator.
 
 A new effect is one class in this package, decorated with :func:`register`: the catalogue
@@ -53,6 +56,8 @@ class Param:
         typical: typical magnitude (broadcast to ``shape``), used by :meth:`Effect.default`.
         doc: one-line meaning.
         shape: array shape of the parameter (``()`` for a scalar).
+        plausible: (low, high) bounds (each broadcast to ``shape``; +-inf for none) of the values a
+            lab can meet; required (:func:`register` refuses a parameter without one).
     """
 
     unit: str
@@ -60,6 +65,7 @@ class Param:
     typical: Any
     doc: str
     shape: tuple = ()
+    plausible: Any = None
 
 
 class EffectError(ValueError):
@@ -137,6 +143,35 @@ class Effect:
         """``{parameter: value}`` with plain floats / nested lists (JSON-able)."""
         return {k: np.asarray(getattr(self, k), np.float64).tolist() for k in self.PARAMS}
 
+    @classmethod
+    def implausible(cls, values: dict) -> list[dict]:
+        """The parameter values outside their plausible ranges.
+
+        Arguments:
+            values: ``{parameter: value}`` (missing parameters are not checked).
+
+        Returns:
+            One dict per parameter with a value outside its range: ``param``, ``value`` (the one
+            furthest outside), ``index`` (its position in the parameter's array, ``[]`` for a
+            scalar), ``low``, ``high`` and ``unit``.
+        """
+        out = []
+        for key, p in cls.PARAMS.items():
+            if key not in values:
+                continue
+            v = np.broadcast_to(np.asarray(values[key], np.float64), p.shape)
+            lo = np.broadcast_to(np.asarray(p.plausible[0], np.float64), p.shape)
+            hi = np.broadcast_to(np.asarray(p.plausible[1], np.float64), p.shape)
+            outside = (v < lo) | (v > hi)
+            if not outside.any():
+                continue
+            width = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+            beyond = np.where(outside, np.maximum(lo - v, v - hi) / np.maximum(width, 1e-30), -np.inf)
+            i = np.unravel_index(int(np.argmax(beyond)), p.shape) if p.shape else ()
+            out.append(dict(param=key, value=float(v[i]), index=[int(k) for k in i], low=float(lo[i]),
+                            high=float(hi[i]), unit=p.unit))
+        return out
+
     # ------------------------------------------------------------------ introspection
     @classmethod
     def hooks(cls) -> tuple[str, ...]:
@@ -149,7 +184,8 @@ class Effect:
         lines = [f"{cls.NAME} ({cls.WHERE}, per {cls.SCOPE}; acts at: {', '.join(cls.hooks())})", f"  {cls.DESCRIPTION}"]
         for k, p in cls.PARAMS.items():
             shape = "" if not p.shape else f" shape {p.shape}"
-            lines.append(f"  - {k} [{p.unit}]{shape}: {p.doc} (neutral {p.neutral}, typical {_fmt(p.typical)})")
+            lines.append(f"  - {k} [{p.unit}]{shape}: {p.doc} (neutral {p.neutral}, typical {_fmt(p.typical)}, "
+                         f"plausible {_fmt(p.plausible[0])} to {_fmt(p.plausible[1])})")
         return "\n".join(lines)
 
 
@@ -167,6 +203,13 @@ def register(cls):
     fields = {f.name for f in dataclasses.fields(cls)}
     if fields != set(cls.PARAMS):
         raise ValueError(f"effect {cls.NAME}: fields {sorted(fields)} must match PARAMS {sorted(cls.PARAMS)}")
+    for key, p in cls.PARAMS.items():
+        if p.plausible is None or len(p.plausible) != 2:
+            raise ValueError(f"effect {cls.NAME}: parameter {key} needs a plausible (low, high) range")
+        lo, hi = (np.broadcast_to(np.asarray(b, np.float64), p.shape) for b in p.plausible)
+        if not np.all((lo <= np.asarray(p.neutral)) & (np.asarray(p.neutral) <= hi) & (lo <= np.asarray(p.typical))
+                      & (np.asarray(p.typical) <= hi)):
+            raise ValueError(f"effect {cls.NAME}: parameter {key}'s neutral or typical value lies outside its plausible range")
     points = HOOK_POINTS if cls.WHERE == "simulator" else RECORD_POINTS
     if not any(callable(getattr(cls, h, None)) for h in points):
         raise ValueError(f"effect {cls.NAME} defines none of {points}")

@@ -16,6 +16,9 @@ from ttsim_jax.physics.numerics import safe_norm
 from .base import Effect, Param, onset, register, smoothstep
 
 _TABLE_HALF = (1.37, 0.7625)
+#: Steepest plausible table slope: 0.75 deg, a 3.6 cm drop over the table's length, which anyone
+#: setting up a table sees; a fit steeper than this names the wrong cause.
+TILT_MAX = 0.0131
 
 
 # ---------------------------------------------------------------------- flight
@@ -31,8 +34,8 @@ class SpinDecay(Effect):
     DESCRIPTION = "spin decays in flight under the air's friction torque (linear and quadratic in |spin|)"
     SCOPE = "dataset"
     PARAMS = {
-        "rate": Param("1/s", 0.0, 0.15, "linear decay rate"),
-        "quadratic": Param("1/rad", 0.0, 1.0e-4, "decay rate per rad/s of spin"),
+        "rate": Param("1/s", 0.0, 0.15, "linear decay rate", plausible=(0.0, 1.0)),
+        "quadratic": Param("1/rad", 0.0, 1.0e-4, "decay rate per rad/s of spin", plausible=(0.0, 1.0e-3)),
     }
 
     @classmethod
@@ -64,20 +67,21 @@ class AirFlow(Effect):
     DESCRIPTION = "air flow from ventilation: steady wind plus time-varying gusts (world-frame air velocity)"
     SCOPE = "session"
     PARAMS = {
-        "wind": Param("m/s", 0.0, (0.2, 0.0, 0.0), "steady air velocity, world frame", (3,)),
+        "wind": Param("m/s", 0.0, (0.2, 0.0, 0.0), "steady air velocity, world frame", (3,), plausible=((-0.5, -0.5, -0.05), (0.5, 0.5, 0.05))),
         "gust_amp": Param("m/s", 0.0, ((0.1, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, 0.0, 0.03)),
-                          "amplitude vector of each gust component", (3, 3)),
-        "gust_freq": Param("Hz", 0.0, (0.1, 0.3, 0.7), "frequency of each gust component", (3,)),
-        "gust_phase": Param("rad", 0.0, 0.0, "phase of each gust component", (3,)),
-        "time_origin": Param("s", 0.0, 0.0, "session time at simulation time 0"),
+                          "amplitude vector of each gust component", (3, 3), plausible=((-0.3, -0.3, -0.05), (0.3, 0.3, 0.05))),
+        "gust_freq": Param("Hz", 0.0, (0.1, 0.3, 0.7), "frequency of each gust component", (3,), plausible=(0.0, 2.0)),
+        "gust_phase": Param("rad", 0.0, 0.0, "phase of each gust component", (3,), plausible=(-np.inf, np.inf)),
+        "time_origin": Param("s", 0.0, 0.0, "session time at simulation time 0", plausible=(-np.inf, np.inf)),
     }
 
     @classmethod
     def _draw(cls, rng):
         heading = rng.uniform(0.0, 2 * np.pi)
         speed = rng.uniform(0.05, 0.4)
-        wind = [speed * np.cos(heading), speed * np.sin(heading), rng.normal(0.0, 0.03)]
-        amp = rng.normal(0.0, 0.08, (3, 3)) * np.array([1.0, 1.0, 0.3])
+        # Indoor air: the draws stay inside the parameters' plausible ranges.
+        wind = [speed * np.cos(heading), speed * np.sin(heading), np.clip(rng.normal(0.0, 0.03), -0.045, 0.045)]
+        amp = np.clip(rng.normal(0.0, 0.08, (3, 3)) * np.array([1.0, 1.0, 0.3]), [-0.28, -0.28, -0.045], [0.28, 0.28, 0.045])
         return {"wind": wind, "gust_amp": amp, "gust_freq": rng.uniform(0.05, 1.0, 3),
                 "gust_phase": rng.uniform(0.0, 2 * np.pi, 3), "time_origin": 0.0}
 
@@ -109,8 +113,8 @@ class TableTilt(Effect):
     DESCRIPTION = "table not level: a tilted plane (height and normal of the surface change)"
     SCOPE = "dataset"
     PARAMS = {
-        "slope": Param("1", 0.0, (0.006, 0.002), "dh/dx, dh/dy (0.0087 = 0.5 deg)", (2,)),
-        "offset": Param("m", 0.0, 0.0, "height of the surface at the table centre"),
+        "slope": Param("1", 0.0, (0.006, 0.002), "dh/dx, dh/dy (0.0087 = 0.5 deg)", (2,), plausible=(-TILT_MAX, TILT_MAX)),
+        "offset": Param("m", 0.0, 0.0, "height of the surface at the table centre", plausible=(-0.005, 0.005)),
     }
 
     @classmethod
@@ -142,9 +146,9 @@ class TableUnevenness(Effect):
     N_BUMPS = 6
     PARAMS = {
         "center": Param("m", 0.0, ((0.9, 0.3), (-0.9, -0.3), (0.5, -0.5), (-0.5, 0.5), (1.2, 0.0), (-1.2, 0.0)),
-                        "(x, y) of each bump", (6, 2)),
-        "amplitude": Param("m", 0.0, (0.0015, -0.001, 0.001, -0.0015, 0.001, -0.001), "height of each bump", (6,)),
-        "width": Param("m", 0.25, 0.25, "standard deviation of each bump's Gaussian", (6,)),
+                        "(x, y) of each bump", (6, 2), plausible=((-_TABLE_HALF[0] - 0.1, -_TABLE_HALF[1] - 0.1), (_TABLE_HALF[0] + 0.1, _TABLE_HALF[1] + 0.1))),
+        "amplitude": Param("m", 0.0, (0.0015, -0.001, 0.001, -0.0015, 0.001, -0.001), "height of each bump", (6,), plausible=(-0.008, 0.008)),
+        "width": Param("m", 0.25, 0.25, "standard deviation of each bump's Gaussian", (6,), plausible=(0.05, 1.0)),
     }
 
     @classmethod
@@ -174,13 +178,14 @@ class BallVariation(Effect):
     DESCRIPTION = "ball-to-ball variation of radius and mass (one ball per game)"
     SCOPE = "session"
     PARAMS = {
-        "d_radius": Param("m", 0.0, 1.5e-4, "radius minus the model's"),
-        "d_mass": Param("kg", 0.0, 2.0e-5, "mass minus the model's"),
+        "d_radius": Param("m", 0.0, 1.5e-4, "radius minus the model's (ITTF: 20.0-20.3 mm)", plausible=(-0.5e-4, 3.5e-4)),
+        "d_mass": Param("kg", 0.0, 2.0e-5, "mass minus the model's (ITTF: 2.67-2.77 g)", plausible=(-3.5e-5, 7.5e-5)),
     }
 
     @classmethod
     def _draw(cls, rng):
-        return {"d_radius": rng.uniform(0.0, 3.0e-4), "d_mass": rng.uniform(-5.0e-5, 5.0e-5)}
+        # within the ITTF tolerances of a 40+ ball: diameter 40.0-40.6 mm, mass 2.67-2.77 g
+        return {"d_radius": rng.uniform(0.0, 3.0e-4), "d_mass": rng.uniform(-3.0e-5, 7.0e-5)}
 
     def ball_properties(self, value, **_):
         radius, mass = value
@@ -197,7 +202,7 @@ class WornBall(Effect):
     NAME = "worn_ball"
     DESCRIPTION = "worn ball: lower normal restitution on table and racket"
     SCOPE = "session"
-    PARAMS = {"loss": Param("1", 0.0, 0.02, "relative loss of normal restitution")}
+    PARAMS = {"loss": Param("1", 0.0, 0.02, "relative loss of normal restitution", plausible=(-0.03, 0.15))}
 
     @classmethod
     def _draw(cls, rng):
@@ -230,12 +235,12 @@ class Buckling(Effect):
     DESCRIPTION = "ball buckling: restitution drops non-linearly above an impact speed (table and racket)"
     SCOPE = "dataset"
     PARAMS = {
-        "table_onset": Param("m/s", 5.0, 5.0, "table impact speed where the loss starts"),
-        "table_width": Param("m/s", 3.0, 3.0, "speed scale of the table loss"),
-        "table_depth": Param("1", 0.0, 0.06, "largest loss of the table e_n"),
-        "racket_onset": Param("m/s", 15.0, 15.0, "racket impact speed where the loss starts"),
-        "racket_width": Param("m/s", 10.0, 10.0, "speed scale of the racket loss"),
-        "racket_depth": Param("1", 0.0, 0.1, "largest loss of the racket e_n"),
+        "table_onset": Param("m/s", 5.0, 5.0, "table impact speed where the loss starts", plausible=(0.0, 40.0)),
+        "table_width": Param("m/s", 3.0, 3.0, "speed scale of the table loss", plausible=(0.1, 40.0)),
+        "table_depth": Param("1", 0.0, 0.06, "largest loss of the table e_n", plausible=(0.0, 0.3)),
+        "racket_onset": Param("m/s", 15.0, 15.0, "racket impact speed where the loss starts", plausible=(0.0, 40.0)),
+        "racket_width": Param("m/s", 10.0, 10.0, "speed scale of the racket loss", plausible=(0.1, 40.0)),
+        "racket_depth": Param("1", 0.0, 0.1, "largest loss of the racket e_n", plausible=(0.0, 0.3)),
     }
 
     @classmethod
@@ -272,11 +277,11 @@ class RacketLogo(Effect):
     DESCRIPTION = "embossed logo 5-8 cm from the face centre towards the handle: less grip, other restitution"
     SCOPE = "dataset"
     PARAMS = {
-        "grip_loss": Param("1", 0.0, 0.35, "relative loss of tangential grip alpha in the logo"),
-        "d_restitution": Param("1", 0.0, -0.03, "change of e_n in the logo"),
-        "r_in": Param("m", 0.05, 0.05, "start of the logo along -z"),
-        "r_out": Param("m", 0.08, 0.08, "end of the logo along -z"),
-        "half_width": Param("m", 0.03, 0.03, "half width of the logo along y"),
+        "grip_loss": Param("1", 0.0, 0.35, "relative loss of tangential grip alpha in the logo", plausible=(0.0, 1.0)),
+        "d_restitution": Param("1", 0.0, -0.03, "change of e_n in the logo", plausible=(-0.2, 0.1)),
+        "r_in": Param("m", 0.05, 0.05, "start of the logo along -z", plausible=(0.02, 0.12)),
+        "r_out": Param("m", 0.08, 0.08, "end of the logo along -z", plausible=(0.03, 0.15)),
+        "half_width": Param("m", 0.03, 0.03, "half width of the logo along y", plausible=(0.005, 0.08)),
     }
 
     @classmethod
@@ -311,9 +316,9 @@ class RacketEdge(Effect):
     DESCRIPTION = "face rim beyond 8 cm from the centre: deader bounce, less grip"
     SCOPE = "dataset"
     PARAMS = {
-        "dead": Param("1", 0.0, 0.12, "relative loss of e_n at the rim"),
-        "grip_loss": Param("1", 0.0, 0.1, "relative loss of grip alpha at the rim"),
-        "radius": Param("m", 0.08, 0.08, "distance from the face centre where the rim starts"),
+        "dead": Param("1", 0.0, 0.12, "relative loss of e_n at the rim", plausible=(0.0, 0.5)),
+        "grip_loss": Param("1", 0.0, 0.1, "relative loss of grip alpha at the rim", plausible=(0.0, 1.0)),
+        "radius": Param("m", 0.08, 0.08, "distance from the face centre where the rim starts", plausible=(0.05, 0.09)),
     }
 
     @classmethod
@@ -342,7 +347,7 @@ class RubberAnisotropy(Effect):
     NAME = "rubber_anisotropy"
     DESCRIPTION = "anisotropic rubber: grip along racket y vs z scaled by (1 + a, 1 - a)"
     SCOPE = "dataset"
-    PARAMS = {"anisotropy": Param("1", 0.0, 0.08, "relative grip difference between the face's y and z")}
+    PARAMS = {"anisotropy": Param("1", 0.0, 0.08, "relative grip difference between the face's y and z", plausible=(-0.3, 0.3))}
 
     @classmethod
     def _draw(cls, rng):

@@ -58,15 +58,15 @@ class RacketStateError(Effect):
     WHERE = "record"
     SCOPE = "dataset"
     PARAMS = {
-        "pos_bias": Param("m", 0.0, (0.005, -0.004, 0.005), "constant position offset (|.| ~ 8 mm)", (3,)),
-        "pos_std": Param("m", 0.0, 0.0046, "per-axis std of the position vibration (8 mm rms in 3-D)"),
-        "vel_bias": Param("m/s", 0.0, (0.12, -0.1, 0.12), "constant velocity offset (|.| ~ 0.2 m/s)", (3,)),
-        "vel_std": Param("m/s", 0.0, 0.115, "per-axis std of the velocity vibration (0.2 m/s rms)"),
-        "rot_bias": Param("rad", 0.0, (0.007, -0.007, 0.007), "constant orientation error, rotation vector (0.7 deg)", (3,)),
-        "rot_std": Param("rad", 0.0, 0.0071, "per-axis std of the orientation vibration (0.7 deg rms)"),
-        "ang_vel_std": Param("rad/s", 0.0, 1.0, "per-axis std of the angular-velocity error"),
-        "time_bias": Param("s", 0.0, 0.001, "constant timing offset of the racket record"),
-        "time_std": Param("s", 0.0, 0.001, "std of the timing offset per contact"),
+        "pos_bias": Param("m", 0.0, (0.005, -0.004, 0.005), "constant position offset (|.| ~ 8 mm)", (3,), plausible=(-0.03, 0.03)),
+        "pos_std": Param("m", 0.0, 0.0046, "per-axis std of the position vibration (8 mm rms in 3-D)", plausible=(0.0, 0.02)),
+        "vel_bias": Param("m/s", 0.0, (0.12, -0.1, 0.12), "constant velocity offset (|.| ~ 0.2 m/s)", (3,), plausible=(-0.5, 0.5)),
+        "vel_std": Param("m/s", 0.0, 0.115, "per-axis std of the velocity vibration (0.2 m/s rms)", plausible=(0.0, 0.5)),
+        "rot_bias": Param("rad", 0.0, (0.007, -0.007, 0.007), "constant orientation error, rotation vector (0.7 deg)", (3,), plausible=(-0.05, 0.05)),
+        "rot_std": Param("rad", 0.0, 0.0071, "per-axis std of the orientation vibration (0.7 deg rms)", plausible=(0.0, 0.05)),
+        "ang_vel_std": Param("rad/s", 0.0, 1.0, "per-axis std of the angular-velocity error", plausible=(0.0, 5.0)),
+        "time_bias": Param("s", 0.0, 0.001, "constant timing offset of the racket record", plausible=(-0.01, 0.01)),
+        "time_std": Param("s", 0.0, 0.001, "std of the timing offset per contact", plausible=(0.0, 0.01)),
     }
 
     @classmethod
@@ -106,7 +106,7 @@ class PositionNoise(Effect):
     DESCRIPTION = "Gaussian noise on observed ball positions"
     WHERE = "record"
     SCOPE = "dataset"
-    PARAMS = {"std": Param("m", 0.0, (0.0015, 0.0015, 0.001), "per-axis standard deviation", (3,))}
+    PARAMS = {"std": Param("m", 0.0, (0.0015, 0.0015, 0.001), "per-axis standard deviation", (3,), plausible=(0.0, 0.02))}
 
     @classmethod
     def _draw(cls, rng):
@@ -142,13 +142,13 @@ class SpinNoise(Effect):
     WHERE = "record"
     SCOPE = "dataset"
     PARAMS = {
-        "rel_std": Param("1", 0.0, 0.05, "relative noise of the spin estimate"),
-        "abs_std": Param("rad/s", 0.0, 10.0, "absolute noise per axis"),
-        "conf_min": Param("1", 1.0, 0.6, "lowest confidence of a normal estimate"),
-        "outlier_prob": Param("1", 0.0, 0.04, "probability that an estimate is an outlier"),
-        "outlier_conf": Param("1", 0.0, 0.4, "highest confidence of an outlier"),
-        "short_duration": Param("s", 0.0, 0.15, "segments shorter than this are estimated worse"),
-        "short_factor": Param("1", 1.0, 0.6, "confidence factor of short segments"),
+        "rel_std": Param("1", 0.0, 0.05, "relative noise of the spin estimate", plausible=(0.0, 0.5)),
+        "abs_std": Param("rad/s", 0.0, 10.0, "absolute noise per axis", plausible=(0.0, 100.0)),
+        "conf_min": Param("1", 1.0, 0.6, "lowest confidence of a normal estimate", plausible=(0.0, 1.0)),
+        "outlier_prob": Param("1", 0.0, 0.04, "probability that an estimate is an outlier", plausible=(0.0, 0.5)),
+        "outlier_conf": Param("1", 0.0, 0.4, "highest confidence of an outlier", plausible=(0.0, 1.0)),
+        "short_duration": Param("s", 0.0, 0.15, "segments shorter than this are estimated worse", plausible=(0.0, 1.0)),
+        "short_factor": Param("1", 1.0, 0.6, "confidence factor of short segments", plausible=(0.0, 1.0)),
     }
 
     @classmethod
@@ -190,9 +190,9 @@ class MissingFrames(Effect):
     WHERE = "record"
     SCOPE = "dataset"
     PARAMS = {
-        "drop_prob": Param("1", 0.0, 0.02, "probability that a single frame is missing"),
-        "burst_rate": Param("1/s", 0.0, 0.3, "occlusion bursts per second of play"),
-        "burst_frames": Param("1", 0.0, 6.0, "mean length of a burst in frames"),
+        "drop_prob": Param("1", 0.0, 0.02, "probability that a single frame is missing", plausible=(0.0, 0.5)),
+        "burst_rate": Param("1/s", 0.0, 0.3, "occlusion bursts per second of play", plausible=(0.0, 5.0)),
+        "burst_frames": Param("1", 0.0, 6.0, "mean length of a burst in frames", plausible=(0.0, 50.0)),
     }
 
     @classmethod
