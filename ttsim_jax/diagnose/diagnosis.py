@@ -139,7 +139,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``no_data`` ({phase:
         reason} of the phases without items: reported as "no data", never as a number),
         ``pooled_sessions`` (per-session effects fitted with one shared set), ``dependence``,
-        ``record``, ``candidates`` (ranked), ``combined``, ``before_after``, ``landing``,
+        ``record``, ``floor`` (per phase the noise floor and the removable gap, or why there is
+        none: :func:`ttsim_jax.diagnose.floor.floors`), ``candidates`` (ranked), ``combined``,
+        ``before_after``, ``landing``,
         ``verdict``, ``settings``, ``seconds``, and ``arrays`` (per-item errors for the figures).
     """
     from ttsim_jax.kernel.step import ball_properties
@@ -176,6 +178,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
     out["record"] = R.record_sizes(ds, ph, model)
+    from ttsim_jax.diagnose.floor import floors
+
+    out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
 
     # which effect
     cands = []

@@ -123,6 +123,38 @@ def _significance(c: dict) -> str:
     return f"{word}; on top of {'+'.join(adds['on_top_of'])}: {p} {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} %"
 
 
+def floor_lines(floor: dict) -> list:
+    """Markdown lines of the noise floor per phase (:mod:`ttsim_jax.diagnose.floor`): the model's RMS
+    error on all items, the floor a perfect model would reach on this record, and the removable gap
+    sqrt(error^2 - floor^2), each with its 95 % interval; a phase without a floor gets its reason.
+
+    Arguments:
+        floor: the diagnosis' ``floor`` ({phase: dict or reason}).
+
+    Returns:
+        list of lines (empty without a floor).
+    """
+    if not floor:
+        return []
+    lines = ["", "Noise floor: the RMS error a perfect model would reach on this record (from the position noise "
+             "of the record itself), and the removable gap sqrt(error^2 - floor^2) above it (95 % intervals).", "",
+             "| phase | items | RMS error | floor | removable | position noise x/y/z |", "|---|---|---|---|---|---|"]
+    notes = []
+    for p, f in floor.items():
+        if isinstance(f, str):
+            lines.append(f"| {p} | - | - | - | - | - |")
+            notes.append(f"- {p}: no floor: {f}")
+            continue
+        unit, k = _show(p)
+        s = " / ".join(f"{v * 1e3:.2f}" for v in f["sigma_m"])
+        lines.append(f"| {p} | {f['n']} | {_pm(f['error'], f['error_ci95'], k)} {unit} | "
+                     f"{_pm(f['floor'], f['floor_ci95'], k)} {unit} | {_pm(f['removable'], f['removable_ci95'], k)} "
+                     f"{unit} | {s} mm |")
+        if isinstance(f.get("spin_noise"), str) and not any(n.startswith("- spin noise") for n in notes):
+            notes.append(f"- spin noise not in the contacts' floor: {f['spin_noise']}")
+    return lines + ([""] + notes if notes else [])
+
+
 def markdown(out: dict, data: str = "", model: str = "") -> str:
     """The report's Markdown."""
     v = out["verdict"]
@@ -144,6 +176,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     if out.get("pooled_sessions"):
         lines.append("- per-session effects (air_flow, ball_variation, worn_ball) fitted with one parameter set for "
                      "all sessions: the median session holds too few segments and contacts to fit its own")
+    lines += floor_lines(out.get("floor", {}))
     lines += ["", f"![gap by phase and regime]({FIGURES['where']})", "", "Residual dependences (Spearman, over segments / "
               "contacts; |rho| >= 0.3, p < 0.001):", ""]
     deps = [(p, d) for p, ds in out["dependence"].items() for d in ds]
