@@ -179,3 +179,20 @@ def test_diagnosis_refuses_a_phase_with_non_finite_errors():
     assert "ttsim data import" in msg and "--filter" in msg
     errors[2, 1] = 0.0
     refuse_non_finite(pb, ph)  # finite: no complaint
+
+
+def test_generated_games_through_a_tracker_log_segment_as_labelled(tmp_path):
+    """The bundled games written as a tracker writes them (no events: rallies with unrecorded pauses,
+    dropped frames, racket hits, net and floor contacts) and imported: the segments of the labelled
+    dataset within 1 %."""
+    from pathlib import Path
+
+    from ttsim_jax.data import load, write_csv
+
+    ds = load(Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games")
+    got = read_csv(write_csv(ds, tmp_path))
+    assert len(got.events["t"]) and "racket" not in set(got.events["kind"])
+    n, m = len(ds.segments["segment_id"]), len(got.segments["segment_id"])
+    assert abs(m - n) <= 0.01 * n, (m, n)
+    assert np.sum(got.events["kind"] == "table") == np.sum(ds.events["kind"] == "table")
+    np.testing.assert_array_equal(got.observations["t"], ds.observations["t"])

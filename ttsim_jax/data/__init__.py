@@ -17,7 +17,7 @@ from .batch import (
     racket_contact_batch,
     segment_batch,
 )
-from .csvlog import read_csv
+from .csvlog import read_csv, write_csv
 from .dataset import Dataset, Metadata
 from .errors import DataError
 from .importers import import_source
@@ -48,6 +48,7 @@ __all__ = [
     "problems",
     "racket_contact_batch",
     "read_csv",
+    "write_csv",
     "save",
     "segment_batch",
     "segments_from_events",

@@ -266,3 +266,35 @@ def read_csv(
     return ds
 
 
+
+
+def write_csv(ds: Dataset, folder, *, rows=None) -> Path:
+    """Writes a dataset's observations as a tracker's log, ``folder/observations.csv`` (the layout
+    :func:`read_csv` reads), without events: what a tracker that labels nothing writes.
+
+    Arguments:
+        ds: the dataset.
+        folder: where to write (created if missing); an existing ``observations.csv`` is replaced
+            atomically.
+        rows: optional boolean mask or indices of the observations to write (e.g. only one direction
+            of play); the others are left out, as a tracker that did not follow the ball.
+
+    Returns:
+        The path of the file written.
+    """
+    from ttsim_jax.io_atomic import atomic_write
+
+    obs = ds.observations
+    keep = np.arange(len(obs["t"])) if rows is None else np.asarray(rows)
+    if keep.dtype == bool:
+        keep = np.flatnonzero(keep)
+    out = io.StringIO()
+    out.write(",".join(OBSERVATION_COLUMNS) + "\n")
+    floats = [np.asarray(obs[c], np.float64)[keep] for c in OBSERVATION_COLUMNS[1:]]
+    for sid, *values in zip(np.asarray(obs["session_id"])[keep], *floats):
+        out.write(f"{int(sid)}," + ",".join(repr(float(v)) for v in values) + "\n")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "observations.csv"
+    atomic_write(path, out.getvalue().encode())
+    return path
