@@ -46,3 +46,56 @@ def test_the_selfcheck_withholds_only_plausible_effects():
     for name, draw in DRAWS.items():
         bad = [f for f in (fx.effect_class(name).implausible(draw(rng)) for _ in range(200)) if f]
         assert not bad, (name, bad[:2])
+
+
+def floor(error, fl, lo=None, hi=None):
+    """A floor entry as :func:`ttsim_jax.diagnose.floor.floors` writes it."""
+    removable = max(error**2 - fl**2, 0.0) ** 0.5
+    return dict(error=error, error_ci95=[lo or 0.95 * error, hi or 1.05 * error], floor=fl,
+                floor_ci95=[0.97 * fl, 1.03 * fl], removable=removable, removable_ci95=[0.9 * removable, 1.1 * removable])
+
+
+def diagnosed(before, after, pct, ci, floors):
+    """The parts of a diagnosis's dict that the verdict reads: the accepted effects' held-out
+    errors in the table phase, and the floors."""
+    return {"where": {}, "dependence": {}, "candidates": [], "floor": floors,
+            "before_after": {"table": {"heldout": dict(pct=pct, ci95=ci, before_rms=before, after_rms=after)}}}
+
+
+def test_explained_only_when_most_of_the_removable_gap_is_closed():
+    from ttsim_jax.diagnose.diagnosis import gap_shares
+
+    worn = cand("worn_ball", 40.0, {"worn_ball": {"loss": 0.02}})
+    # error 0.5 m/s over a floor of 0.3: removable^2 = 0.16; after 0.32: closes (0.25 - 0.1024) / 0.16 = 92 %
+    out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.3), "flight": floor(0.002, 0.0019)})
+    g = gap_shares(out)["table"]
+    assert abs(g["share"] - (0.25 - 0.32**2) / 0.16) < 1e-9 and g["ci95"][0] < g["share"] < g["ci95"][1]
+    v = verdict(out, [worn])
+    assert v["level"] == "explained" and v["explained"] and v["text"].startswith("Explained by: worn_ball")
+    assert "closes 92 % (95 % interval" in v["text"] and "is left" not in v["text"]
+    # the same fall over a floor of 0.1: removable^2 = 0.24: closes 61.5 %, the rest is left
+    out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.1)})
+    v = verdict(out, [worn])
+    assert v["level"] == "partly explained" and not v["explained"]
+    assert v["text"].startswith("Partly explained by: worn_ball") and "closes 62 %" in v["text"] and "38 % is left" in v["text"]
+
+
+def test_a_gap_no_accepted_effect_acts_in_is_named():
+    worn = cand("worn_ball", 40.0, {"worn_ball": {"loss": 0.02}})
+    out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.3), "flight": floor(0.005, 0.002)})
+    v = verdict(out, [worn])
+    assert v["level"] == "partly explained" and v["open"] == ["flight"]
+    assert "Not addressed by any accepted effect: the flight gap (error 0.005 m, noise floor 0.002 m)" in v["text"]
+    # a flight error at its floor (within the intervals) or above it by less than the resolution is no gap
+    out["floor"]["flight"] = floor(0.00201, 0.002, lo=0.0019, hi=0.0021)
+    assert verdict(out, [worn])["level"] == "explained"
+    out["floor"]["flight"] = floor(0.00203, 0.002, lo=0.00202, hi=0.00204)
+    assert verdict(out, [worn])["open"] == []
+
+
+def test_unexplained_locates_gaps_above_the_floor_and_calls_the_rest_noise():
+    out = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": floor(0.6, 0.3)}}
+    v = verdict(out, [])
+    assert v["level"] == "unexplained" and "The gap lies in: table: error 0.6 m/s, 2.0 x its noise floor 0.3 m/s" in v["text"]
+    out["floor"]["table"] = floor(0.301, 0.3, lo=0.28, hi=0.32)
+    assert verdict(out, [])["text"].endswith("what remains looks like noise.")

@@ -107,6 +107,11 @@ def register(subparsers) -> None:
                    "datasets, diagnosed with 'ttsim diagnose --quick' on at most 384 flight segments "
                    "(default: every effect, four pairs and the outside case, at most 2000 segments, the full diagnosis "
                    "without landing, with --quick's descent steps)")
+    s.add_argument("--outside", action="store_true", help="run the suite outside the catalogue instead: each of "
+                   "its effects generated and withheld from the candidates, some cases recorded as a tracker's raw "
+                   "multi-throw log (no labelled events, imported through the CSV path) and in one direction only; "
+                   "diagnosed at the user's default settings without the landing rollouts. Right: never 'explained' "
+                   "(the cause is not a candidate) and the gap located in a phase the effect acts in")
     s.add_argument("--games", type=positive_int, default=None, help="games per generated dataset (default: 14, with "
                    "--quick 8)")
     s.add_argument("--seed", type=seed, default=0, help="seed of the generated datasets (default: %(default)s)")
@@ -170,8 +175,8 @@ def cmd_selfcheck(args) -> int:
 
     from ttsim_jax.diagnose.candidates import candidate_names
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, plot, selfcheck,
-                                              stored_cases, table)
+    from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, outside_cases, plot,
+                                              selfcheck, stored_cases, table)
 
     if (args.resume or args.force) and args.out is None:
         raise UsageError("ttsim diagnose selfcheck: --resume and --force need --out DIR")
@@ -185,7 +190,10 @@ def cmd_selfcheck(args) -> int:
         for path in stored:
             path.unlink()
     size = "quick" if args.quick else "full"
-    if args.quick:
+    if args.outside:
+        plan = outside_cases()
+        settings = Settings.quick(max_segments=SEGMENTS[size]) if args.quick else Settings(landing=False)
+    elif args.quick:
         plan = cases(args.effects or QUICK)
         settings = Settings.quick(max_segments=SEGMENTS[size])
     else:

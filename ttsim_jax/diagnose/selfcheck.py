@@ -7,7 +7,11 @@ with conti2026 (the effects hidden from the model) and scores the result against
 * *single*: one catalogue effect;
 * *pair*: two catalogue effects at once;
 * *outside*: an effect the diagnosis's catalogue lacks (the candidates are every simulator effect
-  but it): the right answer is "unexplained", with the gap located in the phase it acts in.
+  but it): the right answer is "unexplained", with the gap located in the phase it acts in. The
+  outside suite (:data:`OUTSIDE_PLAN`, ``--outside``) also records some cases as a tracker does
+  (*outside_log*: the games written as a multi-throw log of observations only, no labelled events,
+  and imported through the CSV path, :func:`as_tracker_log`; *outside_oneway*: that log keeping only
+  the flights towards +x, every throw the same way as from a launcher).
 
 Scores (:func:`score`, a pure function of the diagnosis's JSON, the oracle's held-out scores and the
 truth, so that it is testable without simulation):
@@ -60,6 +64,21 @@ PAIRS = (("spin_decay", "table_tilt"), ("air_flow", "buckling"), ("ball_variatio
          ("worn_ball", "table_unevenness"))
 #: The outside case's effect: generated, but not a candidate.
 OUTSIDE = "racket_edge"
+#: Kinds of the cases outside the catalogue: how the generated games reach the diagnosis.
+OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
+#: The outside suite: each effect generated and withheld from the candidates, in every phase, as
+#: labelled games and as a tracker's raw logs, in both directions and in one.
+OUTSIDE_PLAN = (
+    ("outside", ("racket_edge",)),
+    ("outside", ("table_tilt",)),
+    ("outside", ("spin_decay",)),
+    ("outside", ("worn_ball",)),
+    ("outside_log", ("buckling",)),
+    ("outside_log", ("table_unevenness",)),
+    ("outside_log", ("air_flow",)),
+    ("outside_oneway", ("air_flow",)),
+    ("outside_oneway", ("spin_decay",)),
+)
 #: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
 #: and flight segments diagnosed at most, per case: full run and ``--quick``.
 GAMES = {"full": 14, "quick": 8}
@@ -192,7 +211,7 @@ def located_phase(cand: dict) -> str | None:
     return max(sig, key=lambda p: cand["heldout"][p]["pct"]) if sig else None
 
 
-def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict:
+def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict: dict | None = None) -> dict:
     """The scores of one case (module docstring).
 
     Arguments:
@@ -201,6 +220,9 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
             heldout {phase: {pct, ci95, before_rms, after_rms}}).
         where: the diagnosis's ``where`` ({phase: {"flagged": [(regime, label)], ...}}).
         oracle: :func:`oracle_scores`.
+        verdict: the diagnosis's ``verdict`` (its ``level`` and ``gaps``); without it an outside
+            case counts as explained when anything is significant, and is located by the flagged
+            regimes alone.
 
     Returns:
         dict: detectable, top, rank1, both (pairs), phase, phase_right, located (outside: flagged
@@ -233,11 +255,17 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict) -> dict
     if kind == "pair":
         first, second = (true_among(c) for c in sig[:2]) if len(sig) >= 2 else (set(), set())
         out["both"] = bool(first and second and first | second == set(names))
-    if kind == "outside":
-        located = [p for p in C.PHASES if where.get(p, {}).get("flagged")]
-        out.update(located=located, phase=located[0] if located else None,
-                   phase_right=bool(set(located) & set(true_phases)), rank1=False)
-        out["outcome"] = ("unexplained" if not sig else f"explained by {top}") + \
+    if kind in OUTSIDE_KINDS:
+        # Right: never "explained" (the cause is not among the candidates; "partly explained" says
+        # how much is left), and the gap located in a phase the effect acts in: above its noise
+        # floor, or a regime flagged in it.
+        gaps = (verdict or {}).get("gaps", [])
+        level = verdict["level"] if verdict else ("explained" if sig else "unexplained")
+        located = [p for p in C.PHASES if p in gaps or where.get(p, {}).get("flagged")]
+        out.update(located=located, phase=located[0] if located else None, level=level,
+                   phase_right=bool(set(located) & set(true_phases)), rank1=False,
+                   wrong_explained=level == "explained")
+        out["outcome"] = (level if level == "unexplained" else f"{level} by {top}") + \
             (", located in " + "+".join(located) if located else ", not located")
         return out
     if not detectable:
@@ -254,9 +282,9 @@ def summary(rows: list) -> dict:
     shrink recovered; counts of undetectable ones (and of them, nothing found); pairs; outside."""
     ok = [r for r in rows if "error" not in r]
     single = [r for r in ok if r["kind"] == "single" and r["detectable"]]
-    undet = [r for r in ok if r["kind"] != "outside" and not r["detectable"]]
+    undet = [r for r in ok if r["kind"] not in OUTSIDE_KINDS and not r["detectable"]]
     pairs = [r for r in ok if r["kind"] == "pair" and r["detectable"]]
-    outside = [r for r in ok if r["kind"] == "outside"]
+    outside = [r for r in ok if r["kind"] in OUTSIDE_KINDS]
     shrink = [r["shrink"] for r in single if math.isfinite(r["shrink"])]
 
     def rate(rs, key):
@@ -269,10 +297,18 @@ def summary(rows: list) -> dict:
                 n_pairs=len(pairs), pair_rank1_rate=rate(pairs, "rank1"), pair_both_rate=rate(pairs, "both"),
                 outside_unexplained=[bool(r["unexplained"]) for r in outside],
                 outside_located=[bool(r["phase_right"]) for r in outside],
+                n_outside=len(outside), outside_wrong_explained=sum(bool(r.get("wrong_explained")) for r in outside),
+                outside_located_rate=rate(outside, "phase_right"),
                 errors=len(rows) - len(ok))
 
 
 # ---------------------------------------------------------------------------------------------- cases
+def outside_cases(plan=OUTSIDE_PLAN, candidates=None) -> list:
+    """[(kind, names)] of the outside suite (:data:`OUTSIDE_PLAN`), without the cases of effects
+    the catalogue does not hold (an older plan run with a newer catalogue)."""
+    return [(k, tuple(n)) for k, n in plan if all(x in fx.CATALOGUE for x in n)]
+
+
 def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE) -> list:
     """[(kind, names)] of a selfcheck: every single effect, then the pairs, then the outside one."""
     return ([("single", (n,)) for n in names] + [("pair", tuple(p)) for p in pairs] +
@@ -318,16 +354,51 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     row = dict(kind=kind, effects=list(names), seed=int(seed))
     if gen is None:
         return dict(row, error=f"generator refused {TRIES} seeds: {error}")
-    if kind == "outside":
+    ds = gen.dataset
+    if kind in OUTSIDE_KINDS:
         settings = dataclasses.replace(settings, effects=tuple(n for n in C.candidate_names() if n not in names))
+    if kind in ("outside_log", "outside_oneway"):
+        ds = as_tracker_log(ds, one_way=kind == "outside_oneway")
+        row["segments"] = dict(labelled=len(gen.dataset.segments["segment_id"]), log=len(ds.segments["segment_id"]))
     model = load_model("conti2026", dtype=jnp.float32)
     keep = {}
-    out = diagnose(gen.dataset, model, settings, keep=keep)
+    out = diagnose(ds, model, settings, keep=keep)
     oracle = oracle_scores(keep["problem"], model, names, gen.truth)
-    row.update(score(kind, names, out["candidates"], out["where"], oracle), counts=out["counts"],
+    row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
+               verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
                candidates=candidate_digest(out["candidates"]))
     return row
+
+
+def as_tracker_log(ds, *, one_way: bool = False):
+    """``ds`` as a tracker without labels would hand it over: its observations written as a
+    multi-throw CSV log (:func:`ttsim_jax.data.write_csv`, no events, no racket states) and imported
+    through :func:`ttsim_jax.data.read_csv` (contacts detected, sessions split at pauses and jumps).
+
+    Arguments:
+        ds: a labelled dataset (generated games).
+        one_way: keep only the flight segments that travel towards +x (every throw the same way, as
+            from a launcher): the others are not written, as a tracker that did not follow them.
+
+    Returns:
+        The imported dataset.
+    """
+    import tempfile
+
+    from ttsim_jax.data import read_csv, write_csv
+
+    rows = None
+    if one_way:
+        obs, seg_of = ds.observations, ds.observations["segment_id"]
+        x = ds.positions[:, 0]
+        towards = {}
+        for sid in np.unique(seg_of[seg_of >= 0]):
+            k = np.flatnonzero(seg_of == sid)
+            towards[int(sid)] = x[k[-1]] > x[k[0]]
+        rows = np.array([towards.get(int(s), False) for s in seg_of], bool)
+    with tempfile.TemporaryDirectory() as tmp:
+        return read_csv(write_csv(ds, tmp, rows=rows))
 
 
 def candidate_digest(candidates: list) -> list:
@@ -439,8 +510,8 @@ OUTCOME_COLOURS = {"right": "#2ca02c", "wrong": "#d62728", "undetectable": "#7f7
 
 
 def _verdict(r: dict) -> str:
-    if r["kind"] == "outside":
-        return "right" if r["unexplained"] and r["phase_right"] else "wrong"
+    if r["kind"] in OUTSIDE_KINDS:
+        return "right" if not r.get("wrong_explained", not r["unexplained"]) and r["phase_right"] else "wrong"
     if not r["detectable"]:
         return "undetectable" if r["unexplained"] else "wrong"
     return "right" if r["rank1"] and r["phase_right"] else "wrong"
@@ -460,7 +531,7 @@ def plot(result: dict, path):
         ax.barh(y[k] + 0.18, r["oracle_pct"], height=0.34, color="#c7c7c7", edgecolor="k", lw=0.5)
         ax.barh(y[k] - 0.18, r["found_pct"], height=0.34, color=OUTCOME_COLOURS[_verdict(r)])
         label = f"{r['oracle_phase'] or '-'}"
-        if r["kind"] == "outside":
+        if r["kind"] in OUTSIDE_KINDS:
             label = r["outcome"]
         elif math.isfinite(r["shrink"]):
             label += f", {r['shrink']:.2f} of the oracle"
@@ -499,7 +570,9 @@ def table(result: dict) -> str:
                  f"{s['phase_rate']:.2f}, median shrink recovered {s['median_shrink']:.2f}; undetectable cases "
                  f"{s['n_undetectable']} (nothing found in {s['undetectable_nothing_found']}); pairs {s['n_pairs']}, "
                  f"one true effect first {s['pair_rank1_rate']:.2f}, both {s['pair_both_rate']:.2f}; outside the "
-                 f"catalogue: unexplained {s['outside_unexplained']}, located {s['outside_located']}; "
+                 f"catalogue: {s.get('n_outside', 0)} cases, 'explained' naming a wrong cause in "
+                 f"{s.get('outside_wrong_explained', 0)}, gap located in a phase the effect acts in "
+                 f"{s.get('outside_located_rate', math.nan):.2f}; "
                  f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU"
                  + (f" ({result['resumed']} cases taken from an earlier, interrupted run)" if result.get("resumed") else ""))
     return "\n".join(lines)

@@ -4,9 +4,11 @@ Items and their error (:func:`items`):
 
 * flight: every observation of a flight segment, the 3-D distance [m] between the flight flown
   from the segment's fitted initial state and the observation; grouped by segment;
-* table / racket: every contact, the magnitude [m/s] of the post-contact velocity error (world
-  frame for the table, racket frame for the racket; for a bounce whose incoming spin is not
-  measured, of the normal velocity error only); one group each;
+* table / racket: every contact, the magnitude [m/s] of the post-contact error as the candidates
+  score it (:func:`ttsim_jax.diagnose.candidates.item_sums`): the velocity error and the radius x
+  spin error, where measured (world frame for the table, racket frame for the racket; for a bounce
+  whose incoming spin is not measured, of the normal velocity error only); a spin gap shows here as
+  it does in the candidates' scores; one group each;
 * landing: every racket contact with a measured landing point, the landing distance error [m]
   (from ``ttsim evaluate``'s landing rollouts); one group each.
 
@@ -64,11 +66,12 @@ def flight_items(fl, residuals, states, radius: float, rows=None) -> dict:
 
 
 def contact_items(c, kind: str, errors, radius: float, rows=None) -> dict:
-    """Contact items from (N, 6) errors (velocity part used)."""
+    """Contact items from (N, 6) errors (velocity and radius x spin, both used: what the candidates
+    are scored on)."""
     e = np.asarray(errors, np.float64)
     rows = np.arange(len(c)) if rows is None else np.asarray(rows)
     reg = contact_regimes(c, kind, radius)
-    return dict(error=np.linalg.norm(e[rows, :3], axis=1), group=np.arange(len(rows)),
+    return dict(error=np.linalg.norm(e[rows, :6], axis=1), group=np.arange(len(rows)),
                 regimes={k: np.asarray(v)[rows] for k, v in reg.items()})
 
 
