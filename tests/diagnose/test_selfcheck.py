@@ -101,6 +101,39 @@ def test_outside_case_is_unexplained_and_located_by_the_flagged_phase():
     assert s["outside_unexplained"] == [True, False] and s["n_single"] == 0
 
 
+def test_outside_case_is_wrong_only_when_explained_and_located_by_a_gap_above_the_floor():
+    stand_in = [cand("worn_ball", racket=held(20.0))]
+    oracle = {"racket": held(30.0)}
+    partly = SC.score("outside_log", ["racket_edge"], stand_in, NO_WHERE, oracle,
+                      dict(level="partly explained", gaps=["racket"]))
+    assert not partly["wrong_explained"] and partly["located"] == ["racket"] and partly["phase_right"]
+    assert partly["outcome"] == "partly explained by worn_ball, located in racket"
+    full = SC.score("outside_log", ["racket_edge"], stand_in, NO_WHERE, oracle, dict(level="explained", gaps=[]))
+    assert full["wrong_explained"] and not full["phase_right"] and full["outcome"] == "explained by worn_ball, not located"
+    s = SC.summary([dict(partly, kind="outside_log"), dict(full, kind="outside_oneway")])
+    assert (s["n_outside"], s["outside_wrong_explained"], s["outside_located_rate"]) == (2, 1, 0.5)
+    assert [SC._verdict(dict(r, kind="outside")) for r in (partly, full)] == ["right", "wrong"]
+
+
+def test_outside_plan_and_the_tracker_log_of_one_direction():
+    from pathlib import Path
+
+    from ttsim_jax.data import load
+
+    plan = SC.outside_cases()
+    assert len(plan) >= 8 and {k for k, _ in plan} == set(SC.OUTSIDE_KINDS)
+    assert SC.outside_cases((("outside", ("no_such_effect",)),)) == []
+    ds = load(Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games")
+    log = SC.as_tracker_log(ds, one_way=True)
+    assert len(log.events["t"]) and "racket" not in set(log.events["kind"])
+    x = log.positions[:, 0]
+    for sid in log.segments["segment_id"]:
+        k = np.flatnonzero(log.observations["segment_id"] == sid)
+        assert x[k[-1]] > x[k[0]], sid  # every flight kept goes towards +x
+    both = SC.as_tracker_log(ds)
+    assert len(log.segments["segment_id"]) < 0.7 * len(both.segments["segment_id"])
+
+
 @pytest.mark.parametrize("name", sorted(SC.DRAWS))
 def test_drawn_magnitudes_are_valid_parameters_in_the_upper_realistic_range(name):
     cls = fx.effect_class(name)
@@ -306,4 +339,4 @@ def test_a_subset_runs_each_case_at_its_full_run_seed():
         for _, plan, first in parts:
             for i, case in enumerate(plan):
                 assert first + 100 * i == 100 * full.index(case), case
-    assert [p[2] for p in mod.plan_parts([], [SC.PAIRS[1]])] == [1100]
+    assert [p[2] for p in mod.plan_parts([], [SC.PAIRS[1]])] == [100 * (len(C.candidate_names()) + 1)]  # after the singles
