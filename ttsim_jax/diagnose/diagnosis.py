@@ -178,6 +178,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
     out["record"] = R.record_sizes(ds, ph, model)
+    from ttsim_jax.diagnose.bound import bounds
+
+    out["bound"] = bounds(pb, radius, settings.seed, ph.skipped)  # how far any correction gets, per phase
     from ttsim_jax.diagnose.floor import floors
 
     out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
