@@ -363,7 +363,10 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     model = load_model("conti2026", dtype=jnp.float32)
     keep = {}
     out = diagnose(ds, model, settings, keep=keep)
-    oracle = oracle_scores(keep["problem"], model, names, gen.truth)
+    # an effect on the record (a tracker's clock) has no simulator oracle: its case is scored on the
+    # verdict and the located phase alone
+    simulated = [n for n in names if fx.effect_class(n).WHERE == "simulator"]
+    oracle = oracle_scores(keep["problem"], model, simulated, gen.truth) if simulated else {}
     row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
                verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
