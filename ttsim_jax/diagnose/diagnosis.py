@@ -31,6 +31,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from ttsim_jax.diagnose import ambiguity as A
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import residuals as R
 from ttsim_jax.diagnose import where as W
@@ -206,6 +207,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     # well it fits: it stands in for something the catalogue lacks.
     out["implausible"] = [c.spec.name for c in ranked if c.significant and beyond[c.spec.name]]
     significant = [c for c in ranked if c.significant and not beyond[c.spec.name]]
+    out["indistinguishable"] = A.indistinguishable(pb, [c for c in ranked if c.significant])
 
     # how far
     accepted, best = significant, None
@@ -490,11 +492,45 @@ def open_gaps(out: dict) -> list:
             and fl[p]["removable"] >= C.MIN_GAIN[p]]
 
 
+def _bound_text(out: dict) -> tuple[list, str]:
+    """The verdict's sentences on the phases where a model-free correction (``out["bound"]``,
+    :mod:`ttsim_jax.diagnose.bound`) lowers the held-out error significantly more than the accepted
+    effects do (the lower end of its interval above their reduction): there the catalogue misses
+    something, and the correction's strongest terms name the variables that carry it. Returns (those
+    phases, the text)."""
+    lines, phases = [], []
+    for p, b in out.get("bound", {}).items():
+        h = b.get("heldout") if isinstance(b, dict) else None
+        if not h or not h.get("significant"):
+            continue
+        acc = out.get("before_after", {}).get(p, {}).get("heldout", {}).get("pct", 0.0)
+        if h["ci95"][0] > max(acc, 0.0):
+            phases.append(p)
+            lines.append(f"In the {p} phase the catalogue closes less than a model-free correction does "
+                         f"({max(acc, 0.0):.1f} % against {h['pct']:.1f} %, 95 % interval {h['ci95'][0]:.1f} to "
+                         f"{h['ci95'][1]:.1f} %): the gap there is carried by " +
+                         ", ".join(f"{t['name']} ({100 * t['share']:.0f} %)" for t in b.get("terms", [])) + ".")
+    return phases, (" " + " ".join(lines)) if lines else ""
+
+
+def _alike(out: dict, names: list) -> str:
+    """The verdict's sentences on the groups of indistinguishable candidates
+    (:func:`ttsim_jax.diagnose.ambiguity.indistinguishable`) that hold any of ``names``."""
+    text = ""
+    for g in out.get("indistinguishable", []):
+        if set(g["names"]) & set(names):
+            text += (f" {', '.join(g['names'][:-1])} and {g['names'][-1]} are indistinguishable on these data (their effects "
+                     f"on the errors alike, cosine {g['cosine']:.2f}): the data cannot name one over the other; "
+                     f"{g['separate']} would tell them apart.")
+    return text
+
+
 def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
     """The verdict: how much of the gap the accepted effects explain, and what is left.
 
     * *explained*: the accepted effects (:func:`select`) close at least :data:`EXPLAINED_SHARE` of
-      the removable gap (:func:`gap_shares`) in every phase they act in, on held-out data;
+      the removable gap (:func:`gap_shares`) in every phase they act in, on held-out data, and in no
+      phase does a model-free correction (``out["bound"]``) do significantly better;
     * *partly explained*: they are significant but close less somewhere: the text says how much
       each phase's gap shrinks and how much is left, and where the rest lies;
     * *unexplained*: no candidate with plausible parameters is significant.
@@ -547,7 +583,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
     if significant:
         who = " + ".join(c.spec.name for c in significant)
         short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE]
-        level = "partly explained" if short or untouched else "explained"
+        more, beyond_catalogue = _bound_text(out)
+        level = "partly explained" if short or untouched or more else "explained"
         closes = []
         for p, g in shares.items():
             if g["share"] is None:
@@ -564,22 +601,24 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
             located = [w for w in where if w.split(":")[0] in short]
             text += (" What is left lies in: " + "; ".join(located) + "." if located else
                      " What is left is not located in any regime.")
+        text += _alike(out, [c.spec.name for c in significant])
         for n, others in interchangeable(out.get("candidates", [])).items():
             text += (f" {n} and {', '.join(others)} are interchangeable on these data: each adds nothing significant "
                      "on top of the other.")
         if redundant:
             text += (" Significant alone but adding nothing significant on top of those: " +
                      "; ".join(part(c) for c in redundant) + ".")
-        return dict(names, level=level, explained=level == "explained", text=text + rest + rejected)
+        return dict(names, level=level, explained=level == "explained", text=text + rest + rejected + beyond_catalogue)
     lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
             "no candidate effect reduces a held-out error significantly.")
+    rejected += _alike(out, [c.spec.name for c in beyond])
     if where:
         located = "The gap lies in: " + "; ".join(where) + "."
     elif untouched:
         located = "No regime of those phases stands out and no residual dependence is significant: the gap is spread over them."
     else:
         located = "No regime stands out and no residual dependence is significant: what remains looks like noise."
-    text = "Unexplained: " + lead + rejected + rest + " " + located
+    text = "Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1]
     return dict(names, level="unexplained", explained=False, text=text)
 
 
