@@ -155,6 +155,18 @@ def floor_lines(floor: dict) -> list:
     return lines + ([""] + notes if notes else [])
 
 
+def bound_lines(bound: dict) -> list:
+    """Markdown lines of the model-free correction per phase (:mod:`ttsim_jax.diagnose.bound`): how
+    far a flexible map of the named variables lowers the held-out error, and its strongest terms."""
+    if not bound:
+        return []
+    lines = ["", "How far any correction gets: a model-free map from named physical variables to the errors, fitted "
+             "and scored as the candidates are:", ""]
+    for p, b in bound.items():
+        lines.append(f"- {b['text']}" if "text" in b else f"- {p}: no bound: {b.get('reason', 'no data')}")
+    return lines
+
+
 def markdown(out: dict, data: str = "", model: str = "") -> str:
     """The report's Markdown."""
     v = out["verdict"]
@@ -227,6 +239,18 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
                 lines.append(f"- {r}: {cells}")
     else:
         lines.append("No candidate is significant: nothing to add to the model.")
+    shares = out["verdict"].get("shares", {})
+    if shares:
+        lines += ["", "Share of each phase's removable gap (error above the noise floor, in the mean square) that the "
+                  "accepted effects close on held-out data (explained: 70 % or more in every phase they act in):", ""]
+        for p, g in shares.items():
+            lines.append(f"- {p}: " + ("no gap above the floor beyond the phase's resolution" if g["share"] is None else
+                                       f"{100 * g['share']:.0f} % (95 % interval {100 * g['ci95'][0]:.0f} to "
+                                       f"{100 * g['ci95'][1]:.0f} %)"))
+    lines += bound_lines(out.get("bound", {}))
+    for g in out.get("indistinguishable", []):
+        lines.append(f"- indistinguishable on these data (cosine {g['cosine']:.2f}): {', '.join(g['names'])}; "
+                     f"{g['separate']} would tell them apart")
     lines += ["", f"![held-out errors before and after]({FIGURES['before_after']})"]
     if out.get("landing"):
         g = out["landing"]
