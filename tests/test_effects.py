@@ -77,8 +77,9 @@ TABLE = {"table_slow", "table_fast"}
 # ------------------------------------------------------------------------ the catalogue
 def test_catalogue_lists_every_effect_with_units_and_values():
     assert set(SIM) == {"spin_decay", "air_flow", "table_tilt", "table_unevenness", "ball_variation", "worn_ball",
-                        "buckling", "racket_logo", "racket_edge", "rubber_anisotropy"}
-    assert set(REC) == {"racket_state_error", "position_noise", "spin_noise", "missing_frames"}
+                        "buckling", "racket_logo", "racket_edge", "rubber_anisotropy", "air_density", "table_friction"}
+    assert set(REC) == {"racket_state_error", "position_noise", "spin_noise", "missing_frames", "clock_rate",
+                        "camera_scale"}
     for name, cls in fx.CATALOGUE.items():
         assert cls.NAME == name and cls.DESCRIPTION and cls.SCOPE in fx.SCOPES
         assert cls.hooks(), name
@@ -117,8 +118,11 @@ def test_neutral_values_reproduce_the_plain_model_exactly():
         e = fx.effect_class(name).neutral()
         rng = np.random.default_rng(0)
         pos = rng.normal(size=(5, 3))
-        if name == "position_noise":
+        if name in ("position_noise", "camera_scale"):
             np.testing.assert_array_equal(e.observe_positions(pos, rng), pos)
+        elif name == "clock_rate":
+            t = np.cumsum(rng.uniform(0.0, 3.0, 50))
+            np.testing.assert_array_equal(e.record_times(t), t)
         elif name == "spin_noise":
             spin, conf = e.measure_spin(pos * 100, np.full(5, 0.1), rng)
             np.testing.assert_array_equal(spin, pos * 100)
@@ -211,6 +215,51 @@ def test_rubber_anisotropy_changes_racket_contacts_only():
     np.testing.assert_allclose(np.asarray(out.alpha), [0.55, 0.45])
 
 
+def test_air_density_scales_drag_magnus_and_buoyancy_in_flight_only():
+    e = fx.make("air_density", d_rho=-0.2)
+    assert changed_keys(e) == {"flight"}
+    # closed form with constant coefficients: a = (1 + d) (drag + Magnus) + (1 - (1 + d) rho_a / rho_b) g
+    cd, cm, d = 0.5, 0.2, -0.2
+    model = PLAIN.replace(aero=PLAIN.aero.replace(drag=aero_stage.ConstantCoefficient(jnp.asarray(cd)),
+                                                  magnus=aero_stage.ConstantCoefficient(jnp.asarray(cm))))
+    radius, mass = ball_properties(model)
+    pos, vel, spin = jnp.array([-0.5, 0.2, 0.3]), jnp.array([9.0, -1.0, 2.0]), jnp.array([-50.0, 400.0, 80.0])
+    got = aero_stage.acceleration(model.aero, radius, mass, pos, vel, spin, 0.0, (e,))
+    ratio = (1 + d) * float(model.aero.rho_air) * (4 / 3) * np.pi * float(radius) ** 3 / float(mass)
+    v, w = np.asarray(vel), np.asarray(spin)
+    want = (-(3 / (8 * float(radius))) * cd * ratio * np.linalg.norm(v) * v + cm * ratio * np.cross(w, v)
+            + (1 - ratio) * np.asarray(model.aero.gravity))
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12)
+    # the drag table reads C_D at the Reynolds number of the denser / thinner air: nu / (1 + d)
+    rho, nu = e.air_properties((PLAIN.aero.rho_air, PLAIN.aero.nu))
+    np.testing.assert_allclose([float(rho), float(nu)], [1.204 * 0.8, 1.506e-5 / 0.8], rtol=1e-12)
+    cd_thin, _ = aero_stage.coefficients(PLAIN.aero, vel, spin, radius, nu)
+    cd_plain, _ = aero_stage.coefficients(PLAIN.aero, vel, spin, radius)
+    assert float(cd_thin) != float(cd_plain)
+    # the fused flight kernel has no air hook: such a model flies on the reference path
+    from ttsim_jax.kernel import fused
+
+    why = fused.unsupported(PLAIN.replace(effects=(e,)), None, integrator="rk4", policy=None, rackets_batched=False,
+                            sample=False)
+    assert "AirDensity" in why
+
+
+def test_table_friction_changes_the_tangential_velocity_of_sliding_bounces_only():
+    e = fx.make("table_friction", d_mu=0.3)
+    # the slow bounce slides throughout; the fast one's contact point ends rolling (grip 2/5)
+    assert changed_keys(e) == {"table_slow"}
+    got, base = probe(PLAIN.replace(effects=(e,)))["table_slow"], base_probe()["table_slow"]
+    assert got[3] < base[3] and got[4] != base[4]  # more friction: the contact point's slip brakes v_x harder
+    assert got[5] == base[5] and np.array_equal(got[:3], base[:3])  # normal velocity, position unchanged
+    assert float(table_stage.friction(PLAIN.table, 2.0, (e,))) == pytest.approx(0.25 * 1.3, rel=1e-12)
+    # a ball sliding on the table decelerates by about mu (1 + d_mu) g per step
+    radius, _ = ball_properties(PLAIN)
+    pos, vel, spin = jnp.array([0.3, 0.0, radius - 1e-5]), jnp.array([3.0, 0.0, -0.01]), jnp.zeros(3)
+    for eff, mu in (((), 0.25), ((e,), 0.325)):
+        _, v, _ = table_stage.slide(PLAIN.table, radius, pos, vel, spin, eff)
+        np.testing.assert_allclose(3.0 - float(v[0]), mu * 0.01, rtol=1e-9)
+
+
 # ------------------------------------------------------------------------ gradients
 def _grad_of_stages(effect):
     """Gradient of a scalar made of every stage's output w.r.t. the effect's parameters."""
@@ -227,8 +276,9 @@ def probe_jax(model):
     f = aero_stage.derivative(model.aero, radius, mass, model.effects)
     y = (jnp.array([-0.5, 0.2, 0.3]), jnp.array([9.0, -1.0, 2.0]), jnp.array([-50.0, 400.0, 80.0]))
     outs = [jnp.concatenate(f(y, jnp.asarray(0.7))[1:])]
-    outs += list(table_stage.table_contact(model.table, radius, jnp.array([0.9, 0.3, 0.02]), jnp.array([5.0, 0.5, -9.0]),
-                                           jnp.array([20.0, -150.0, 30.0]), model.effects))
+    for vz in (-9.0, -2.0):  # the contact point ends rolling, slides throughout
+        outs += list(table_stage.table_contact(model.table, radius, jnp.array([0.9, 0.3, 0.02]), jnp.array([5.0, 0.5, vz]),
+                                               jnp.array([20.0, -150.0, 30.0]), model.effects))
     for d in ((0.0, -0.0795), (0.0, 0.0805), (0.03, 0.02)):  # on the logo's and the rim's band edges
         outs.append(_racket_probe(model, jnp.asarray(d), 30.0))
     return outs

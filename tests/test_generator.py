@@ -90,8 +90,10 @@ def test_generated_data_passes_validation_and_round_trips(runs, tmp_path):
     te = gen.truth_events
     assert set(te["player"][ds.events["kind"] == "racket"]) == {"robot"}
     assert set(te["player"][(ds.events["kind"] == "other") & (te["true_kind"] != "toss")]) <= {"opponent"}
-    # 200 Hz: observations on a 5 ms clock, racket contacts between frames
-    t = ds.observations["t"]
+    # 200 Hz: observations on a 5 ms clock (the tracker's: skewed by the clock_rate effect), racket contacts
+    # between frames
+    clock = gen.truth["effects"]["clock_rate"]["params"]
+    t = (ds.observations["t"] - clock["latency"]) / (1.0 + clock["rate"])
     same = ds.observations["session_id"][1:] == ds.observations["session_id"][:-1]
     steps = np.round(np.diff(t)[same] / 0.005, 6)
     assert np.all(steps == np.round(steps)) and np.median(steps) == 1
@@ -162,6 +164,39 @@ def test_spin_noise_changes_spin_estimates_not_truth(runs):
     assert np.all(sb["spin_conf"] == 1.0) and np.any(sg["spin_conf"] < 0.5)
     assert not np.allclose(sb["spin_y"], sg["spin_y"])
     np.testing.assert_array_equal(base.dataset.observations["x"], gen.dataset.observations["x"])
+
+
+def test_clock_rate_skews_every_recorded_time_not_truth(runs):
+    base, gen = _truth_same_as_without_record_effects(runs, "clock_rate")
+    p = gen.truth["effects"]["clock_rate"]["params"]
+    assert p["rate"] != 0.0 and p["latency"] != 0.0
+
+    def skewed(t):
+        return np.asarray(t) * (1.0 + p["rate"]) + p["latency"]
+
+    db, dg = base.dataset, gen.dataset
+    np.testing.assert_allclose(dg.observations["t"], skewed(db.observations["t"]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dg.events["t"], skewed(db.events["t"]), rtol=0, atol=1e-12)
+    for col in ("t_start", "t_end"):  # the segments follow the recorded times
+        np.testing.assert_allclose(dg.segments[col], skewed(db.segments[col]), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(db.observations["x"], dg.observations["x"])
+    np.testing.assert_array_equal(db.rackets["vx"], dg.rackets["vx"])
+    # the truth keeps the true clock
+    np.testing.assert_array_equal(gen.truth_observations["t"], db.observations["t"])
+    np.testing.assert_array_equal(gen.truth_events["t"], db.events["t"])
+
+
+def test_camera_scale_scales_recorded_positions_about_the_table_centre_not_truth(runs):
+    base, gen = _truth_same_as_without_record_effects(runs, "camera_scale")
+    k = 1.0 + gen.truth["effects"]["camera_scale"]["params"]["scale"]
+    assert k != 1.0
+    db, dg = base.dataset, gen.dataset
+    for col in ("x", "y", "z"):
+        np.testing.assert_allclose(dg.observations[col], k * db.observations[col], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(dg.events[col], k * db.events[col], rtol=1e-12, atol=0)
+        np.testing.assert_array_equal(gen.truth_observations[col], base.truth_observations[col])
+    np.testing.assert_array_equal(db.observations["t"], dg.observations["t"])
+    np.testing.assert_array_equal(db.rackets["x"], dg.rackets["x"])  # the robot's racket is not triangulated
 
 
 def test_missing_frames_drops_observations_not_truth(runs):
@@ -266,7 +301,9 @@ def test_sample_dataset_loads_validates_and_is_documented():
     truth = load_truth(path)
     assert truth.info["counts"]["robot_racket_contacts"] == len(ds.rackets["event_id"]) > 20
     assert truth.info["counts"]["table_contacts"] == int(np.sum(ds.events["kind"] == "table"))
-    assert set(truth.info["effects"]) == set(fx.names())
+    # made with the effects the catalogue had then, named in the README's command
+    assert set(truth.info["effects"]) <= set(fx.names())
+    assert f"--effects {','.join(truth.info['effects'])}" in readme
     size = sum(f.stat().st_size for f in path.iterdir())
     assert size < 5e6
     assert json.loads((path / "metadata.json").read_text())["frame"] == "ttsim-table-centre-v1"

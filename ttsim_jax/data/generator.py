@@ -32,7 +32,9 @@ How a game is made:
   contacts fall between frames). The robot's racket contacts are ``racket`` events with a racket
   state; the opponent's contacts and the tosses are ``other`` events (no racket state).
   Effects acting on the record (racket-state error, position noise, spin-estimate noise with
-  confidences and outliers, missing frames) are applied to what is written, never to the truth.
+  confidences and outliers, missing frames, the tracker's clock rate and latency, a camera
+  scale error) are applied to what is written, never to the truth: the truth tables keep the
+  true positions and the true session clock's times.
 * Segments are derived from the events; each segment's spin is a measurement of the mean true
   spin over its samples (with :class:`~ttsim_jax.effects.SpinNoise` if enabled, else exact with
   confidence 1), and its samples carry the same spin.
@@ -1046,6 +1048,16 @@ def _assemble(game: _Game, wall: float) -> Generated:
         i, j = obs["session_id"] == s.sid, ev_sid == s.sid
         pos_obs[i] = noise.observe_positions(true_pos[i], rng)
         ev_pos[j] = noise.observe_positions(ev_pos_true[j], rng)
+    # --- the tracker's calibration and clock (no random draws): scaled positions, skewed times
+    ev_t = np.array([e["t"] for e in ev_rows], np.float64)
+    obs_t_rec, ev_t_rec = obs["t"].copy(), ev_t.copy()
+    for s in game.sessions:
+        scale, clock = _record(game, "camera_scale", s.sid), _record(game, "clock_rate", s.sid)
+        i, j = obs["session_id"] == s.sid, ev_sid == s.sid
+        if scale is not None:
+            pos_obs[i], ev_pos[j] = scale.observe_positions(pos_obs[i]), scale.observe_positions(ev_pos[j])
+        if clock is not None:
+            obs_t_rec[i], ev_t_rec[j] = clock.record_times(obs["t"][i]), clock.record_times(ev_t[j])
 
     # --- racket states of the robot's contacts, as recorded
     is_robot = np.array([e["kind"] == "racket" for e in ev_rows], bool)
@@ -1071,7 +1083,7 @@ def _assemble(game: _Game, wall: float) -> Generated:
     local = np.einsum("nji,nj->ni", rec[1], ev_pos[r_idx] - radius * n_rec - rec[0])
     rackets = dict(event_id=r_idx.astype(np.int64), pos=rec[0], quat=matrix_to_quat(rec[1]), vel=rec[2], ang_vel=rec[3],
                    contact=local[:, 1:3])
-    events = dict(event_id=np.arange(n_ev, dtype=np.int64), session_id=ev_sid, t=np.array([e["t"] for e in ev_rows]),
+    events = dict(event_id=np.arange(n_ev, dtype=np.int64), session_id=ev_sid, t=ev_t_rec,
                   kind=np.array([e["kind"] for e in ev_rows], object), pos=ev_pos)
     sessions = dict(session_id=np.arange(cfg.games, dtype=np.int64),
                     name=np.array([f"game_{s.sid:04d}" for s in game.sessions], object),
@@ -1087,7 +1099,7 @@ def _assemble(game: _Game, wall: float) -> Generated:
               "(with racket states), 'other' events are the opponent's contacts and the serve tosses. Ground truth: "
               "truth.json, truth_events.parquet, truth_rackets.parquet, truth_observations.parquet.",
     )
-    ds = Dataset.from_arrays(obs["session_id"], obs["t"], pos_obs, events=events, rackets=rackets, sessions=sessions,
+    ds = Dataset.from_arrays(obs["session_id"], obs_t_rec, pos_obs, events=events, rackets=rackets, sessions=sessions,
                              metadata=meta)
 
     # --- spin measurements per segment
@@ -1119,7 +1131,7 @@ def _assemble(game: _Game, wall: float) -> Generated:
     # --- truth tables
     nan3 = np.full(3, np.nan)
     tev = {"event_id": np.arange(n_ev, dtype=np.int64), "session_id": ev_sid,
-           "rally": np.array([e["rally"] for e in ev_rows], np.int64), "t": events["t"], "kind": events["kind"],
+           "rally": np.array([e["rally"] for e in ev_rows], np.int64), "t": ev_t, "kind": events["kind"],
            "true_kind": np.array([e["true_kind"] for e in ev_rows], object),
            "player": np.array([e["player"] for e in ev_rows], object), "shot": np.array([e["shot"] for e in ev_rows], object)}
     pre = np.array([e["pre"] for e in ev_rows]).reshape(-1, 9)

@@ -2,9 +2,9 @@
 split and scored by its error reduction on the held-out split.
 
 For a candidate effect (:func:`spec`), the phases it can change follow from its hooks
-(:func:`phases_of`): ``air_velocity`` acts in flight, ``table_surface`` and ``table_restitution`` on
-table contacts, ``racket_coefficients`` on racket contacts, and ``ball_properties`` and
-``spin_derivative`` on all three (a spin that changes in flight also moves the contacts' spin
+(:func:`phases_of`): ``air_velocity`` and ``air_properties`` act in flight, ``table_surface``,
+``table_restitution`` and ``table_friction`` on table contacts, ``racket_coefficients`` on racket
+contacts, and ``ball_properties`` and ``spin_derivative`` on all three (a spin that changes in flight also moves the contacts' spin
 estimates, each segment's mean, away from the spin at the contact:
 :func:`ttsim_jax.diagnose.stages.contact_spin`). Its free parameters are written ``start + scale * u`` with ``u``
 starting at 0 (the effect neutral, or at the typical values of its fixed shape parameters, e.g. the
@@ -64,17 +64,21 @@ PHASES = ("flight", "table", "racket")
 #: Hooks -> phases they act in.
 HOOK_PHASES = {
     "ball_properties": ("flight", "table", "racket"),
+    "air_properties": ("flight",),
     "air_velocity": ("flight",),
     "spin_derivative": ("flight", "table", "racket"),
     "table_surface": ("table",),
     "table_restitution": ("table",),
+    "table_friction": ("table",),
     "racket_coefficients": ("racket",),
 }
 #: Fitted parameters and their scales where the default rule (typical != neutral) is not right:
 #: the gusts' frequencies are not found by descent, so the first descent fits the steady wind
 #: and the gusts follow in a second (:data:`REFINE`); the onsets of buckling are fitted too; the
-#: bumps keep their typical centres and widths.
+#: bumps keep their typical centres and widths; the air density at twice its typical step, so that
+#: a descent reaches a hall at altitude (-0.25 at 2,500 m).
 FREE = {
+    "air_density": {"d_rho": 0.1},
     "air_flow": {"wind": 0.2},
     "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0},
     "table_unevenness": {"amplitude": 0.0015, "center": 0.3},

@@ -35,6 +35,10 @@ racket_state_error     record      dataset  recorded racket: bias, vibration, ti
 position_noise         record      dataset  noisy ball positions
 spin_noise             record      dataset  noisy spin estimates, outliers, confidences
 missing_frames         record      dataset  dropped frames and occlusion bursts
+air_density            simulator   session  air density: drag, Magnus, buoyancy scale
+table_friction         simulator   dataset  table friction coefficient scales
+clock_rate             record      dataset  tracker clock: rate error and latency
+camera_scale           record      dataset  positions scaled about the table centre
 =====================  ==========  =======  ====================================================
 """
 
@@ -44,8 +48,10 @@ from typing import Iterable
 
 import jax.numpy as jnp
 
-from . import physical, record  # noqa: F401  (importing registers the effects)
+from . import physical, record  # noqa: F401  (importing registers the effects, in catalogue order)
+from . import lab  # noqa: F401  (registered last: see its docstring)
 from .base import BAND_SOFTNESS, CATALOGUE, RECORD_POINTS, SCOPES, Effect, EffectError, Param, register, smoothstep
+from .lab import AirDensity, CameraScale, ClockRate, TableFriction
 from .physical import (
     AirFlow,
     BallVariation,
@@ -61,9 +67,10 @@ from .physical import (
 from .record import MissingFrames, PositionNoise, RacketStateError, SpinNoise, rotation_matrix
 
 __all__ = [
-    "AirFlow", "BAND_SOFTNESS", "BallVariation", "Buckling", "CATALOGUE", "Effect", "EffectError", "MissingFrames",
-    "Param", "PositionNoise", "RECORD_POINTS", "RacketEdge", "RacketLogo", "RacketStateError", "RubberAnisotropy",
-    "SCOPES", "SpinDecay", "SpinNoise", "TableTilt", "TableUnevenness", "WornBall", "describe", "effect_class",
+    "AirDensity", "AirFlow", "BAND_SOFTNESS", "BallVariation", "Buckling", "CATALOGUE", "CameraScale", "ClockRate",
+    "Effect", "EffectError", "MissingFrames", "Param", "PositionNoise", "RECORD_POINTS", "RacketEdge", "RacketLogo",
+    "RacketStateError", "RubberAnisotropy", "SCOPES", "SpinDecay", "SpinNoise", "TableFriction", "TableTilt",
+    "TableUnevenness", "WornBall", "describe", "effect_class",
     "make", "names", "parse_names", "record_effects", "register", "rotation_matrix", "simulator_effects", "smoothstep",
 ]
 

@@ -4,11 +4,12 @@ An effect is a ``flax.struct`` dataclass whose fields are its parameters (pytree
 ``jax.grad`` reaches them) and whose methods are named after where it acts:
 
 * in the simulator, at the hook points of ``ttsim_jax/physics/hooks.py`` (``ball_properties``,
-  ``air_velocity``, ``spin_derivative``, ``table_surface``, ``table_restitution``,
-  ``racket_coefficients``): attach them with ``model.replace(effects=(...))``;
+  ``air_properties``, ``air_velocity``, ``spin_derivative``, ``table_surface``,
+  ``table_restitution``, ``table_friction``, ``racket_coefficients``): attach them with
+  ``model.replace(effects=(...))``;
 * outside it, applied by the reality generator to what the dataset records
   (:data:`RECORD_POINTS`: ``record_racket``, ``observe_positions``, ``measure_spin``,
-  ``drop_frames``); they never change the simulated truth.
+  ``drop_frames``, ``record_times``); they never change the simulated truth.
 
 Every parameter has a *neutral* value at which the effect changes nothing (exactly: the hooks then
 return their input bit for bit), a *typical* magnitude (:meth:`Effect.default`), a unit and a
@@ -33,7 +34,7 @@ import numpy as np
 from ttsim_jax.physics.hooks import HOOK_POINTS
 
 #: Where effects that act outside the simulator are applied by the generator.
-RECORD_POINTS = ("record_racket", "observe_positions", "measure_spin", "drop_frames")
+RECORD_POINTS = ("record_racket", "observe_positions", "measure_spin", "drop_frames", "record_times")
 
 #: Effect scopes: one draw for the whole dataset, or a fresh draw for every session (game).
 SCOPES = ("dataset", "session")
@@ -226,6 +227,11 @@ def smoothstep(x, edge, width=BAND_SOFTNESS):
     """
     s = jnp.clip((x - edge) / width + 0.5, 0.0, 1.0)
     return s * s * (3.0 - 2.0 * s)
+
+
+def signed(rng: np.random.Generator, low: float, high: float) -> float:
+    """A magnitude uniform in [low, high) with a random sign (a draw of :meth:`Effect._draw`)."""
+    return rng.choice([-1.0, 1.0]) * rng.uniform(low, high)
 
 
 def onset(x, start, width):

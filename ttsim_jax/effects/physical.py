@@ -13,7 +13,7 @@ from flax import struct
 
 from ttsim_jax.physics.numerics import safe_norm
 
-from .base import Effect, Param, onset, register, smoothstep
+from .base import Effect, Param, onset, register, signed, smoothstep
 
 _TABLE_HALF = (1.37, 0.7625)
 #: Steepest plausible table slope: 0.75 deg, a 3.6 cm drop over the table's length, which anyone
@@ -351,7 +351,7 @@ class RubberAnisotropy(Effect):
 
     @classmethod
     def _draw(cls, rng):
-        return {"anisotropy": rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.12)}
+        return {"anisotropy": signed(rng, 0.03, 0.12)}
 
     def racket_coefficients(self, value, *, d=None, vn=None, ut=None, **_):
         scale = jnp.stack([1.0 + self.anisotropy, 1.0 - self.anisotropy])

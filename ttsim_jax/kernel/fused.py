@@ -49,7 +49,7 @@ BLOCK = 128
 # would flag; a ball stopped early only costs one ordinary step.
 SLACK = 1e-3
 # Hooks that would change the flight or the table's outline (the kernel has none of them).
-_FLIGHT_HOOKS = ("ball_properties", "air_velocity", "spin_derivative", "table_surface")
+_FLIGHT_HOOKS = ("ball_properties", "air_properties", "air_velocity", "spin_derivative", "table_surface")
 # The kernel stops a ball whose speed or spin nears the ordinary step's validity limits.
 _LIMIT_FRACTION = 0.99
 

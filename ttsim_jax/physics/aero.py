@@ -220,12 +220,14 @@ class AeroParams:
     magnus: object
 
 
-def coefficients(aero: AeroParams, vel_rel, spin, radius):
-    """(C_D, C_M) for air-relative velocity ``vel_rel`` (3,) and spin (3,)."""
+def coefficients(aero: AeroParams, vel_rel, spin, radius, nu=None):
+    """(C_D, C_M) for air-relative velocity ``vel_rel`` (3,) and spin (3,); ``nu``: the air's
+    kinematic viscosity (default the model's)."""
+    nu = aero.nu if nu is None else nu
     speed = safe_norm(vel_rel)
     spin_rate = safe_norm(spin)
-    cd = _lookup(DRAG_MODELS, aero.drag, "drag")(aero.drag, speed, spin_rate, radius, aero.nu)
-    cm = _lookup(MAGNUS_MODELS, aero.magnus, "Magnus")(aero.magnus, speed, spin_rate, radius, aero.nu)
+    cd = _lookup(DRAG_MODELS, aero.drag, "drag")(aero.drag, speed, spin_rate, radius, nu)
+    cm = _lookup(MAGNUS_MODELS, aero.magnus, "Magnus")(aero.magnus, speed, spin_rate, radius, nu)
     return cd, cm
 
 
@@ -237,16 +239,18 @@ def acceleration(aero: AeroParams, radius, mass, pos, vel, spin, t, effects=()):
         radius, mass: ball radius [m] and mass [kg].
         pos, vel, spin: (3,) ball state.
         t: time [s] (for time-varying effects such as gusts).
-        effects: tuple of effects (hook ``air_velocity``).
+        effects: tuple of effects (hooks ``air_properties``: the air's density and viscosity,
+            ``air_velocity``).
 
     Returns:
         (3,) acceleration [m/s^2].
     """
     volume = (4.0 / 3.0) * jnp.pi * radius**3
-    ratio = aero.rho_air * volume / mass  # rho_air / rho_ball
+    rho_air, nu = hooks.apply(effects, "air_properties", (aero.rho_air, aero.nu))
+    ratio = rho_air * volume / mass  # rho_air / rho_ball
     air = hooks.apply(effects, "air_velocity", jnp.zeros_like(vel), pos=pos, t=t)
     v_rel = vel - air
-    cd, cm = coefficients(aero, v_rel, spin, radius)
+    cd, cm = coefficients(aero, v_rel, spin, radius, nu)
     drag = -(3.0 / (8.0 * radius)) * cd * ratio * safe_norm(v_rel) * v_rel
     magnus = cm * ratio * jnp.cross(spin, v_rel)
     return drag + magnus + (1.0 - aero.buoyancy * ratio) * aero.gravity

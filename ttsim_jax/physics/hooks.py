@@ -13,11 +13,15 @@ Hook points, the value they receive, and the context passed as keyword arguments
 hook                   value (neutral)                                 context
 =====================  ==============================================  =========================
 ``ball_properties``    (radius, mass) of the ball [m, kg]              none
+``air_properties``     (density [kg/m^3], kinematic viscosity          none
+                       [m^2/s]) of the air (the model's rho_air, nu)
 ``air_velocity``       (3,) air velocity in the world frame (zeros)    ``pos``, ``t``
 ``spin_derivative``    (3,) d(spin)/dt in flight (zeros)               ``vel``, ``spin``, ``t``
 ``table_surface``      (height, normal): surface height [m] above      ``pos`` (contact point)
                        z = 0 and its unit normal ((0, (0, 0, 1)))
 ``table_restitution``  e_n of the table contact                        ``vn`` (impact speed >= 0)
+``table_friction``     friction coefficient mu of the table contact    ``vn`` (normal speed >= 0)
+                       (the model's mu)
 ``racket_coefficients`` :class:`ContactCoefficients` of the racket     ``d`` (2,) contact point
                        contact                                         on the face [m], ``vn``,
                                                                        ``ut`` (2,) surface
@@ -34,10 +38,12 @@ from typing import Any, Sequence
 
 HOOK_POINTS = (
     "ball_properties",
+    "air_properties",
     "air_velocity",
     "spin_derivative",
     "table_surface",
     "table_restitution",
+    "table_friction",
     "racket_coefficients",
 )
 

@@ -154,6 +154,11 @@ def restitution(table: TableParams, vz, effects=()):
     return hooks.apply(effects, "table_restitution", e_n, vn=jnp.abs(vz))
 
 
+def friction(table: TableParams, vn, effects=()):
+    """Friction coefficient mu of a contact with normal speed ``vn`` (>= 0)."""
+    return hooks.apply(effects, "table_friction", table.mu, vn=vn)
+
+
 def kinetic_energy(kappa, radius, vel, spin):
     """Kinetic energy per unit mass [J/kg]: |v|^2 / 2 + (r^2 / kappa) |w|^2 / 2 (I = m r^2 / kappa)."""
     return 0.5 * jnp.sum(vel * vel, axis=-1) + 0.5 * radius * radius / kappa * jnp.sum(spin * spin, axis=-1)
@@ -187,7 +192,7 @@ def local_contact(table: TableParams, radius, vel, spin, effects=()):
     part dA faded with the horizontal speed and bounded (see the module docstring).
     """
     e_n = restitution(table, vel[2], effects)
-    alpha = sliding_alpha(table.mu, e_n, vel, spin, radius, table.alpha_roll)
+    alpha = sliding_alpha(friction(table, jnp.abs(vel[2]), effects), e_n, vel, spin, radius, table.alpha_roll)
     coef = ContactCoefficients(e_n=e_n, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(e_n))
     base_v, base_w = apply_matrices(contact_matrices(coef, radius, table.kappa), vel, spin)
     rot = residual_frame(vel)
@@ -247,9 +252,10 @@ def touching(table: TableParams, effects, radius, pos, vel):
 def slide(table: TableParams, radius, pos, vel, spin, effects=()):
     """Puts a ball in sustained contact back onto the table after a step of free flight.
 
-    A perfectly inelastic contact (e_n = 0, no residual, no restitution effects) in the frame of
-    the contact normal, applied only where the ball has sunk into the table moving inwards; a
-    ball that has moved away from the table (over the edge, lifted) is left as it is.
+    A perfectly inelastic contact (e_n = 0, no residual, no restitution effects; friction effects
+    act) in the frame of the contact normal, applied only where the ball has sunk into the table
+    moving inwards; a ball that has moved away from the table (over the edge, lifted) is left as
+    it is.
 
     Returns:
         (pos, vel, spin).
@@ -258,7 +264,7 @@ def slide(table: TableParams, radius, pos, vel, spin, effects=()):
     frame = _frame(normal)
     v_loc, w_loc = frame @ vel, frame @ spin
     zero = jnp.zeros_like(v_loc[2])
-    alpha = sliding_alpha(table.mu, zero, v_loc, w_loc, radius, table.alpha_roll)
+    alpha = sliding_alpha(friction(table, jnp.abs(v_loc[2]), effects), zero, v_loc, w_loc, radius, table.alpha_roll)
     coef = ContactCoefficients(e_n=zero, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(zero))
     v_c, w_c = apply_matrices(contact_matrices(coef, radius, table.kappa), v_loc, w_loc)
     press = (gap(table, effects, radius, pos) < 0.0) & (v_loc[2] < 0.0)
