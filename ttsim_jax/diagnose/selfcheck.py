@@ -67,7 +67,8 @@ OUTSIDE = "racket_edge"
 #: Kinds of the cases outside the catalogue: how the generated games reach the diagnosis.
 OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
 #: The outside suite: each effect generated and withheld from the candidates, in every phase, as
-#: labelled games and as a tracker's raw logs, in both directions and in one.
+#: labelled games and as a tracker's raw logs, in both directions and in one; the effects on the
+#: record (a tracker's clock running fast, a camera's scale) have no candidate at all.
 OUTSIDE_PLAN = (
     ("outside", ("racket_edge",)),
     ("outside", ("table_tilt",)),
@@ -78,6 +79,10 @@ OUTSIDE_PLAN = (
     ("outside_log", ("air_flow",)),
     ("outside_oneway", ("air_flow",)),
     ("outside_oneway", ("spin_decay",)),
+    ("outside_log", ("table_friction",)),
+    ("outside", ("clock_rate",)),
+    ("outside_oneway", ("air_density",)),
+    ("outside", ("camera_scale",)),
 )
 #: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
 #: and flight segments diagnosed at most, per case: full run and ``--quick``.
@@ -140,7 +145,10 @@ def _warp(rng, bumps: int = 4, apart: float = 0.6) -> dict:
 #:   the racket: median 5.5 m/s, 90th percentile 9.8);
 #: * racket_logo: grip loss 35-50 %, restitution -0.03 to -0.06 (its games: :data:`SCENES`);
 #: * racket_edge: rim restitution loss 12-20 %, grip loss 10-20 %; rubber_anisotropy: 6-12 % either
-#:   sign.
+#:   sign;
+#: * outside the catalogue: table_friction 25-35 % lower (a dusty or worn coating); air_density
+#:   15-25 % lower (a hall at 1,500-2,000 m, or hot); clock_rate 0.3-0.5 % fast (a tracker's frame
+#:   clock); camera_scale 0.5-1 % either way (a calibration error).
 DRAWS = {
     "spin_decay": lambda r: {"rate": r.uniform(0.15, 0.3), "quadratic": r.uniform(1e-4, 2e-4)},
     "air_flow": lambda r: {"wind": np.append(r.uniform(0.2, 0.4) * _direction(r), 0.0)},
@@ -154,6 +162,11 @@ DRAWS = {
     "racket_logo": lambda r: {"grip_loss": r.uniform(0.35, 0.5), "d_restitution": r.uniform(-0.06, -0.03)},
     "racket_edge": lambda r: {"dead": r.uniform(0.12, 0.2), "grip_loss": r.uniform(0.1, 0.2)},
     "rubber_anisotropy": lambda r: {"anisotropy": _signed(r, 0.06, 0.12)},
+    # outside the catalogue (the outside suite): what labs meet, at magnitudes the data resolve
+    "table_friction": lambda r: {"d_mu": -r.uniform(0.25, 0.35)},
+    "air_density": lambda r: {"d_rho": -r.uniform(0.15, 0.25)},
+    "clock_rate": lambda r: {"rate": r.uniform(0.003, 0.005), "latency": 0.0},
+    "camera_scale": lambda r: {"scale": _signed(r, 0.005, 0.01)},
 }
 
 #: Generator settings of the games of a case with the effect (on top of the case's own): an effect
