@@ -212,9 +212,12 @@ def oracle_scores(pb, model, names, truth: dict) -> dict:
 
 # ---------------------------------------------------------------------------------------------- scoring
 def _phases(names) -> tuple:
+    """The phases the effects ``names`` act in; an effect on the record (a clock, a camera's scale)
+    distorts every measured position or time, hence every phase."""
     out = set()
     for n in names:
-        out.update(C.phases_of(fx.effect_class(n)))
+        cls = fx.effect_class(n)
+        out.update(C.phases_of(cls) if cls.WHERE == "simulator" else C.PHASES)
     return tuple(p for p in C.PHASES if p in out)
 
 
