@@ -61,11 +61,17 @@ def register(subparsers) -> None:
         "gradient descent through the phase it acts in on a training split and scored by the reduction of the "
         f"held-out RMS error (significant: 95 % interval above {MIN_REDUCTION:g} % and a fall above the phase's "
         "resolution, and no phase it acts in materially worse); effects on the record (noise, "
-        "missing frames, racket-state error) are sized instead. When no candidate is significant, the report says "
-        "'unexplained' and where the gap is. HOW FAR: forward selection: each further significant effect is "
-        "fitted together with those accepted before it and kept only when it adds significantly on top of them; "
-        "the accepted effects fitted together, before and after (--quick: no joint fits). "
-        "Writes report.md, diagnosis.json and PNG figures to --out.")
+        "missing frames, racket-state error) are sized instead. A fit that needs parameters beyond their plausible "
+        "range (a 1-degree table tilt, an 8 cm/s indoor updraft) is reported, never accepted; candidates whose "
+        "changes of the errors are nearly alike are reported as indistinguishable, with what data would separate "
+        "them. HOW FAR: forward selection: each further significant effect is fitted together with those accepted "
+        "before it and kept only when it adds significantly on top of them; the accepted effects fitted together, "
+        "before and after (--quick: no joint fits). NOISE FLOOR: per phase, the error a perfect model would reach "
+        "on this record (from its own position noise) and the removable gap above it; a model-free correction per "
+        "phase measures how far the gap could shrink and names the variables that carry it. VERDICT: 'explained' "
+        "only when the accepted effects close 70 % or more of the removable gap in every phase they act in; "
+        "'partly explained' says how much each closes and where the rest lies; 'unexplained' when nothing "
+        "plausible is significant. Writes report.md, diagnosis.json and PNG figures to --out.")
     p = subparsers.add_parser("diagnose", help="where the sim-to-real gap lies and which effect causes it",
                               description=description)
     p.add_argument("--data", metavar="DATA", type=existing_dir, help="dataset directory (required)")
@@ -76,7 +82,7 @@ def register(subparsers) -> None:
                    help="candidate effects: 'all' (default: every simulator effect) or comma-separated names")
     p.add_argument("--quick", action="store_true",
                    help=f"a faster, coarser run: {q.steps} descent steps per candidate instead of {d.steps}, at most "
-                   f"{q.max_segments} flight segments instead of {d.max_segments}, no landing rollouts, the "
+                   f"{q.max_segments} flight segments instead of {d.max_segments}, no landing rollouts, "
                    "no forward selection (every significant effect reported; none fitted together)")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
                    help=f"Adam steps per candidate (default: {d.steps}, with --quick {q.steps})")
