@@ -340,3 +340,22 @@ def test_a_subset_runs_each_case_at_its_full_run_seed():
             for i, case in enumerate(plan):
                 assert first + 100 * i == 100 * full.index(case), case
     assert [p[2] for p in mod.plan_parts([], [SC.PAIRS[1]])] == [100 * (len(C.candidate_names()) + 1)]  # after the singles
+
+
+def test_the_bound_is_scored_against_the_oracle_and_its_terms():
+    bound = {"table": {"heldout": dict(pct=30.0, ci95=[25.0, 35.0], significant=True),
+                       "terms": [{"name": "post-bounce r·ω y, in proportion to the normal speed × slip x", "share": 0.6}]},
+             "flight": {"reason": "too few"}}
+    b = SC.bound_score(["table_friction"], bound, {"table": held(40.0)})
+    assert (b["bound_phase"], b["bound_pct"], b["bound_share"], b["bound_named"]) == ("table", 30.0, 0.75, True)
+    assert not SC.bound_score(["worn_ball"], dict(bound, table=dict(bound["table"], terms=[{"name": "impact angle", "share": 1}])),
+                              {"table": held(40.0)})["bound_named"]
+    record = SC.bound_score(["clock_rate"], bound, {})  # no oracle for an effect on the record
+    assert record["bound_phase"] == "table" and math.isnan(record["bound_share"])
+    assert SC.bound_score(["air_density"], bound, {})["bound_phase"] is None  # no bound in its phase
+    rows = [dict(kind="outside", effects=["table_friction"], detectable=True, unexplained=True, phase="table", phase_right=True,
+                 top="none significant", outcome="unexplained", found_pct=0.0, oracle_pct=40.0, oracle_phase="table",
+                 shrink=0.0, wrong_explained=False, **b)]
+    result = dict(cases=rows, summary=SC.summary(rows), seconds=1.0, cpu_seconds=1.0)
+    assert result["summary"]["outside_bound_reaching"] == 1 and result["summary"]["outside_bound_named_rate"] == 1.0
+    assert "table 30.0, 0.75; post-bounce r·ω y" in SC.table(result)

@@ -179,6 +179,52 @@ DRAWS = {
 SCENES = {"racket_logo": {"contact_bands": (0.4, 0.4, 0.2)}}
 
 
+#: Per effect, words of the model-free correction's terms (:mod:`ttsim_jax.diagnose.bound`) that name
+#: the variables it acts through: a case's bound *names the right variables* when its strongest
+#: term in the effect's phase holds one of them.
+TERMS = {
+    "spin_decay": ("lift", "ω", "spin"),
+    "air_flow": ("wind", "fixed direction", "horizontal", "per session"),
+    "air_density": ("drag", "lift"),
+    "table_tilt": ("normal", "contact position"),
+    "table_unevenness": ("normal", "contact position"),
+    "table_friction": ("slip", "tangential", "r·ω"),
+    "ball_variation": ("drag", "normal"),
+    "worn_ball": ("normal",),
+    "buckling": ("normal", "speed"),
+    "racket_logo": ("contact point", "|d|"),
+    "racket_edge": ("contact point", "|d|"),
+    "rubber_anisotropy": ("tangential",),
+    "clock_rate": ("gravity or clock", "drag"),
+    "camera_scale": ("gravity or clock", "drag"),
+}
+
+
+def bound_score(names, bound: dict, oracle: dict) -> dict:
+    """How far the model-free correction (the diagnosis's ``bound``) gets in the effects' phase: its
+    held-out reduction there against the oracle's (``bound_share``; NaN without an oracle), its
+    strongest terms, and whether the first names a variable of :data:`TERMS` (``bound_named``).
+
+    The phase is the oracle's best one; without an oracle (an effect on the record), the phase of the
+    bound's largest significant reduction."""
+    phases = _phases(names)
+    ok = {p: b for p, b in (bound or {}).items() if isinstance(b, dict) and "heldout" in b and p in phases}
+    if not ok:
+        return dict(bound_phase=None, bound_pct=math.nan, bound_share=math.nan, bound_terms=[], bound_named=False)
+    ranked = {p: h for p, h in oracle.items() if p in ok}
+    if ranked:
+        p = max(ranked, key=lambda q: ranked[q]["pct"])
+    else:
+        p = max(ok, key=lambda q: ok[q]["heldout"]["pct"] if ok[q]["heldout"].get("significant") else -math.inf)
+    b = ok[p]
+    pct = float(b["heldout"]["pct"]) if b["heldout"].get("significant") else 0.0
+    terms = [t["name"] for t in b.get("terms", [])]
+    words = [w for n in names for w in TERMS.get(n, ())]
+    return dict(bound_phase=p, bound_pct=pct,
+                bound_share=float(pct / oracle[p]["pct"]) if p in oracle and oracle[p]["pct"] > 0 else math.nan,
+                bound_terms=terms, bound_named=bool(terms and any(w in terms[0] for w in words)))
+
+
 def draw(name: str, rng: np.random.Generator) -> dict:
     """Fixed parameter values of ``name`` for a case (:data:`DRAWS`; {} for an effect without a
     selfcheck range: the generator's ``sample`` draws it)."""
@@ -315,6 +361,11 @@ def summary(rows: list) -> dict:
                 outside_located=[bool(r["phase_right"]) for r in outside],
                 n_outside=len(outside), outside_wrong_explained=sum(bool(r.get("wrong_explained")) for r in outside),
                 outside_located_rate=rate(outside, "phase_right"),
+                outside_bound_share_median=float(np.median([r["bound_share"] for r in outside
+                                                           if math.isfinite(r.get("bound_share", math.nan))]))
+                if any(math.isfinite(r.get("bound_share", math.nan)) for r in outside) else math.nan,
+                outside_bound_reaching=sum(r.get("bound_share", 0.0) >= 0.7 for r in outside),
+                outside_bound_named_rate=rate(outside, "bound_named") if all("bound_named" in r for r in outside) else math.nan,
                 errors=len(rows) - len(ok))
 
 
@@ -383,6 +434,7 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     # verdict and the located phase alone
     simulated = [n for n in names if fx.effect_class(n).WHERE == "simulator"]
     oracle = oracle_scores(keep["problem"], model, simulated, gen.truth) if simulated else {}
+    row.update(bound_score(names, out.get("bound"), oracle))
     row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
                verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
@@ -572,17 +624,23 @@ def plot(result: dict, path):
 
 def table(result: dict) -> str:
     """The per-case Markdown table of a selfcheck and its summary."""
-    lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | shrink recovered |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | shrink recovered | "
+             "model-free bound [%] (of the oracle's; its strongest term) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in result["cases"]:
         effects = " + ".join(r["effects"])
         if "error" in r:
-            lines.append(f"| {r['kind']} | {effects} | {r['error'][:60]} | | | | | |")
+            lines.append(f"| {r['kind']} | {effects} | {r['error'][:60]} | | | | | | |")
             continue
         phase = f"{r['phase']} ({'right' if r['phase_right'] else 'wrong'})" if r["phase"] else "-"
         shrink = f"{r['shrink']:.2f}" if math.isfinite(r["shrink"]) else "-"
+        bound = "-"
+        if r.get("bound_phase"):
+            share = f", {r['bound_share']:.2f}" if math.isfinite(r.get("bound_share", math.nan)) else ""
+            term = r["bound_terms"][0] if r.get("bound_terms") else "no term"
+            bound = f"{r['bound_phase']} {r['bound_pct']:.1f}{share}; {term} ({'right' if r['bound_named'] else 'other'})"
         lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
-                     f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} |")
+                     f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} | {bound} |")
     s = result["summary"]
     lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f} "
                  f"(of them {s.get('n_interchangeable', 0)} as interchangeable with the first), phase right "
@@ -591,7 +649,10 @@ def table(result: dict) -> str:
                  f"one true effect first {s['pair_rank1_rate']:.2f}, both {s['pair_both_rate']:.2f}; outside the "
                  f"catalogue: {s.get('n_outside', 0)} cases, 'explained' naming a wrong cause in "
                  f"{s.get('outside_wrong_explained', 0)}, gap located in a phase the effect acts in "
-                 f"{s.get('outside_located_rate', math.nan):.2f}; "
+                 f"{s.get('outside_located_rate', math.nan):.2f}, model-free bound reaching 70 % of the oracle's "
+                 f"shrink in {s.get('outside_bound_reaching', 0)} (median share "
+                 f"{s.get('outside_bound_share_median', math.nan):.2f}), its strongest term naming the effect's "
+                 f"variables {s.get('outside_bound_named_rate', math.nan):.2f}; "
                  f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU"
                  + (f" ({result['resumed']} cases taken from an earlier, interrupted run)" if result.get("resumed") else ""))
     return "\n".join(lines)
