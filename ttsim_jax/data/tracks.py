@@ -265,5 +265,6 @@ def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_sam
                         f"session {int(seg['session_id'][k])}, t = {seg['t_start'][k]:.3f} to {seg['t_end'][k]:.3f} s: "
                         f"segment {int(seg['segment_id'][k])} fits no ballistic flight (RMSE "
                         + (f"{r * 1000:.0f} mm" if np.isfinite(r) else "not finite") + f" > {max_rmse * 1000:.0f} mm): "
-                        "two flights in one segment (a missed contact or pause) or samples of something else")
+                        "two flights in one segment (a missed contact or pause), samples of something else, or a "
+                        "flight its spin would explain" + ("" if spins[usable.index(k)].any() else " (no spin measured)"))
     return TrackingReport(sessions=sessions, warnings=warnings, unfit=unfit, min_samples=min_samples)
