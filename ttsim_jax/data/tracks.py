@@ -258,7 +258,7 @@ def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_sam
         if usable:
             spins = np.stack([seg[f"spin_{a}"] for a in "xyz"], -1)[usable]
             rmse = ballistic_rmse_many([obs["t"][rows[k]] for k in usable], [pos[rows[k]] for k in usable], spins)
-            for k, r in zip(usable, rmse):
+            for j, (k, r) in enumerate(zip(usable, rmse)):
                 if not (r <= max_rmse):  # NaN too: a fit that failed
                     unfit.append(int(seg["segment_id"][k]))
                     warnings.append(
@@ -266,5 +266,5 @@ def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_sam
                         f"segment {int(seg['segment_id'][k])} fits no ballistic flight (RMSE "
                         + (f"{r * 1000:.0f} mm" if np.isfinite(r) else "not finite") + f" > {max_rmse * 1000:.0f} mm): "
                         "two flights in one segment (a missed contact or pause), samples of something else, or a "
-                        "flight its spin would explain" + ("" if spins[usable.index(k)].any() else " (no spin measured)"))
+                        "flight its spin would explain" + ("" if spins[j].any() else " (no spin measured)"))
     return TrackingReport(sessions=sessions, warnings=warnings, unfit=unfit, min_samples=min_samples)
