@@ -356,6 +356,9 @@ def test_the_bound_is_scored_against_the_oracle_and_its_terms():
     rows = [dict(kind="outside", effects=["table_friction"], detectable=True, unexplained=True, phase="table", phase_right=True,
                  top="none significant", outcome="unexplained", found_pct=0.0, oracle_pct=40.0, oracle_phase="table",
                  shrink=0.0, wrong_explained=False, **b)]
+    # an effect the oracle cannot resolve is not counted against locating or bounding
+    rows.append(dict(rows[0], detectable=False, phase_right=False, bound_share=0.0, bound_named=False))
     result = dict(cases=rows, summary=SC.summary(rows), seconds=1.0, cpu_seconds=1.0)
     assert result["summary"]["outside_bound_reaching"] == 1 and result["summary"]["outside_bound_named_rate"] == 1.0
+    assert result["summary"]["outside_located_rate"] == 1.0 and result["summary"]["n_outside_resolved"] == 1
     assert "table 30.0, 0.75; post-bounce r·ω y" in SC.table(result)
