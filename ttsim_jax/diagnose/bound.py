@@ -17,7 +17,12 @@ these variables generalises: what remains is noise, or depends on something not 
   contact point v + w x (-r n) (tangential), r w about the normal (with the slip and the velocity,
   the whole incoming spin), speed, impact angle, normal speed x slip, normal speed squared, and
   the contact position (on the table; on the racket face with its distance |d| from the face's
-  origin and the normal speed x |d|), plus a constant. Each error component is fitted on the rows
+  origin and the normal speed x |d|), hinges of the normal speed at its quantiles (a loss that
+  sets in above an impact speed) and, on the racket, a step and a ramp of the normal speed in |d|
+  at its quantiles (a region of the face that starts somewhere: a rim, a logo), plus a constant.
+  On a racket-rim case (outside suite, 227 contacts) the hinges and steps raised the bound from
+  2.7 % (not significant) to 11.8 % of the held-out error, against the oracle's 67 %: a linear map
+  of the incoming state is far from what one physical parameter does there. Each error component is fitted on the rows
   where it is compared (a bounce with unknown incoming spin compares only its normal velocity;
   spin errors only where both spins are measured), and the corrected errors
   e' = e - mask * Phi beta are scored.
@@ -265,6 +270,12 @@ def contact_features(x, pos, kind: str, radius: float) -> tuple[np.ndarray, list
     names = ["constant", "incoming normal velocity"] + [f"incoming tangential velocity {a}" for a in axes] + \
         [f"contact-point slip {a}" for a in axes] + ["incoming r·ω about the normal"] + \
         ["incoming speed", "impact angle"] + [f"normal speed × slip {a}" for a in axes] + ["normal speed squared"]
+    # Hinges at the quantiles of the normal speed (and, on the racket, of the contact distance): a
+    # loss that sets in above an impact speed or towards the rim is no straight line in them
+    an = np.abs(vn)
+    for k in _knots(an):
+        cols.append(an * np.maximum(an - k, 0.0))
+        names.append(f"normal speed × its excess over {k:.2g} m/s")
     if kind == "table":
         p = np.asarray(pos, np.float64)
         cols += [p[:, 0], p[:, 1]]
@@ -272,10 +283,28 @@ def contact_features(x, pos, kind: str, radius: float) -> tuple[np.ndarray, list
     else:
         d = x[:, 6:8]
         dist = np.linalg.norm(d, axis=1)
-        cols += [d[:, 0], d[:, 1], dist, np.abs(vn) * dist]
+        cols += [d[:, 0], d[:, 1], dist, an * dist]
         names += ["contact point on the face y", "contact point on the face z", "distance |d| from the face origin",
                   "normal speed × |d|"]
+        for k in _knots(dist):
+            # a region of the face (a rim, a logo) changes the bounce where it starts: a step, and a ramp
+            cols += [an * (dist > k), an * np.maximum(dist - k, 0.0)]
+            names += [f"normal speed where |d| is beyond {100 * k:.2g} cm", f"normal speed × |d| beyond {100 * k:.2g} cm"]
     return np.stack(cols, 1), names
+
+
+#: Quantiles of a variable where :func:`contact_features` puts hinges.
+HINGES = (0.5, 0.75, 0.9)
+
+
+def _knots(values) -> list:
+    """Distinct knots at the :data:`HINGES` quantiles of ``values`` (none for fewer than 20 rows:
+    too few to tell a hinge from noise)."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if len(v) < 20 or not HINGES:
+        return []
+    return sorted(set(np.round(np.quantile(v, HINGES), 4).tolist()))
 
 
 def contact_masks(d: dict, kind: str) -> np.ndarray:
