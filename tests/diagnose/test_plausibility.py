@@ -99,3 +99,17 @@ def test_unexplained_locates_gaps_above_the_floor_and_calls_the_rest_noise():
     assert v["level"] == "unexplained" and "The gap lies in: table: error 0.6 m/s, 2.0 x its noise floor 0.3 m/s" in v["text"]
     out["floor"]["table"] = floor(0.301, 0.3, lo=0.28, hi=0.32)
     assert verdict(out, [])["text"].endswith("what remains looks like noise.")
+
+
+def test_a_phase_at_its_floor_asks_no_share():
+    buck = cand("buckling", 30.0, {"buckling": {}})
+    buck.heldout = {"racket": {"pct": 30.0, "ci95": [10.0, 45.0]}, "table": {"pct": 1.0, "ci95": [-2.0, 4.0]}}
+    out = {"where": {}, "dependence": {}, "candidates": [],
+           "floor": {"racket": floor(0.6, 0.3), "table": floor(0.304, 0.298, lo=0.29, hi=0.32)},
+           "before_after": {"racket": {"heldout": dict(pct=30.0, ci95=[10.0, 45.0], before_rms=0.6, after_rms=0.42)},
+                            "table": {"heldout": dict(pct=1.0, ci95=[-2.0, 4.0], before_rms=0.304, after_rms=0.301)}}}
+    v = verdict(out, [buck])
+    # racket: (0.36 - 0.1764) / 0.27 = 68 % of its gap: short of 70 %; the table's 0.06 m/s above its floor is no gap
+    assert v["level"] == "partly explained" and "of the racket gap" in v["text"] and "32 % is left" in v["text"]
+    out["before_after"]["racket"]["heldout"].update(pct=35.0, after_rms=0.39)
+    assert verdict(out, [buck])["level"] == "explained"

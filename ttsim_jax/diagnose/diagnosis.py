@@ -529,8 +529,9 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
     """The verdict: how much of the gap the accepted effects explain, and what is left.
 
     * *explained*: the accepted effects (:func:`select`) close at least :data:`EXPLAINED_SHARE` of
-      the removable gap (:func:`gap_shares`) in every phase they act in, on held-out data, and in no
-      phase does a model-free correction (``out["bound"]``) do significantly better;
+      the removable gap (:func:`gap_shares`) on held-out data in every phase they act in whose error
+      stands above its floor (:func:`open_gaps`), and in no phase does a model-free correction
+      (``out["bound"]``) do significantly better;
     * *partly explained*: they are significant but close less somewhere: the text says how much
       each phase's gap shrinks and how much is left, and where the rest lies;
     * *unexplained*: no candidate with plausible parameters is significant.
@@ -582,7 +583,9 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
                  implausible=[c.spec.name for c in beyond], shares=shares, gaps=gaps, open=untouched, where=where)
     if significant:
         who = " + ".join(c.spec.name for c in significant)
-        short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE]
+        # a phase whose error does not stand above its floor has nothing to explain: no share is asked there
+        short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE
+                 and (p in gaps or not isinstance(out.get("floor", {}).get(p), dict))]
         more, beyond_catalogue = _bound_text(out)
         level = "partly explained" if short or untouched or more else "explained"
         closes = []
