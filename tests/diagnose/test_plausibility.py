@@ -16,12 +16,12 @@ def test_implausible_names_parameter_value_and_range():
     assert implausible({"air_flow": {"wind": [0.0, 0.0, 0.08]}}) == ["air_flow.wind[2] = 0.08 m/s (plausible -0.05 to 0.05)"]
 
 
-def test_a_per_session_effect_is_implausible_only_in_more_than_a_quarter_of_its_sessions():
+def test_a_per_session_effect_is_implausible_only_in_more_than_half_of_its_sessions():
     ok = {"d_radius": 1e-4, "d_mass": 1e-5}
     wild = {"d_radius": 1e-4, "d_mass": 9e-5}
-    assert implausible({"ball_variation": {s: (wild if s < 2 else ok) for s in range(10)}}) == []
-    (line,) = implausible({"ball_variation": {s: (wild if s < 4 else ok) for s in range(10)}})
-    assert line.startswith("ball_variation.d_mass = 9e-05 kg in 4 of 10 sessions")
+    assert implausible({"ball_variation": {s: (wild if s < 5 else ok) for s in range(10)}}) == []
+    (line,) = implausible({"ball_variation": {s: (wild if s < 6 else ok) for s in range(10)}})
+    assert line.startswith("ball_variation.d_mass = 9e-05 kg in 6 of 10 sessions")
 
 
 def test_verdict_rejects_an_implausible_fit_and_says_why():

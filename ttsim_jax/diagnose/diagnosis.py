@@ -252,8 +252,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
 
 
 #: Share of the sessions beyond which a per-session effect's implausible fits reject it (a session
-#: of few items can take a wild value while the effect holds elsewhere).
-IMPLAUSIBLE_SESSIONS = 0.25
+#: of few items can take a wild value while the effect holds elsewhere: on the bundled games, one
+#: of three sessions fitted a single gust standing for several).
+IMPLAUSIBLE_SESSIONS = 0.5
 
 
 def implausible(params: dict) -> list[str]:

@@ -69,7 +69,7 @@ class AirFlow(Effect):
     PARAMS = {
         "wind": Param("m/s", 0.0, (0.2, 0.0, 0.0), "steady air velocity, world frame", (3,), plausible=((-0.5, -0.5, -0.05), (0.5, 0.5, 0.05))),
         "gust_amp": Param("m/s", 0.0, ((0.1, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, 0.0, 0.03)),
-                          "amplitude vector of each gust component", (3, 3), plausible=((-0.3, -0.3, -0.05), (0.3, 0.3, 0.05))),
+                          "amplitude vector of each gust component", (3, 3), plausible=((-0.3, -0.3, -0.1), (0.3, 0.3, 0.1))),
         "gust_freq": Param("Hz", 0.0, (0.1, 0.3, 0.7), "frequency of each gust component", (3,), plausible=(0.0, 2.0)),
         "gust_phase": Param("rad", 0.0, 0.0, "phase of each gust component", (3,), plausible=(-np.inf, np.inf)),
         "time_origin": Param("s", 0.0, 0.0, "session time at simulation time 0", plausible=(-np.inf, np.inf)),
