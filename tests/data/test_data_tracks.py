@@ -196,3 +196,16 @@ def test_generated_games_through_a_tracker_log_segment_as_labelled(tmp_path):
     assert abs(m - n) <= 0.01 * n, (m, n)
     assert np.sum(got.events["kind"] == "table") == np.sum(ds.events["kind"] == "table")
     np.testing.assert_array_equal(got.observations["t"], ds.observations["t"])
+
+
+def test_data_import_prints_what_it_found_per_session(tmp_path, simulate_flight, capsys):
+    from ttsim_jax.cli import main
+
+    th = throws(simulate_flight, 4, seed=11)
+    src = write_sessions(tmp_path / "log", [(np.concatenate([t for t, _, _ in th]), np.concatenate([p for _, p, _ in th]))])
+    assert main(["data", "import", str(src), "--source", "csv", "--out", str(tmp_path / "ds")]) == 0
+    out = capsys.readouterr().out
+    bounces = sum(len(b) for _, _, b in th)
+    assert "segmentation: 1 sessions: 4 tracks (3 pauses)" in out
+    assert f"session 0: 4 tracks (3 pauses), {bounces} table bounces, 0 other contacts, {4 + bounces} segments" in out
+    assert "warning" not in out and "validation:    ok" in out
