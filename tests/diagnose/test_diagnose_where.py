@@ -43,6 +43,17 @@ def test_no_flag_without_a_difference():
     assert s["flagged"] == []
 
 
+def test_a_bin_above_the_floor_is_flagged_where_the_phase_is_near_it():
+    # a 1.2x bin stands out neither from the phase's mean (1.05 mm) by 25 % nor ...
+    it = _items(high_factor=1.2)
+    assert W.summarise(it)["flagged"] == []
+    # ... but above a floor of 0.9 mm it does, since the phase as a whole is not clearly above that
+    s = W.summarise(it, floor=0.9e-3)
+    assert s["flagged"] == [("speed", s["regimes"]["speed"][-1]["label"])]
+    # a phase far above its floor flags no more than its own outliers: every bin would stand out
+    assert W.summarise(_items(high_factor=1.2), floor=0.5e-3)["flagged"] == []
+
+
 def test_overall_mean_and_interval_are_the_group_bootstrap():
     it = _items()
     s = W.summarise(it, seed=3)

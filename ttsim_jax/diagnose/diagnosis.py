@@ -35,6 +35,7 @@ from ttsim_jax.diagnose import ambiguity as A
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import residuals as R
 from ttsim_jax.diagnose import where as W
+from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.phases import MAX_SEGMENTS, collect
 from ttsim_jax.fit.contacts import ContactFit
 
@@ -174,7 +175,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         else:
             out["skipped"]["landing"] = landing["skipped"]
     tick("landing", 1)
-    out["where"] = {p: W.summarise(it, settings.seed) for p, it in items.items()}
+    out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
+    floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
+    out["where"] = {p: W.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
     out["no_data"] = no_data(out["skipped"], settings.landing)
     out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
@@ -182,9 +185,6 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     from ttsim_jax.diagnose.bound import bounds
 
     out["bound"] = bounds(pb, radius, settings.seed, ph.skipped)  # how far any correction gets, per phase
-    from ttsim_jax.diagnose.floor import floors
-
-    out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
 
     # which effect
     cands = []

@@ -21,8 +21,9 @@ segment share its error).
 
 **Flag rule**: a bin *stands out* when the lower end of its 95 % interval lies above
 :data:`FLAG_RATIO` (1.25) times the phase's overall mean error, i.e. its error is confidently at
-least 25 % above the phase's; bins with fewer than :data:`MIN_BIN` items or from fewer than
-:data:`MIN_GROUPS` groups are never flagged.
+least 25 % above the phase's, or, in a phase that as a whole is not clearly above its noise floor,
+above 1.25 times the floor (:func:`summarise`); bins with fewer than :data:`MIN_BIN` items or from
+fewer than :data:`MIN_GROUPS` groups are never flagged.
 """
 
 from __future__ import annotations
@@ -112,8 +113,18 @@ def _fmt(x: float) -> str:
     return f"{x:.0f}" if a >= 100 else f"{x:.1f}" if a >= 10 else f"{x:.2f}" if a >= 0.1 else f"{x:.3g}"
 
 
-def summarise(item: dict, seed: int = 0) -> dict:
+def summarise(item: dict, seed: int = 0, floor: float | None = None) -> dict:
     """Overall mean error and the binned means by regime of one phase's items (module docstring).
+
+    Arguments:
+        item: the phase's items (:func:`flight_items`, :func:`contact_items`, ...).
+        seed: of the bootstrap.
+        floor: the phase's noise floor (RMS error of a perfect model, :mod:`ttsim_jax.diagnose.floor`),
+            if known. Where the phase as a whole does not stand clearly above it (its interval's lower
+            end below :data:`FLAG_RATIO` x the floor), a bin is flagged also when its own interval lies
+            above that: a gap confined to a few items (a racket's rim) hides in a phase mean near the
+            floor. A bin's mean distance cannot exceed its RMS, so such a bin's RMS error stands above
+            the floor too.
 
     Returns:
         dict: ``n``, ``groups``, ``mean``, ``ci95``, ``regimes`` {name: [{label, n, groups, mean,
@@ -128,13 +139,16 @@ def summarise(item: dict, seed: int = 0) -> dict:
 
     mean, ci = ratio_ci(*sums(np.ones(len(err), bool)), w)
     out = dict(n=int(len(err)), groups=n_groups, mean=mean, ci95=ci, regimes={}, flagged=[])
+    # against the floor only where the phase itself is near it: above it everywhere, every bin would be
+    local = floor if floor is not None and math.isfinite(floor) and not ci[0] > FLAG_RATIO * floor else None
     for name, values in item["regimes"].items():
         rows = []
         for label, mask in bins(values, name):
             num, den = sums(mask)
             m, c = ratio_ci(num, den, w)
             g = int(np.sum(den > 0))
-            flag = bool(mask.sum() >= MIN_BIN and g >= MIN_GROUPS and math.isfinite(c[0]) and c[0] > FLAG_RATIO * mean)
+            high = c[0] > FLAG_RATIO * mean or (local is not None and c[0] > FLAG_RATIO * local)
+            flag = bool(mask.sum() >= MIN_BIN and g >= MIN_GROUPS and math.isfinite(c[0]) and high)
             rows.append(dict(label=label, n=int(mask.sum()), groups=g, mean=m, ci95=c,
                              ratio=m / mean if mean else math.nan, flag=flag))
             if flag:
