@@ -639,7 +639,7 @@ def table(result: dict) -> str:
         bound = "-"
         if r.get("bound_phase"):
             share = f", {r['bound_share']:.2f}" if math.isfinite(r.get("bound_share", math.nan)) else ""
-            term = r["bound_terms"][0] if r.get("bound_terms") else "no term"
+            term = (r["bound_terms"][0] if r.get("bound_terms") else "no term").replace("|", "\\|")  # |v| in a table cell
             bound = f"{r['bound_phase']} {r['bound_pct']:.1f}{share}; {term} ({'right' if r['bound_named'] else 'other'})"
         lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
                      f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} | {bound} |")
