@@ -181,8 +181,9 @@ def cmd_selfcheck(args) -> int:
 
     from ttsim_jax.diagnose.candidates import candidate_names
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, outside_cases, plot,
-                                              selfcheck, stored_cases, table)
+    from ttsim_jax.diagnose.outside import outside_cases
+    from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, plot, selfcheck,
+                                              stored_cases, table)
 
     if (args.resume or args.force) and args.out is None:
         raise UsageError("ttsim diagnose selfcheck: --resume and --force need --out DIR")

@@ -54,6 +54,8 @@ import numpy as np
 from ttsim_jax import effects as fx
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose.outside import (OUTSIDE_KINDS, OUTSIDE_PLAN, TERMS, as_tracker_log,  # noqa: F401 (the selfcheck's names)
+                                        bound_score, effect_phases, outside_cases)
 
 #: Paper-like triangulation noise: per-axis standard deviation [m] (the catalogue's typical value).
 NOISE = (0.0015, 0.0015, 0.001)
@@ -64,26 +66,6 @@ PAIRS = (("spin_decay", "table_tilt"), ("air_flow", "buckling"), ("ball_variatio
          ("worn_ball", "table_unevenness"))
 #: The outside case's effect: generated, but not a candidate.
 OUTSIDE = "racket_edge"
-#: Kinds of the cases outside the catalogue: how the generated games reach the diagnosis.
-OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
-#: The outside suite: each effect generated and withheld from the candidates, in every phase, as
-#: labelled games and as a tracker's raw logs, in both directions and in one; the effects on the
-#: record (a tracker's clock running fast, a camera's scale) have no candidate at all.
-OUTSIDE_PLAN = (
-    ("outside", ("racket_edge",)),
-    ("outside", ("table_tilt",)),
-    ("outside", ("spin_decay",)),
-    ("outside", ("worn_ball",)),
-    ("outside_log", ("buckling",)),
-    ("outside_log", ("table_unevenness",)),
-    ("outside_log", ("air_flow",)),
-    ("outside_oneway", ("air_flow",)),
-    ("outside_oneway", ("spin_decay",)),
-    ("outside_log", ("table_friction",)),
-    ("outside", ("clock_rate",)),
-    ("outside_oneway", ("air_density",)),
-    ("outside", ("camera_scale",)),
-)
 #: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
 #: and flight segments diagnosed at most, per case: full run and ``--quick``.
 GAMES = {"full": 14, "quick": 8}
@@ -179,52 +161,6 @@ DRAWS = {
 SCENES = {"racket_logo": {"contact_bands": (0.4, 0.4, 0.2)}}
 
 
-#: Per effect, words of the model-free correction's terms (:mod:`ttsim_jax.diagnose.bound`) that name
-#: the variables it acts through: a case's bound *names the right variables* when its strongest
-#: term in the effect's phase holds one of them.
-TERMS = {
-    "spin_decay": ("lift", "ω", "spin"),
-    "air_flow": ("wind", "fixed direction", "horizontal", "per session"),
-    "air_density": ("drag", "lift"),
-    "table_tilt": ("normal", "contact position"),
-    "table_unevenness": ("normal", "contact position"),
-    "table_friction": ("slip", "tangential", "r·ω"),
-    "ball_variation": ("drag", "normal"),
-    "worn_ball": ("normal",),
-    "buckling": ("normal", "speed"),
-    "racket_logo": ("contact point", "|d|"),
-    "racket_edge": ("contact point", "|d|"),
-    "rubber_anisotropy": ("tangential",),
-    "clock_rate": ("gravity or clock", "drag"),
-    "camera_scale": ("gravity or clock", "drag"),
-}
-
-
-def bound_score(names, bound: dict, oracle: dict) -> dict:
-    """How far the model-free correction (the diagnosis's ``bound``) gets in the effects' phase: its
-    held-out reduction there against the oracle's (``bound_share``; NaN without an oracle), its
-    strongest terms, and whether the first names a variable of :data:`TERMS` (``bound_named``).
-
-    The phase is the oracle's best one; without an oracle (an effect on the record), the phase of the
-    bound's largest significant reduction."""
-    phases = _phases(names)
-    ok = {p: b for p, b in (bound or {}).items() if isinstance(b, dict) and "heldout" in b and p in phases}
-    if not ok:
-        return dict(bound_phase=None, bound_pct=math.nan, bound_share=math.nan, bound_terms=[], bound_named=False)
-    ranked = {p: h for p, h in oracle.items() if p in ok}
-    if ranked:
-        p = max(ranked, key=lambda q: ranked[q]["pct"])
-    else:
-        p = max(ok, key=lambda q: ok[q]["heldout"]["pct"] if ok[q]["heldout"].get("significant") else -math.inf)
-    b = ok[p]
-    pct = float(b["heldout"]["pct"]) if b["heldout"].get("significant") else 0.0
-    terms = [t["name"] for t in b.get("terms", [])]
-    words = [w for n in names for w in TERMS.get(n, ())]
-    return dict(bound_phase=p, bound_pct=pct,
-                bound_share=float(pct / oracle[p]["pct"]) if p in oracle and oracle[p]["pct"] > 0 else math.nan,
-                bound_terms=terms, bound_named=bool(terms and any(w in terms[0] for w in words)))
-
-
 def draw(name: str, rng: np.random.Generator) -> dict:
     """Fixed parameter values of ``name`` for a case (:data:`DRAWS`; {} for an effect without a
     selfcheck range: the generator's ``sample`` draws it)."""
@@ -257,16 +193,6 @@ def oracle_scores(pb, model, names, truth: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- scoring
-def _phases(names) -> tuple:
-    """The phases the effects ``names`` act in; an effect on the record (a clock, a camera's scale)
-    distorts every measured position or time, hence every phase."""
-    out = set()
-    for n in names:
-        cls = fx.effect_class(n)
-        out.update(C.phases_of(cls) if cls.WHERE == "simulator" else C.PHASES)
-    return tuple(p for p in C.PHASES if p in out)
-
-
 def located_phase(cand: dict) -> str | None:
     """The phase of a candidate's largest significant held-out reduction (None: not significant)."""
     sig = [p for p, h in cand["heldout"].items() if C.significant(p, h)]
@@ -291,7 +217,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         phases), unexplained, found_pct, oracle_pct, shrink, outcome (one word for the table).
     """
     names = tuple(names)
-    true_phases = _phases(names)
+    true_phases = effect_phases(names)
     # the diagnosis's accepted effects: significant, and not redundant on top of those before them
     sig = [c for c in candidates if c["significant"] and c.get("adds", {}).get("accepted", True)]
     oracle = {p: h for p, h in oracle.items() if p in true_phases}
@@ -372,12 +298,6 @@ def summary(rows: list) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- cases
-def outside_cases(plan=OUTSIDE_PLAN, candidates=None) -> list:
-    """[(kind, names)] of the outside suite (:data:`OUTSIDE_PLAN`), without the cases of effects
-    the catalogue does not hold (an older plan run with a newer catalogue)."""
-    return [(k, tuple(n)) for k, n in plan if all(x in fx.CATALOGUE for x in n)]
-
-
 def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE) -> list:
     """[(kind, names)] of a selfcheck: every single effect, then the pairs, then the outside one."""
     return ([("single", (n,)) for n in names] + [("pair", tuple(p)) for p in pairs] +
@@ -442,36 +362,6 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
                candidates=candidate_digest(out["candidates"]))
     return row
-
-
-def as_tracker_log(ds, *, one_way: bool = False):
-    """``ds`` as a tracker without labels would hand it over: its observations written as a
-    multi-throw CSV log (:func:`ttsim_jax.data.write_csv`, no events, no racket states) and imported
-    through :func:`ttsim_jax.data.read_csv` (contacts detected, sessions split at pauses and jumps).
-
-    Arguments:
-        ds: a labelled dataset (generated games).
-        one_way: keep only the flight segments that travel towards +x (every throw the same way, as
-            from a launcher): the others are not written, as a tracker that did not follow them.
-
-    Returns:
-        The imported dataset.
-    """
-    import tempfile
-
-    from ttsim_jax.data import read_csv, write_csv
-
-    rows = None
-    if one_way:
-        obs, seg_of = ds.observations, ds.observations["segment_id"]
-        x = ds.positions[:, 0]
-        towards = {}
-        for sid in np.unique(seg_of[seg_of >= 0]):
-            k = np.flatnonzero(seg_of == sid)
-            towards[int(sid)] = x[k[-1]] > x[k[0]]
-        rows = np.array([towards.get(int(s), False) for s in seg_of], bool)
-    with tempfile.TemporaryDirectory() as tmp:
-        return read_csv(write_csv(ds, tmp, rows=rows))
 
 
 def candidate_digest(candidates: list) -> list:
