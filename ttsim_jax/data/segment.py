@@ -26,7 +26,7 @@ import numpy as np
 
 from . import schema
 from .dataset import Dataset, concat_tables, fill_defaults, select_rows
-from .tracks import MIN_SAMPLES, find_breaks, robust_lines, session_slices, track_slices
+from .tracks import MIN_SAMPLES, closest_approach, find_breaks, robust_lines, session_slices, track_slices
 
 GRAVITY = 9.81
 
@@ -199,9 +199,8 @@ def find_kinks(
         split = s[k]
         if excluded.size and np.min(np.abs(excluded - (split - 1))) <= window:
             continue
-        da, db = a2[k] - a1[k], b2[k] - b1[k]
-        tc = float(np.clip(-np.dot(da, db) / max(np.dot(db, db), 1e-12), tau[split - 1], tau[split]))
-        gap = float(np.linalg.norm(da + db * tc))
+        tc, gap = closest_approach(a1[k], b1[k], a2[k], b2[k], tau[split - 1], tau[split])
+        tc, gap = float(tc), float(gap)
         if gap > max_gap:
             continue
         g_tc = np.array([0.0, 0.0, GRAVITY * tc])

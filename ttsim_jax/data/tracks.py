@@ -84,6 +84,20 @@ def robust_lines(tau, values):
     return a, b
 
 
+def closest_approach(a1, b1, a2, b2, lo, hi):
+    """Where and how close two lines p = a + b tau come within lo <= tau <= hi.
+
+    Arguments:
+        a1, b1, a2, b2: (K, 3) the lines' offsets and slopes; lo, hi: (K,) the interval.
+
+    Returns:
+        ((K,) tau of the closest approach, (K,) the distance there).
+    """
+    da, db = a2 - a1, b2 - b1
+    tc = np.clip(-np.sum(da * db, -1) / np.maximum(np.sum(db * db, -1), 1e-12), lo, hi)
+    return tc, np.linalg.norm(da + db * tc[..., None], axis=-1)
+
+
 def _apart(t, pos, splits, window):
     """For each split s (samples < s against samples >= s, with ``window`` samples on each side):
     the closest approach [m] of the two sides' flights between samples s-1 and s, and the larger of
@@ -95,10 +109,7 @@ def _apart(t, pos, splits, window):
     post = splits[:, None] + np.arange(window)[None, :]
     a1, b1 = robust_lines(tau[pre], p[pre])
     a2, b2 = robust_lines(tau[post], p[post])
-    da, db = a2 - a1, b2 - b1
-    tc = -np.sum(da * db, -1) / np.maximum(np.sum(db * db, -1), 1e-12)
-    tc = np.clip(tc, tau[splits - 1], tau[splits])
-    apart = np.linalg.norm(da + db * tc[:, None], axis=-1)
+    _, apart = closest_approach(a1, b1, a2, b2, tau[splits - 1], tau[splits])
     dev = lambda idx, a, b: np.max(np.linalg.norm(p[idx] - (a[:, None] + b[:, None] * tau[idx][..., None]), axis=-1), 1)  # noqa: E731
     return apart, np.maximum(dev(pre, a1, b1), dev(post, a2, b2))
 
