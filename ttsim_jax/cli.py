@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ttsim_jax.sizes import require as require_memory
+
 
 class UsageError(Exception):
     """A user error a command finds after parsing (refused overwrite, inconsistent options);
@@ -33,9 +35,10 @@ def _user_errors() -> tuple:
     from ttsim_jax.physics.residual import CheckpointError
     from ttsim_jax.physics.residual import ConfigError as ResidualConfigError
     from ttsim_jax.rl.checkpoint import CheckpointError as PolicyCheckpointError
+    from ttsim_jax.sizes import SizeError
 
     return (UsageError, ConfigError, ResidualConfigError, CheckpointError, PolicyCheckpointError, DataError,
-            GeneratorError, EffectError,
+            GeneratorError, EffectError, SizeError,
             FileExistsError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
 
 
@@ -122,8 +125,9 @@ def existing_path(text: str) -> Path:
 
 
 def _check_creatable(path: Path, text: str) -> None:
-    """Refuses a path whose nearest existing ancestor is not a writable directory, so that an
-    output the command would only write at the end is checked before the work starts."""
+    """Refuses a path whose nearest existing ancestor is not a directory in which a file can be
+    created (tried with a probe file), so that an output the command would only write at the end
+    is checked before the work starts."""
     parent = path.absolute().parent
     while not parent.exists():
         parent = parent.parent
@@ -131,6 +135,11 @@ def _check_creatable(path: Path, text: str) -> None:
         raise argparse.ArgumentTypeError(f"{text}: cannot be created, {parent} is not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise argparse.ArgumentTypeError(f"{text}: cannot be created, {parent} is not writable")
+    from ttsim_jax.io_atomic import probe_writable
+
+    reason = probe_writable(parent)
+    if reason is not None:
+        raise argparse.ArgumentTypeError(f"{text}: cannot be created, no file can be made in {parent} ({reason})")
 
 
 def writable_file(text: str) -> Path:
@@ -154,6 +163,16 @@ def writable_dir(text: str) -> Path:
         raise argparse.ArgumentTypeError(f"{text}: is not writable")
     _check_creatable(path, text)
     return path
+
+
+def memory_size(text: str) -> int:
+    """A memory size such as 512M, 16G or 2.5GiB, in bytes."""
+    from ttsim_jax.sizes import parse_size
+
+    try:
+        return parse_size(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def model_name_or_file(text: str) -> str:
@@ -183,8 +202,10 @@ def _simulate_command(sub):
     p.add_argument("--types", default="all",
                    help="comma-separated shot types to draw from, or 'all' (default: %(default)s); known: "
                         "serve, topspin_drive, backspin_drive, push, block, smash, lob")
-    p.add_argument("--duration", type=positive_float, default=1.5, help="simulated time per shot [s] (default: %(default)s)")
-    p.add_argument("--dt", type=positive_float, default=1e-3, help="integration step [s] (default: %(default)s)")
+    p.add_argument("--duration", type=positive_float, default=1.5,
+                   help="simulated time per shot [s], at most 60 (default: %(default)s)")
+    p.add_argument("--dt", type=positive_float, default=1e-3,
+                   help="integration step [s], at most 0.01 (default: %(default)s)")
     p.add_argument("--integrator", choices=["rk4", "rk2", "euler"], default="rk4",
                    help="flight integrator (default: %(default)s)")
     p.add_argument("--no-aim", action="store_true",
@@ -194,6 +215,28 @@ def _simulate_command(sub):
                    help="write the trajectories (every 5 ms) and event logs to this .npz file")
     p.add_argument("--plot", type=writable_file, default=None, help="write a PNG of sample trajectories over the table")
     p.set_defaults(func=cmd_simulate)
+
+
+#: Largest step and duration ``ttsim simulate`` accepts [s].
+MAX_DT, MAX_DURATION = 0.01, 60.0
+#: Event-log slots of each ``ttsim simulate`` shot.
+SIMULATE_EVENTS = 8
+#: Host memory of a shot's sampling and aiming (the numpy draws; the vmapped aiming flights keep
+#: their forward-mode tangents over 90 steps of 20 ms, about 13 KiB per shot in float32) [bytes].
+AIM_BYTES_PER_SHOT = 16 * 2**10
+
+
+def simulate_bytes(shots: int, n_steps: int, record_every: int, *, chunk: int, aim: bool) -> int:
+    """Memory ``ttsim simulate`` holds at once [bytes]: every shot's results on the host twice (the
+    per-chunk arrays and their concatenation), the sampling and aiming of all shots, and one chunk's
+    rollout (:func:`ttsim_jax.kernel.rollout.memory_bytes`)."""
+    import numpy as np
+
+    from ttsim_jax.kernel.rollout import memory_bytes
+
+    per_shot = memory_bytes(1, n_steps, record_every, SIMULATE_EVENTS, np.float32)["total"]
+    one_chunk = memory_bytes(min(chunk, shots), n_steps, record_every, SIMULATE_EVENTS, np.float32)["total"]
+    return shots * (2 * per_shot + (AIM_BYTES_PER_SHOT if aim else 1024)) + one_chunk
 
 
 def cmd_simulate(args) -> int:
@@ -209,12 +252,22 @@ def cmd_simulate(args) -> int:
     if types and set(types) - set(SHOT_TYPES):
         raise UsageError(f"--types {args.types}: unknown shot types {sorted(set(types) - set(SHOT_TYPES))}; "
                          f"known: {list(SHOT_TYPES)}")
+    if args.dt > MAX_DT:
+        raise UsageError(f"--dt {args.dt:g}: above {MAX_DT:g} s a ball at 35 m/s moves more than 35 cm per step "
+                         "(twice the net's height) and the flight error grows with dt^4; use a smaller step")
+    if args.duration > MAX_DURATION:
+        raise UsageError(f"--duration {args.duration:g}: a shot is in play for a few seconds; at most "
+                         f"{MAX_DURATION:g} s is simulated")
     n_steps = int(round(args.duration / args.dt))
     every = max(1, int(round(5e-3 / args.dt)))
     n_steps -= n_steps % every
     if n_steps < 1:
         raise UsageError(f"--duration {args.duration:g} with --dt {args.dt:g}: less than one step "
                          f"(at least {every * args.dt:g} s are needed)")
+    record_every = every if (args.save or args.plot) else 0
+    require_memory(f"--shots {args.shots}" + (" with --save/--plot" if record_every else ""),
+                   simulate_bytes(args.shots, n_steps, record_every, chunk=args.chunk, aim=not args.no_aim),
+                   remedy="ask for fewer shots")
     model = load_model(args.model)
 
     t0 = time.perf_counter()
@@ -225,8 +278,8 @@ def cmd_simulate(args) -> int:
     for k, sl in enumerate(tqdm(chunks, desc="simulating", unit="chunk", disable=len(chunks) < 2)):
         chunk = Ball(*(np.asarray(a)[sl] for a in (balls.pos, balls.vel, balls.spin)))
         t1 = time.perf_counter()
-        r = simulate(model, chunk, n_steps, args.dt, integrator=args.integrator,
-                     record_every=every if (args.save or args.plot) else 0, max_events=8)
+        r = simulate(model, chunk, n_steps, args.dt, integrator=args.integrator, record_every=record_every,
+                     max_events=SIMULATE_EVENTS)
         jax.block_until_ready(r.final.pos)
         dt_call = time.perf_counter() - t1
         if k == 0:
@@ -241,9 +294,10 @@ def cmd_simulate(args) -> int:
     print(summary_table(kinds, pre, post_vel, labels, status))
     if len(results) > 1:
         steady, steady_balls = t_sim - t_first, args.shots - chunks[0].stop
-    else:  # one call: time it again, compiled, for an honest throughput
+    else:  # one call: time it again with the same arguments (the same compiled program) for an honest throughput
         t1 = time.perf_counter()
-        jax.block_until_ready(simulate(model, chunk, n_steps, args.dt, integrator=args.integrator).final.pos)
+        jax.block_until_ready(simulate(model, chunk, n_steps, args.dt, integrator=args.integrator,
+                                       record_every=record_every, max_events=SIMULATE_EVENTS).final.pos)
         steady, steady_balls = time.perf_counter() - t1, args.shots
     print(f"aiming {t_aim:.1f} s; simulation {t_sim:.2f} s (first call {t_first:.2f} s, includes compilation); "
           f"throughput {steady_balls * n_steps / steady:,.0f} ball-steps/s (compiled)")
@@ -284,7 +338,8 @@ def _sensitivity_command(sub):
     p.add_argument("--target", choices=["landing", "landing_time", "net_clearance", "bounce_speed"], default="landing",
                    help="what to differentiate (default: %(default)s); the error budget is for 'landing'")
     p.add_argument("--seed", type=seed, default=0, help="seed of the shot sampler (default: %(default)s)")
-    p.add_argument("--dt", type=positive_float, default=1e-3, help="integration step [s] (default: %(default)s)")
+    p.add_argument("--dt", type=positive_float, default=1e-3,
+                   help="integration step [s], at most 0.01 (default: %(default)s)")
     p.add_argument("--horizon", type=positive_float, default=1.5,
                    help="flight simulated after the contact [s]; shots landing later count as not landing "
                         "(default: %(default)s)")
@@ -314,6 +369,10 @@ def cmd_sensitivity(args) -> int:
     if types and set(types) - set(SHOT_TYPES):
         raise UsageError(f"--types {args.types}: unknown shot types {sorted(set(types) - set(SHOT_TYPES))}; "
                          f"known: {list(SHOT_TYPES)}")
+    if args.dt > MAX_DT:
+        raise UsageError(f"--dt {args.dt:g}: at most {MAX_DT:g} s (see ttsim simulate --help)")
+    if args.horizon > MAX_DURATION:
+        raise UsageError(f"--horizon {args.horizon:g}: at most {MAX_DURATION:g} s")
     for opt in ("racket_pos_std", "racket_vel_std", "racket_rot_std", "spin_rel_std", "spin_abs_std"):
         if getattr(args, opt) < 0:
             raise UsageError(f"--{opt.replace('_', '-')} {getattr(args, opt):g}: must be >= 0")
@@ -352,6 +411,10 @@ def build_parser() -> argparse.ArgumentParser:
                                   "World frame: origin at the centre of the table surface, x along the table, z "
                                   "up; SI units.")
     parser.add_argument("--version", action="version", version=f"ttsim-jax {__version__}")
+    parser.add_argument("--memory-budget", type=memory_size, default=None, metavar="SIZE",
+                        help="memory a command may plan to use, e.g. 16G (default: the TTSIM_MEMORY_BUDGET "
+                             "variable, else half the memory available when it starts); a job whose sizes "
+                             "(shots, games, environments, episodes) need more is refused before it starts")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _simulate_command(sub)
     _sensitivity_command(sub)
@@ -361,7 +424,20 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate_commands.register(sub)  # after fit_commands: adds to its 'evaluate' group
     diagnose_commands.register(sub)
     rl_commands.register(sub)
+    _everywhere(parser, next(a for a in parser._actions if "--memory-budget" in a.option_strings))
     return parser
+
+
+def _everywhere(parser: argparse.ArgumentParser, action: argparse.Action) -> None:
+    """Lets a global option also follow the subcommand (``ttsim generate ... --memory-budget 32G``):
+    every subparser gets a copy whose default leaves the global value in place."""
+    option = action.option_strings[0]
+    for sub in (a for a in parser._actions if isinstance(a, argparse._SubParsersAction)):
+        for child in sub.choices.values():
+            _everywhere(child, action)
+            if option not in child._option_string_actions:
+                child.add_argument(option, type=action.type, default=argparse.SUPPRESS, metavar=action.metavar,
+                                   help=action.help)
 
 
 def main(argv=None) -> int:
@@ -385,6 +461,11 @@ def main(argv=None) -> int:
     from ttsim_jax.cache import enable_compilation_cache
 
     enable_compilation_cache()  # a command run again loads its compiled programs
+    from ttsim_jax.sizes import ENV
+
+    before = os.environ.get(ENV)
+    if args.memory_budget is not None:  # the library's size checks read it (ttsim_jax.sizes)
+        os.environ[ENV] = str(args.memory_budget)
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
@@ -392,9 +473,20 @@ def main(argv=None) -> int:
     except _user_errors() as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except MemoryError as e:  # an allocation the size checks did not foresee: still no traceback
+        what = str(e).split(" for an array")[0] or "an allocation failed"  # numpy: "Unable to allocate 8 GiB"
+        print(f"error: ttsim {args.command}: out of memory ({what}); ask for fewer shots, games, environments "
+              "or episodes, or run it where more memory is free", file=sys.stderr)
+        return 2
     except BrokenPipeError:  # the reader went away (``ttsim data info DIR | head``): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    finally:
+        if args.memory_budget is not None:
+            if before is None:
+                os.environ.pop(ENV, None)
+            else:
+                os.environ[ENV] = before
 
 
 if __name__ == "__main__":

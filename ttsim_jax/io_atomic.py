@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import os
 import re
 import secrets
@@ -84,6 +85,32 @@ def fsync_directory(directory) -> None:
             os.close(fd)
     except OSError:
         pass
+
+
+def probe_writable(directory) -> str | None:
+    """Whether files can be created in ``directory``: a probe file is created and removed.
+
+    Permission bits say too little (root passes every ``os.access`` test, and pseudo-filesystems
+    such as ``/proc`` or ``/sys`` refuse new files whatever their modes), so an output that a job
+    writes only at its end is tried before the work starts.
+
+    Arguments:
+        directory: an existing directory.
+
+    Returns:
+        None if a file could be created there, else the reason (the operating system's message).
+    """
+    probe = Path(directory) / f".ttsim-probe.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+    except OSError as e:
+        if e.errno == errno.ENOENT:  # what /proc answers for a directory that exists
+            return "its filesystem does not accept new files"
+        return e.strerror or str(e)
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+    return None
 
 
 def atomic_write(path, data: bytes) -> None:

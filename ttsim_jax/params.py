@@ -89,7 +89,7 @@ class Entry:
     default: Any = None  # None: required
 
 
-_R = dict(lo=0.0, hi=1.2)  # restitution-like coefficients
+_R = dict(lo=0.0, hi=1.0)  # restitution-like coefficients: above 1 a bounce would gain energy
 _POS = dict(lo=0.0, hi=math.inf)
 
 SCHEMA: dict[str, dict[str, Entry]] = {

@@ -26,6 +26,7 @@ from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
 from ttsim_jax.params import Model
 from ttsim_jax.physics import events as ev
+from ttsim_jax.sizes import SizeError
 from ttsim_jax.state import Ball
 
 
@@ -432,7 +433,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     need = memory_bytes(batch, n_steps, record_every, max_events, ball.pos.dtype)
     if need["total"] > memory_budget_bytes:
         gib = lambda n: f"{n / 2**30:.2f} GiB"  # noqa: E731
-        raise ValueError(
+        raise SizeError(
             f"a rollout of {batch} balls for {n_steps} steps (record_every={record_every}, "
             f"max_events={max_events}) needs {gib(need['total'])} (state {gib(need['state'])}, event log "
             f"{gib(need['event_log'])}, recording {gib(need['recording'])}), above the memory budget of "

@@ -88,7 +88,7 @@ def cmd_play(args) -> int:
     from ttsim_jax.rl import ppo
     from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner
     from ttsim_jax.rl.config import parse_ppo_config
-    from ttsim_jax.rl.train import build, task_path
+    from ttsim_jax.rl.train import build, require_envs, task_path
 
     payload = read_checkpoint(args.policy)
     config = parse_ppo_config(payload["config"], payload["config_source"])
@@ -98,6 +98,7 @@ def cmd_play(args) -> int:
         raise UsageError(f"--task {args.task}: its [control] action = {asked!r}, but {args.policy} was trained with "
                          f"action = {trained!r} (for the professional shots of an intercept policy: "
                          "--task return_ball_pro; of an accel policy: --task return_ball_pro_accel)")
+    require_envs(config, args.episodes, f"--episodes {args.episodes}", args.task)
     train_env, train_params = build(config, config.ppo.num_envs, args.task)
     runner = restore_runner(jax.eval_shape(lambda k: ppo.init_runner(train_env, train_params, config, k),
                                            jax.random.PRNGKey(0)), payload, args.policy)

@@ -18,6 +18,7 @@ from ttsim_jax.io_atomic import atomic_write
 from ttsim_jax.rl import ppo
 from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner, save_checkpoint
 from ttsim_jax.rl.config import PPOConfig, parse_ppo_config
+from ttsim_jax.sizes import require as require_memory
 
 CHECKPOINT = "checkpoint.msgpack"
 CURVE = "learning_curve.png"
@@ -40,6 +41,23 @@ def build(config: PPOConfig, num_envs: int, task=None):
     task = task or task_path(config)
     env = _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs))
     return env, env.default_params()
+
+
+def memory_bytes(config: PPOConfig, num_envs: int, task=None) -> int:
+    """What training (or evaluating) ``num_envs`` environments of a config holds at once [bytes],
+    from the shapes of one environment's runner (``jax.eval_shape``: nothing is allocated): the
+    environment state four times (a step's inputs, outputs and the kernel's temporaries) and the
+    rollout buffer of ``num_steps`` transitions twice (the buffer and its shuffled minibatches)."""
+    env, params = build(config, 1, task)
+    runner = jax.eval_shape(lambda k: ppo.init_runner(env, params, config, k), jax.random.PRNGKey(0))
+    state = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(runner.env_state))
+    transition = (env.obs_dim + 2 * env.action_dim + 6) * 4  # obs, action, its mean, reward, value, ...
+    return int(num_envs) * (4 * state + 2 * config.ppo.num_steps * transition)
+
+
+def require_envs(config: PPOConfig, num_envs: int, what: str, task=None) -> None:
+    """Refuses ``num_envs`` environments whose memory (:func:`memory_bytes`) is above the budget."""
+    require_memory(what, memory_bytes(config, num_envs, task), remedy="ask for fewer environments")
 
 
 @functools.lru_cache(maxsize=8)
@@ -114,6 +132,9 @@ def train(config: PPOConfig, out, resume: bool = False, progress=print) -> dict:
             config.train, total_env_steps=limits.total_env_steps, time_limit_s=limits.time_limit_s))
         history, elapsed = payload["history"], payload["elapsed_s"]
     t = config.train
+    require_envs(config, config.ppo.num_envs + t.eval_envs,
+                 f"{config.source or 'the PPO config'}: [ppo] num_envs = {config.ppo.num_envs} "
+                 f"(and [train] eval_envs = {t.eval_envs})")
     env, env_params = build(config, config.ppo.num_envs)
     eval_env, eval_params = build(config, t.eval_envs) if t.eval_envs else (None, None)
     runner = jax.jit(lambda k: ppo.init_runner(env, env_params, config, k))(jax.random.PRNGKey(t.seed))

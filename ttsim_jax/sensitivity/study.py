@@ -14,6 +14,7 @@ from ttsim_jax.sensitivity import budgets, report
 from ttsim_jax.sensitivity.cases import dataset_shots, sampled_shots
 from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, jacobian, layout_of, local_flags
 from ttsim_jax.sensitivity.targets import check_target
+from ttsim_jax.sizes import require as require_memory
 
 
 @dataclass
@@ -58,6 +59,17 @@ def check_locality(cfg: StudyConfig, jac, shots, scale, n_steps) -> dict:
     return local_flags(model, shots, jac, probe, dt=cfg.dt, n_steps=n_steps, batch=cfg.chunk)
 
 
+def study_bytes(cfg: StudyConfig, inputs: int, n_steps: int) -> int:
+    """What :func:`run_study` holds at once [bytes]: per shot its Jacobian (3 components x every
+    input, in float64 for the report, with the local check's and the budget's copies: 4 of them),
+    its state and the Monte Carlo samples' landing points; per shot of a chunk, the reverse pass's
+    stored steps (remat keeps about one ball state, 9 numbers, per step)."""
+    item = 8 if cfg.float64 else 4
+    per_shot = 4 * 3 * (inputs + 9) * 8 + 1024 + (cfg.monte_carlo or 0) * 3 * 8
+    per_chunk_shot = n_steps * 9 * item * 4
+    return cfg.shots * per_shot + min(cfg.chunk, cfg.shots) * per_chunk_shot
+
+
 def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
     """Runs a study and writes ``sensitivity.json``, ``report.md``, ``heatmaps.png`` and (for the
     landing target) ``budget.png`` into ``out``.
@@ -81,6 +93,8 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
                                           cfg.spin_abs)
         if cfg.param_cov:
             sources.append(budgets.parameter_source(cfg.param_cov, layout_of(model).columns()))
+    require_memory(f"a sensitivity study of {cfg.shots} shots",
+                   study_bytes(cfg, len(layout_of(model).columns()), n_steps), remedy="ask for fewer shots (--shots) or a smaller --chunk")
     t0 = time.perf_counter()
     if cfg.data:
         shots = dataset_shots(model, cfg.data, dt=cfg.dt, limit=cfg.shots)
