@@ -271,10 +271,15 @@ def cmd_simulate(args) -> int:
     model = load_model(args.model)
 
     t0 = time.perf_counter()
+    if not args.no_aim:  # the aiming flights compile once per model and batch shape (cached across runs)
+        print(f"aiming {args.shots} shots through {model.name} (the first run compiles the aiming flights: "
+              "up to a minute) ...", flush=True)
     balls, labels = sample_shots(args.shots, seed=args.seed, types=types, model=None if args.no_aim else model)
     t_aim = time.perf_counter() - t0
     chunks = [slice(i, min(i + args.chunk, args.shots)) for i in range(0, args.shots, args.chunk)]
     results, t_sim, t_first = [], 0.0, 0.0
+    print(f"simulating {args.shots} shots for {n_steps} steps (the first call compiles the kernel: up to a "
+          "minute) ...", flush=True)
     for k, sl in enumerate(tqdm(chunks, desc="simulating", unit="chunk", disable=len(chunks) < 2)):
         chunk = Ball(*(np.asarray(a)[sl] for a in (balls.pos, balls.vel, balls.spin)))
         t1 = time.perf_counter()
@@ -312,7 +317,7 @@ def cmd_simulate(args) -> int:
         from ttsim_jax.plots import plot_trajectories
 
         plot_trajectories(cat(lambda r: r.trajectory.pos), args.plot, labels=labels, events=(pre, kinds),
-                          title=f"{model.name}: sample of {args.shots} shots")
+                          title=f"{model.name}: {args.shots} simulated shots")
         print(f"plot written to {args.plot}")
     return 0
 
@@ -349,11 +354,11 @@ def _sensitivity_command(sub):
                    help="skip the local-gradient check (finite differences at two steps per input group)")
     p.add_argument("--monte-carlo", type=positive_int, default=None, metavar="N",
                    help="also propagate the budget's sources by N samples per shot through the simulator")
-    p.add_argument("--racket-pos-std", type=finite_float, default=0.008, help="racket position error, RMS length [m]")
-    p.add_argument("--racket-vel-std", type=finite_float, default=0.2, help="racket velocity error, RMS length [m/s]")
-    p.add_argument("--racket-rot-std", type=finite_float, default=0.7, help="racket orientation error, RMS angle [deg]")
-    p.add_argument("--spin-rel-std", type=finite_float, default=0.05, help="relative spin-estimate noise")
-    p.add_argument("--spin-abs-std", type=finite_float, default=10.0, help="spin-estimate noise per axis [rad/s]")
+    p.add_argument("--racket-pos-std", type=finite_float, default=0.008, help="racket position error, RMS length [m] (default: %(default)s)")
+    p.add_argument("--racket-vel-std", type=finite_float, default=0.2, help="racket velocity error, RMS length [m/s] (default: %(default)s)")
+    p.add_argument("--racket-rot-std", type=finite_float, default=0.7, help="racket orientation error, RMS angle [deg] (default: %(default)s)")
+    p.add_argument("--spin-rel-std", type=finite_float, default=0.05, help="relative spin-estimate noise (default: %(default)s)")
+    p.add_argument("--spin-abs-std", type=finite_float, default=10.0, help="spin-estimate noise per axis [rad/s] (default: %(default)s)")
     p.add_argument("--param-cov", type=existing_file, default=None,
                    help='JSON {"parameters": [names], "covariance": [[...]]}: a fitted parameter covariance')
     p.add_argument("--float64", action="store_true", help="compute in float64")

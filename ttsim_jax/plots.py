@@ -17,7 +17,8 @@ def draw_table(ax_top, ax_side, table_length=2.74, table_width=1.525, net_height
     ax_top.plot([0, 0], [-hw - 0.15, hw + 0.15], color="k", lw=1.5)
     ax_top.plot([-hl, hl], [0, 0], color="white", lw=0.8)
     ax_side.plot([-hl, hl], [0, 0], color="#1f4e79", lw=3)
-    ax_side.plot([0, 0], [0, net_height], color="k", lw=1.5)
+    ax_side.plot([0, 0], [0, net_height], color="k", lw=2.5, zorder=4, solid_capstyle="butt")
+    ax_side.annotate("net", (0, net_height), xytext=(4, 2), textcoords="offset points", fontsize=7)
 
 
 def plot_trajectories(positions, path, labels=None, events=None, title="", max_balls=60):
@@ -35,6 +36,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
         The path written.
     """
     plt = _pyplot()
+    total = len(positions)
     positions = np.asarray(positions)[:max_balls]
     fig, (ax_top, ax_side) = plt.subplots(2, 1, figsize=(10, 8), gridspec_kw={"height_ratios": [1.1, 1]})
     draw_table(ax_top, ax_side)
@@ -51,15 +53,22 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
         ax_side.plot(p[keep, 0], p[keep, 2], color=colours[name], lw=0.8, alpha=0.8)
     if events is not None:
         epos, kinds = (np.asarray(e)[:max_balls] for e in events)
-        for kind, marker, colour in ((1, "o", "k"), (2, "s", "red"), (3, "x", "orange")):
+        for kind, marker, colour, what in ((1, "o", "k", "table bounce"), (2, "s", "red", "racket contact"),
+                                           (3, "x", "orange", "net contact")):
             sel = kinds == kind
             ax_top.scatter(epos[sel][:, 0], epos[sel][:, 1], s=10, marker=marker, color=colour, zorder=3)
-            ax_side.scatter(epos[sel][:, 0], epos[sel][:, 2], s=10, marker=marker, color=colour, zorder=3)
+            ax_side.scatter(epos[sel][:, 0], epos[sel][:, 2], s=10, marker=marker, color=colour, zorder=3,
+                            label=what if sel.any() else None)
+        if (kinds > 0).any():
+            ax_side.legend(loc="upper right", fontsize=7, title="events", title_fontsize=7)
     ax_top.set(xlabel="x [m] (along the table)", ylabel="y [m]", aspect="equal", xlim=(-3.5, 3.5), ylim=(-1.6, 1.6))
     ax_side.set(xlabel="x [m]", ylabel="z [m] (above the table surface)", xlim=(-3.5, 3.5), ylim=(-0.8, 2.0))
-    ax_top.set_title(title or "ball paths: top view (dots: bounces, squares: racket, x: net)")
+    drawn = f"{len(positions)} of {total} paths drawn" if total > len(positions) else f"{total} paths"
+    ax_top.set_title(f"{title} ({drawn})" if title else f"ball paths, top view ({drawn})")
+    ax_side.set_title("side view", fontsize=9)
     if names is not None:
-        ax_top.legend(loc="upper left", fontsize=7, ncol=4)
+        ax_top.legend(loc="upper left", fontsize=7, ncol=4, title="shot type" if len(colours) > 1 else None,
+                      title_fontsize=7)
     ax_side.grid(alpha=0.3)
     return _save(fig, path)
 

@@ -253,3 +253,6 @@ def test_command_takes_shots_from_a_dataset(model, jac_all, cfg, tmp_path):
         j = np.asarray(row["jacobian"])
         assert (np.abs(j).max() > 0.01) if ok else not j.any()
     assert (out / "report.md").exists() and (out / "heatmaps.png").exists()
+    report = (out / "report.md").read_text()  # --no-check: nothing claims the gradients were checked
+    assert "hold beyond the point" not in report.replace("not checked to hold beyond the point", "")
+    assert "--no-check" in report

@@ -8,49 +8,20 @@ Main entry points::
 See ``docs/data_format.md`` for the format.
 """
 
-from .batch import (
-    EventBatch,
-    RacketContactBatch,
-    SegmentBatch,
-    event_batch,
-    iter_segment_batches,
-    racket_contact_batch,
-    segment_batch,
-)
-from .csvlog import read_csv, write_csv
-from .dataset import Dataset, Metadata
-from .errors import DataError
-from .importers import import_source
-from .io import load, save
-from .schema import BALL_RADIUS, CANONICAL_FRAME, EVENT_KINDS, SCHEMA_VERSION
-from .segment import FilterReport, detect_events, filter_segments, find_bounces, segments_from_events
-from .validate import problems, validate
+from ttsim_jax.lazy import exports
 
-__all__ = [
-    "BALL_RADIUS",
-    "CANONICAL_FRAME",
-    "DataError",
-    "Dataset",
-    "EVENT_KINDS",
-    "EventBatch",
-    "FilterReport",
-    "Metadata",
-    "RacketContactBatch",
-    "SCHEMA_VERSION",
-    "SegmentBatch",
-    "detect_events",
-    "event_batch",
-    "filter_segments",
-    "find_bounces",
-    "import_source",
-    "iter_segment_batches",
-    "load",
-    "problems",
-    "racket_contact_batch",
-    "read_csv",
-    "write_csv",
-    "save",
-    "segment_batch",
-    "segments_from_events",
-    "validate",
-]
+_NAMES = {
+    **dict.fromkeys(["EventBatch", "RacketContactBatch", "SegmentBatch", "event_batch", "iter_segment_batches",
+                     "racket_contact_batch", "segment_batch"], "ttsim_jax.data.batch"),
+    **dict.fromkeys(["read_csv", "write_csv"], "ttsim_jax.data.csvlog"),
+    **dict.fromkeys(["Dataset", "Metadata"], "ttsim_jax.data.dataset"),
+    **dict.fromkeys(["DataError"], "ttsim_jax.data.errors"),
+    **dict.fromkeys(["import_source"], "ttsim_jax.data.importers"),
+    **dict.fromkeys(["load", "save"], "ttsim_jax.data.io"),
+    **dict.fromkeys(["BALL_RADIUS", "CANONICAL_FRAME", "EVENT_KINDS", "SCHEMA_VERSION"], "ttsim_jax.data.schema"),
+    **dict.fromkeys(["FilterReport", "detect_events", "filter_segments", "find_bounces", "segments_from_events"],
+                    "ttsim_jax.data.segment"),
+    **dict.fromkeys(["problems", "validate"], "ttsim_jax.data.validate"),
+}
+__getattr__, __dir__ = exports(__name__, _NAMES)
+__all__ = sorted(_NAMES)

@@ -753,6 +753,9 @@ class _Game:
         n_lanes = min(cfg.lanes, cfg.games)
         lanes = [_Lane() for _ in range(n_lanes)]
         queue = list(self.sessions)
+        if self.progress:  # the bar stays at 0 while the first chunk compiles
+            print("generating (the first chunk compiles the game's kernels: up to a minute the first time) ...",
+                  flush=True)
         self.bar = tqdm(total=self.total_rallies, desc="generating", unit="rally", disable=not self.progress)
         self._assign(lanes, queue)
         C = cfg.chunk_steps
@@ -1343,18 +1346,15 @@ def load_truth(path: str | Path) -> Truth:
     """Reads the truth files of a generated dataset directory, checking that they carry the id of
     the dataset's ``metadata.json`` (a :class:`~ttsim_jax.data.DataError` names a file that does
     not, or a corrupted one)."""
-    from .errors import DataError
-    from .io import ID_KEY, dataset_id, read_parquet
+    from .io import ID_KEY, dataset_id, read_parquet, read_truth_json
 
     path = Path(path)
     file = path / "truth.json"
     if not file.is_file():
         raise FileNotFoundError(f"{file}: missing; is {path} a generated dataset?")
     ident = dataset_id(path)
-    info = json.loads(file.read_text())
-    if info.pop(ID_KEY, "") != ident:
-        raise DataError("truth file belongs to another dataset than metadata.json; write the dataset again",
-                        file=file, column=ID_KEY)
+    info = read_truth_json(path, ident)
+    info.pop(ID_KEY, "")
 
     def table(name):
         p = path / name

@@ -132,8 +132,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     Arguments:
         ds: a validated dataset; model: a loaded :class:`~ttsim_jax.params.Model` (float32).
         settings: :class:`Settings`.
-        progress: optional ``progress(what, units)`` called as work is done (units of
-            :func:`work_units`).
+        progress: optional ``progress(what, units)``: ``units`` of :func:`work_units` are done
+            and ``what`` runs next (what a progress bar shows while it runs).
         keep: optional dict that receives the :class:`~ttsim_jax.diagnose.candidates.Problem`
             (``"problem"``), for scoring other models on the same split.
 
@@ -155,12 +155,12 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
     if ph.flights is None and ph.table is None and ph.racket is None:
         raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
-    tick("phases", 1)
+    tick("model errors", 1)
     pb = C.problem(ph, model, settings.test_fraction, settings.seed)
     refuse_non_finite(pb, ph)
     if keep is not None:
         keep["problem"] = pb
-    tick("model errors", 1)
+    tick("landing rollouts" if settings.landing else "noise floor and bounds", 1)
     out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
     out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
@@ -174,7 +174,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             items["landing"] = W.landing_items(cases, landing["error"]["model"], radius)
         else:
             out["skipped"]["landing"] = landing["skipped"]
-    tick("landing", 1)
+    tick("noise floor and bounds" if settings.landing else "noise floor and bounds (no landing)", 1)
     out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
     floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
     out["where"] = {p: W.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
@@ -190,14 +190,16 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     cands = []
     available = [n for n in names if any(p in pb.phases for p in C.spec(n)[0].phases)]
     group_of = {n: g for g in C.groups(available, pb.phases) for n in g}
-    for name in names:
+    tick(f"fitting {names[0]}" if names else "ranking", 0)
+    for i, name in enumerate(names):
+        following = f"fitting {names[i + 1]}" if i + 1 < len(names) else "forward selection"
         spec, _ = C.spec(name)
         if not any(p in pb.phases for p in spec.phases):
             out["skipped"][f"effect {name}"] = f"acts in {', '.join(spec.phases)}: no data there"
-            tick(name, 1)
+            tick(following, 1)
             continue
         cands.append(C.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
-        tick(name, 1)
+        tick(following, 1)
     ranked = C.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
     beyond = {c.spec.name: implausible(c.params) for c in ranked}
@@ -220,7 +222,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     elif significant:
         best = significant[0]
         out["combined"] = _candidate_json(best, 1)
-    tick("combined", 1)
+    tick("landing after the effects" if landing is not None and cases is not None else "verdict", 1)
     arrays = {f"before_{p}": _items(ph, pb, p, pb.base[p], radius, _test_rows(pb, p))["error"] for p in pb.phases}
     out["before_after"] = {}
     if best is not None:
@@ -241,7 +243,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
             arrays["after_landing"] = after[np.isfinite(after)]
         out["landing"] = entry
-    tick("landing after", 1)
+    tick("verdict", 1)
     out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
                              [c for c in ranked if c.spec.name in out["implausible"]])
     out["pooled_sessions"] = pb.pooled

@@ -27,23 +27,28 @@ def _show(phase):
     return _SHOW[UNITS[phase]]
 
 
-def plot_where(where: dict, path) -> Path:
-    """Mean error per regime bin and phase (rows: phases, columns: regimes)."""
+def plot_where(where: dict, path, columns: int = 4) -> Path:
+    """Mean error per regime bin and phase: for each phase, its regimes in rows of ``columns``
+    panels (a grid wide enough for every regime was unreadable at any page width)."""
+    from matplotlib.patches import Patch
+
     from ttsim_jax.plots import _pyplot, _save
 
     plt = _pyplot()
-    phases = list(where)
-    regimes = [r for r in REGIMES if any(r in where[p]["regimes"] for p in phases)]
-    fig, axes = plt.subplots(len(phases), max(1, len(regimes)), figsize=(2.6 * max(1, len(regimes)), 2.4 * len(phases)),
-                             squeeze=False)
-    for i, p in enumerate(phases):
+    panels = [(p, r) for p in where for r in REGIMES if where[p]["regimes"].get(r)]
+    rows_of = {p: -(-sum(1 for q, _ in panels if q == p) // columns) for p in where}
+    n_rows = max(1, sum(rows_of.values()))
+    fig, axes = plt.subplots(n_rows, columns, figsize=(3.6 * columns, 2.9 * n_rows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    row = 0
+    for p in where:
         unit, f = _show(p)
-        for j, r in enumerate(regimes):
-            ax = axes[i, j]
-            rows = where[p]["regimes"].get(r)
-            if not rows:
-                ax.axis("off")
-                continue
+        mine = [r for q, r in panels if q == p]
+        for k, r in enumerate(mine):
+            ax = axes[row + k // columns, k % columns]
+            ax.axis("on")
+            rows = where[p]["regimes"][r]
             m = np.array([b["mean"] for b in rows]) * f
             lo = np.array([b["ci95"][0] for b in rows]) * f
             hi = np.array([b["ci95"][1] for b in rows]) * f
@@ -53,11 +58,17 @@ def plot_where(where: dict, path) -> Path:
             ax.errorbar(x, m, yerr=[np.maximum(m - lo, 0), np.maximum(hi - m, 0)], fmt="none", ecolor="k", lw=1)
             ax.axhline(where[p]["mean"] * f, color="grey", ls="--", lw=1)
             ax.set_xticks(x)
-            ax.set_xticklabels([b["label"] for b in rows], rotation=45, ha="right", fontsize=6)
-            ax.tick_params(axis="y", labelsize=7)
-            ax.set_title(f"{p}: {REGIMES[r][0]}" if j == 0 else REGIMES[r][0], fontsize=7)
-            if j == 0:
-                ax.set_ylabel(f"{p} mean error [{unit}]", fontsize=8)
+            ax.set_xticklabels([b["label"] for b in rows], rotation=30, ha="right", fontsize=8)
+            ax.tick_params(axis="y", labelsize=8)
+            ax.set_title(f"{p}: {REGIMES[r][0]}", fontsize=9)
+            if k % columns == 0:
+                ax.set_ylabel(f"mean error [{unit}]", fontsize=8)
+        row += rows_of[p]
+    if panels:
+        axes[0, 0].legend(handles=[Patch(color="#1f77b4", alpha=0.8, label="bin (95 % interval)"),
+                                   Patch(color="#d62728", alpha=0.8, label="flagged (vs mean or floor)"),
+                                   plt.Line2D([], [], color="grey", ls="--", label="phase mean")],
+                          loc="upper left", fontsize=7, framealpha=0.8)
     return _save(fig, path)
 
 

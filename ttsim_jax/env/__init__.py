@@ -1,12 +1,16 @@
 """Reinforcement-learning environments over the rally kernel.
 
 :mod:`.return_ball` is the functional environment (pure ``reset`` / ``step`` over pytrees, batched,
-jit- and vmap-able); :mod:`.gym` holds its gymnasium adapters; :mod:`.render` draws their frames
+jit- and vmap-able); :mod:`.single` the same for one environment, for the user to vmap (gymnax's
+shape); :mod:`.gym` holds its gymnasium adapters; :mod:`.render` draws their frames
 (``render_mode="rgb_array"``); :mod:`.registration` registers ``ttsim/ReturnBall-v0`` with
 gymnasium (done when ``ttsim_jax`` is imported).
 """
 
-from ttsim_jax.env.config import TaskConfig, load_task_config
-from ttsim_jax.env.return_ball import OUTCOME_NAMES, EnvParams, EnvState, ReturnBall
+from ttsim_jax.lazy import exports
 
-__all__ = ["EnvParams", "EnvState", "OUTCOME_NAMES", "ReturnBall", "TaskConfig", "load_task_config"]
+_NAMES = {**dict.fromkeys(["TaskConfig", "load_task_config"], "ttsim_jax.env.config"),
+          **dict.fromkeys(["EnvParams", "EnvState", "OUTCOME_NAMES", "ReturnBall"], "ttsim_jax.env.return_ball"),
+          "SingleReturnBall": "ttsim_jax.env.single"}
+__getattr__, __dir__ = exports(__name__, _NAMES)
+__all__ = list(_NAMES)

@@ -159,6 +159,9 @@ def train(config: PPOConfig, out, resume: bool = False, progress=print) -> dict:
         if history:
             plot_curve(history, out / CURVE)
 
+    if progress:  # nothing else is printed until the first chunk of updates is compiled and done
+        progress(f"compiling the PPO update of {config.ppo.num_envs} environments (a few minutes the first time, "
+                 "cached afterwards) ...")
     n_chunk = 0
     start = time.perf_counter() - elapsed
     env_steps = int(runner.update) * config.batch_size

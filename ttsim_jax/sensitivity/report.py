@@ -110,12 +110,17 @@ def summarise(jac: Jacobian, shots, flags: dict, budget: budgets.Budget | None, 
     types["all"] = landed
     reg = regimes(shots.speed, shots.spin, shots.contact)
     local = {g: int((landed & ~m).sum()) for g, m in ok_group.items() if (landed & ~m).any()}
+    checked = flags.get("checked", True)
+    holds = "hold beyond the point" if checked else "were not checked to hold beyond the point (--no-check)"
     md = [f"# Sensitivity of {jac.target} ({', '.join(jac.components)})\n",
-          f"{int(landed.sum())} of {len(landed)} shots landed after the racket; {int(ok.sum())} have gradients that "
-          "hold beyond the point for every input group. Gradients flagged as local (an event flip, or central "
-          "differences at two steps disagree), by group: "
-          + (", ".join(f"{g} {n}" for g, n in sorted(local.items(), key=lambda x: -x[1])) or "none")
-          + "; a shot flagged for one group still counts for the others.\n",
+          (f"{int(landed.sum())} of {len(landed)} shots landed after the racket; {int(ok.sum())} have gradients that "
+           "hold beyond the point for every input group. Gradients flagged as local (an event flip, or central "
+           "differences at two steps disagree), by group: "
+           + (", ".join(f"{g} {n}" for g, n in sorted(local.items(), key=lambda x: -x[1])) or "none")
+           + "; a shot flagged for one group still counts for the others.\n") if checked else
+          (f"{int(landed.sum())} of {len(landed)} shots landed after the racket. The local-gradient check was not "
+           "run (--no-check): every landed shot counts, including any whose gradient holds only at its point "
+           "(an event that flips under a small change).\n"),
           "## By shot type\n", _table(sens, types, ok_group, unit, factor)]
 
     def medians(cols):
@@ -145,7 +150,7 @@ def summarise(jac: Jacobian, shots, flags: dict, budget: budgets.Budget | None, 
             shares[t] = dict(std_mm=std, share={s: float(v) for s, v in zip(budget.sources, share)})
             md.append(f"| {t} | {std:.1f} | " + " | ".join(f"{100 * v:.0f} %" for v in share) + " |")
         md.append(f"\n(over the {int(ok_budget.sum())} landed shots whose gradients for the budget's inputs "
-                  "hold beyond the point; std: median over shots of sqrt(trace of the landing covariance))\n")
+                  f"{holds}; std: median over shots of sqrt(trace of the landing covariance))\n")
         out["budget_by_type"] = shares
     out["markdown"] = "\n".join(md)
     return out

@@ -101,6 +101,8 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
     else:
         shots = sampled_shots(model, cfg.shots, seed=cfg.seed, types=cfg.types, dt=cfg.dt)
     log(f"{len(shots)} shots ({shots.source}) in {time.perf_counter() - t0:.1f} s")
+    log(f"differentiating through the kernel ({cfg.mode} mode; the first chunk compiles: a few minutes the first "
+        "time, cached afterwards) ...")
     t0 = time.perf_counter()
     jac = jacobian(model, shots, target=cfg.target, dt=cfg.dt, n_steps=n_steps, mode=cfg.mode, chunk=cfg.chunk,
                    progress=True)
@@ -115,7 +117,7 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
             f"flagged in {time.perf_counter() - t0:.1f} s")
     else:
         b = len(shots)
-        flags = dict(flag=~jac.valid, flip=np.zeros(b, bool), groups={}, disagreement={})
+        flags = dict(flag=~jac.valid, flip=np.zeros(b, bool), groups={}, disagreement={}, checked=False)
     budget = mc = None
     if sources:
         budget = budgets.linear_budget(jac, sources)
