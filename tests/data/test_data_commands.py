@@ -27,7 +27,7 @@ def run(parser, argv):
 def test_every_option_has_help(parser):
     data = next(a for a in parser._subparsers._group_actions[0].choices.values())
     sub = data._subparsers._group_actions[0]
-    assert set(sub.choices) == {"import", "info"}
+    assert set(sub.choices) == {"import", "info", "upgrade"}
     for name, p in sub.choices.items():
         for action in p._actions:
             if isinstance(action, argparse._HelpAction):

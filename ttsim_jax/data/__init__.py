@@ -15,7 +15,7 @@ _NAMES = {
                      "racket_contact_batch", "segment_batch"], "ttsim_jax.data.batch"),
     **dict.fromkeys(["read_csv", "write_csv"], "ttsim_jax.data.csvlog"),
     **dict.fromkeys(["Dataset", "Metadata"], "ttsim_jax.data.dataset"),
-    **dict.fromkeys(["DataError"], "ttsim_jax.data.errors"),
+    **dict.fromkeys(["DataError", "DataWarning"], "ttsim_jax.data.errors"),
     **dict.fromkeys(["import_source"], "ttsim_jax.data.importers"),
     **dict.fromkeys(["load", "save"], "ttsim_jax.data.io"),
     **dict.fromkeys(["BALL_RADIUS", "CANONICAL_FRAME", "EVENT_KINDS", "SCHEMA_VERSION"], "ttsim_jax.data.schema"),
@@ -25,3 +25,9 @@ _NAMES = {
 }
 __getattr__, __dir__ = exports(__name__, _NAMES)
 __all__ = sorted(_NAMES)
+
+# ``validate`` is also the name of a submodule: once that is imported, the import system sets the
+# package's attribute to the module and ``__getattr__`` is never asked again, so ``from
+# ttsim_jax.data import validate`` would give the module. Bound here, the function stays (cheap:
+# numpy only).
+from .validate import validate  # noqa: E402

@@ -9,12 +9,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import warnings
 
 from ttsim_jax.cli import UsageError, existing_dir, existing_path, finite_float, positive_float, writable_dir
 
 
+def _dataset_to_rewrite(text: str):
+    """A dataset directory that exists and can be replaced (its parent takes a temporary sibling)."""
+    return writable_dir(str(existing_dir(text)))
+
+
 def register(subparsers) -> argparse.ArgumentParser:
-    """Adds ``data import`` and ``data info`` to an argparse subparsers object.
+    """Adds ``data import``, ``data info`` and ``data upgrade`` to an argparse subparsers object.
 
     Arguments:
         subparsers: what ``ArgumentParser.add_subparsers()`` returned.
@@ -51,49 +57,104 @@ def register(subparsers) -> argparse.ArgumentParser:
     inf = sub.add_parser(
         "info",
         help="counts, ranges and validation summary of a dataset",
-        description="Print counts of sessions, segments and events by kind, speed and spin ranges, and the validation summary.",
+        description="Print counts of sessions, segments and events by kind, speed and spin ranges, whether the files "
+        "carry page checksums (protected against silent damage), and the validation summary with its warnings.",
     )
     inf.add_argument("path", metavar="DIR", type=existing_dir, help="dataset directory")
     inf.add_argument("--json", action="store_true", help="print the summary as JSON")
     inf.set_defaults(func=cmd_info)
+
+    upg = sub.add_parser(
+        "upgrade",
+        help="rewrite a dataset in the current schema version, with page checksums",
+        description="Rewrite dataset DIR (in place, or as a copy with --out) in the current schema version: Parquet "
+        "page checksums (so that a damaged file is refused on load) and a new dataset id in every file; every value "
+        "and every other file is kept. Each file is read back and compared before the new directory replaces the old "
+        "one in one step, so a failure leaves the original as it was.",
+    )
+    upg.add_argument("path", metavar="DIR", type=_dataset_to_rewrite, help="dataset directory")
+    upg.add_argument("--out", metavar="OUT", type=writable_dir, help="write the upgraded copy here and leave DIR as it is")
+    upg.add_argument("--force", action="store_true", help="with --out: replace a dataset already in OUT")
+    upg.set_defaults(func=cmd_upgrade)
     return data
 
 
 def cmd_import(args) -> int:
     """``data import``: import, optionally filter, save, and print a summary."""
+    from .errors import DataWarning
     from .importers import import_source
-    from .io import save
+    from .io import parquet_files, save, unprotected_files
     from .segment import filter_segments
     from .summary import format_info, info
     from .tracks import tracking_report
 
-    try:
-        ds = import_source(args.path, args.source, length_unit=args.length_unit, time_unit=args.time_unit)
-    except UnicodeDecodeError as e:
-        raise UsageError(f"{args.path}: not a {args.source} recording (a file is not UTF-8 text: {e})") from None
+    if args.out.exists() and not args.force and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise UsageError(f"--out {args.out}: exists and is not empty; pass --force to replace it")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        try:
+            ds = import_source(args.path, args.source, length_unit=args.length_unit, time_unit=args.time_unit)
+        except UnicodeDecodeError as e:
+            raise UsageError(f"{args.path}: not a {args.source} recording (a file is not UTF-8 text: {e})") from None
+    doubts = [w.message for w in caught if isinstance(w.message, DataWarning)]
+    for w in caught:
+        if not isinstance(w.message, DataWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     print("fitting a flight to every segment to check it ...", flush=True)
     print(tracking_report(ds))
     if args.filter:
         conf = None if args.min_spin_conf < 0 else args.min_spin_conf
         ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
         print(report)
+    if not len(ds.segments["segment_id"]) and not len(ds.events["kind"]):
+        raise UsageError(f"{args.path}: nothing to write: no flight segment (a segment needs 5 samples or more of "
+                         f"one tracked flight) and no contact among its {len(ds.observations['t'])} observations"
+                         + (" after --filter" if args.filter else ""))
     save(ds, args.out, overwrite=args.force)
     print(f"wrote {args.out}")
-    print(format_info(info(ds)))
+    print(format_info(info(ds, warnings=doubts, unprotected=(unprotected_files(args.out), len(parquet_files(args.out))))))
     return 0
 
 
 def cmd_info(args) -> int:
     """``data info``: load without stopping at problems, then summarise them."""
-    from .io import METADATA_FILE, load, table_path
+    from .errors import DataWarning
+    from .io import METADATA_FILE, load, parquet_files, table_path, unprotected_files
     from .schema import TABLES
     from .summary import format_info, info
-    from .validate import problems
+    from .validate import borderline, problems
 
-    ds = load(args.path, validate=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)  # reported below, with the rest
+        ds = load(args.path, validate=False)
     files = {name: table_path(args.path, name) for name in TABLES}
     files["metadata"] = f"{args.path}/{METADATA_FILE}"
     found = problems(ds, files)
-    d = info(ds, found)
+    doubts = [] if found else borderline(ds, files)
+    d = info(ds, found, doubts, (unprotected_files(args.path), len(parquet_files(args.path))))
     print(json.dumps(d, indent=2) if args.json else format_info(d))
     return 1 if found else 0
+
+
+def cmd_upgrade(args) -> int:
+    """``data upgrade``: rewrite a dataset with page checksums in the current schema version."""
+    from .io import parquet_files, read_metadata, unprotected_files, upgrade
+    from .schema import SCHEMA_VERSION
+
+    before = read_metadata(args.path).schema_version
+    bare = unprotected_files(args.path)
+    n = len(parquet_files(args.path))
+    if args.out is None and not bare and before == SCHEMA_VERSION:
+        print(f"{args.path}: already schema {SCHEMA_VERSION} with page checksums in all {n} Parquet files; nothing to do")
+        return 0
+    if args.out is not None and args.out.exists() and not args.force:
+        raise UsageError(f"--out {args.out}: exists; add --force to replace the dataset there (other files in it are kept)")
+    try:
+        out = upgrade(args.path, args.out, overwrite=args.force)
+    except (FileExistsError, NotADirectoryError) as e:
+        if args.out is None:
+            raise
+        raise UsageError(f"--out: {e}") from None
+    print(f"wrote {out}: schema {before} -> {SCHEMA_VERSION}, page checksums in all {n} Parquet files "
+          f"({len(bare)} had none), a new dataset id; every value kept (each file read back and compared)")
+    return 0

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import io
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -190,7 +191,7 @@ def read_csv(
         The dataset.
     """
     from .segment import detect_events, segments_from_events
-    from .validate import validate
+    from .validate import borderline, validate
 
     path = Path(path)
     obs_file = path / "observations.csv" if path.is_dir() else path
@@ -246,24 +247,31 @@ def read_csv(
     try:
         validate(ds)
     except DataError as e:
-        if e.table in files and files[e.table] is not None:
-            # Rows named inside the message (a duplicate's first row) are rows of the same table.
-            problem = re.sub(r"\brow (\d+)\b", lambda m: f"line {lines[e.table][int(m.group(1))]}", e.problem)
-            raise DataError(
-                problem,
-                file=files[e.table],
-                table=e.table,
-                row=None if e.row is None else lines[e.table][e.row],
-                row_label="line",
-                column=e.column,
-                value=e.value,
-            ) from None
-        raise
+        raise _on_lines(e, files, lines) from None
     _check_speeds(o["session_id"], t, pos, o["t"], obs_file, o_lines, time_unit)
     _check_long_axis(o["session_id"], t, pos, o["y"], obs_file, o_lines)
     ds = detect_events(ds) if detect else segments_from_events(ds)
-    validate(ds)
+    # Segmenting keeps the observations' and rackets' rows in file order (events are re-sorted and
+    # joined by detected ones): the checks that need segments still name those files' lines.
+    same_rows = {k: files[k] for k in ("observations", "rackets")}
+    try:
+        validate(ds)
+    except DataError as e:
+        raise _on_lines(e, same_rows, lines) from None
+    for w in borderline(ds):
+        warnings.warn(_on_lines(w, same_rows, lines), stacklevel=2)
     return ds
+
+
+def _on_lines(e, files: dict, lines: dict):
+    """``e`` (a DataError or DataWarning about a table's rows) located in that table's CSV file by
+    line; unchanged for tables not in ``files`` (or without a file)."""
+    if files.get(e.table) is None:
+        return e
+    # Rows named inside the message (a duplicate's first row) are rows of the same table.
+    problem = re.sub(r"\brow (\d+)\b", lambda m: f"line {lines[e.table][int(m.group(1))]}", e.problem)
+    return type(e)(problem, file=files[e.table], table=e.table, row=None if e.row is None else lines[e.table][e.row],
+                   row_label="line", column=e.column, value=e.value)
 
 
 

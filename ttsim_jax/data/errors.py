@@ -1,25 +1,13 @@
-"""The one exception the data layer raises for bad input."""
+"""The one exception the data layer raises for bad input, and the warning it gives for doubtful input."""
 
 from __future__ import annotations
 
 from typing import Any
 
 
-class DataError(ValueError):
-    """Bad measured data, located as precisely as the input allows.
-
-    The message names the file (or in-memory table), the row, the column and the offending value,
-    so that a user can open the file and fix it without reading code.
-
-    Attributes:
-        problem: what is wrong, in words.
-        file: path or label of the file (``None`` for in-memory data).
-        table: table name (``observations``, ``events``, ...), if any.
-        row: row of the offending value; for Parquet tables the 0-based row index, for CSV files
-            the 1-based line number (``row_label`` says which).
-        column: column name, if any.
-        value: the offending value, if any.
-    """
+class _Located:
+    """Message and attributes of a problem located in measured data (file, table, row, column,
+    value); the base of :class:`DataError` and :class:`DataWarning`."""
 
     def __init__(
         self,
@@ -51,6 +39,32 @@ class DataError(ValueError):
         if value is not None:
             where.append(f"value {_show(value)}")
         super().__init__((", ".join(where) + ": " if where else "") + problem)
+
+
+class DataError(_Located, ValueError):
+    """Bad measured data, located as precisely as the input allows.
+
+    The message names the file (or in-memory table), the row, the column and the offending value,
+    so that a user can open the file and fix it without reading code.
+
+    Attributes:
+        problem: what is wrong, in words.
+        file: path or label of the file (``None`` for in-memory data).
+        table: table name (``observations``, ``events``, ...), if any.
+        row: row of the offending value; for Parquet tables the 0-based row index, for CSV files
+            the 1-based line number (``row_label`` says which).
+        column: column name, if any.
+        value: the offending value, if any.
+    """
+
+
+class DataWarning(_Located, UserWarning):
+    """Doubtful measured data that is still used: a value at the edge of what table tennis
+    produces, or a dataset that cannot show its own corruption (written without page checksums).
+
+    Located and worded like :class:`DataError` (same attributes); emitted with
+    :func:`warnings.warn`, so that a caller can show, record or silence it.
+    """
 
 
 def _show(value: Any) -> str:

@@ -24,16 +24,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     Returns:
         The ``generate`` parser.
     """
-    from ttsim_jax.effects import names
-
     p = subparsers.add_parser(
         "generate",
         help="generate synthetic measured data (games of robot vs opponent) with known effects and ground truth",
         description="Simulate games between a robot and an opponent with a truth model (conti2026 plus effects from "
                     "the effect catalogue), and write them as a dataset directory in the measured-data format, "
                     "with the ground truth beside it (truth.json, truth_events.parquet, truth_rackets.parquet, "
-                    "truth_observations.parquet). Deterministic for a seed and configuration. Effects: "
-                    + ", ".join(names()) + " (python -m ttsim_jax.effects describes them).",
+                    "truth_observations.parquet). Deterministic for a seed and configuration. The effects of the "
+                    "catalogue: 'python -m ttsim_jax.effects' lists and describes them.",
     )
     p.add_argument("--out", required=True, metavar="DIR", type=writable_dir, help="dataset directory to write")
     p.add_argument("--preset", choices=["sample", "paper"], default=None,

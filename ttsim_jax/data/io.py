@@ -18,6 +18,11 @@ that every file carries the id of ``metadata.json``. Parquet pages carry CRC che
 on reading, so a corrupted file is reported rather than loaded. Save then load is exact: float64,
 int64 and strings are stored as such.
 
+Datasets written before schema 1.1 have no checksums: a flipped bit in them loads as a changed
+value. :func:`load` says so (one :class:`~ttsim_jax.data.errors.DataWarning` per dataset and
+process), :func:`unprotected_files` lists such files and :func:`upgrade` rewrites a dataset with
+checksums, every value and every other file kept.
+
 A directory is written in a temporary sibling and swapped in whole (:mod:`ttsim_jax.io_atomic`),
 so a crash leaves the old dataset or the new one, never a mix.
 """
@@ -25,7 +30,9 @@ so a crash leaves the old dataset or the new one, never a mix.
 from __future__ import annotations
 
 import json
+import os
 import uuid
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -37,7 +44,8 @@ from ttsim_jax.io_atomic import atomic_directory
 
 from . import schema
 from .dataset import Dataset, Metadata
-from .errors import DataError
+from .errors import DataError, DataWarning
+from .pages import has_checksums
 
 METADATA_FILE = "metadata.json"
 #: Ground-truth files a generated dataset holds beside its tables (see ``generator.write``).
@@ -49,6 +57,8 @@ _ID_KEY = b"ttsim.dataset_id"
 _ARROW = {"int64": pa.int64(), "float64": pa.float64(), "string": pa.string()}
 # The first version whose files carry a dataset id and page checksums.
 _ID_VERSION = (1, 1)
+# (directory, dataset id) of the datasets whose warnings this process has shown: each once.
+_WARNED: set = set()
 
 
 def table_path(path, table: str) -> Path:
@@ -133,17 +143,7 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
         from .validate import validate as check
 
         check(ds)
-    keep = []
-    if path.exists():
-        if not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True (or --force) to replace it")
-        if not path.is_dir():
-            raise NotADirectoryError(f"{path} exists and is not a directory")
-        entries = sorted(p.name for p in path.iterdir())
-        if entries and METADATA_FILE not in entries:
-            raise FileExistsError(f"{path} is not empty and holds no {METADATA_FILE} (not a dataset directory, "
-                                  f"e.g. it holds {entries[0]!r}); refusing to replace it")
-        keep = [name for name in entries if name not in owned_files()]
+    keep = _kept_entries(path, overwrite)
     dataset_id = str(uuid.uuid4())
     with atomic_directory(path, keep=keep) as tmp:
         for name, cols in schema.TABLES.items():
@@ -158,12 +158,33 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
             fields = [pa.field(c.name, _ARROW[c.dtype], nullable=False) for c in cols]
             write_parquet(pa.Table.from_arrays(arrays, schema=pa.schema(fields)), table_path(tmp, name), dataset_id,
                           table=name)
-        meta = dict(ds.metadata.to_dict(), schema_version=schema.SCHEMA_VERSION)
-        meta[ID_KEY] = dataset_id
-        (tmp / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        _write_metadata(tmp, ds.metadata.to_dict(), dataset_id)
         if extra is not None:
             extra(tmp, dataset_id)
     return path
+
+
+def _kept_entries(path: Path, overwrite: bool) -> list[str]:
+    """Entries of an existing directory ``path`` that replacing its dataset keeps (see :func:`save`);
+    raises if it may not be replaced."""
+    if not path.exists():
+        return []
+    if not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True (or --force) to replace it")
+    if not path.is_dir():
+        raise NotADirectoryError(f"{path} exists and is not a directory")
+    entries = sorted(p.name for p in path.iterdir())
+    if entries and METADATA_FILE not in entries:
+        raise FileExistsError(f"{path} is not empty and holds no {METADATA_FILE} (not a dataset directory, "
+                              f"e.g. it holds {entries[0]!r}); refusing to replace it")
+    return [name for name in entries if name not in owned_files()]
+
+
+def _write_metadata(directory: Path, meta: dict, dataset_id: str) -> None:
+    """Writes ``metadata.json`` of the current schema version with ``dataset_id``."""
+    meta = dict(meta, schema_version=schema.SCHEMA_VERSION)
+    meta[ID_KEY] = dataset_id
+    (directory / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 
 def _check_version(version, file, column="schema_version") -> None:
@@ -279,10 +300,133 @@ def load(path, *, validate: bool = True) -> Dataset:
     meta, ident = _metadata_and_id(path)
     tables = {name: read_table(table_path(path, name), name, ident) for name in schema.TABLES}
     ds = Dataset(metadata=meta, **tables)
+    files = {name: table_path(path, name) for name in schema.TABLES}
+    files["metadata"] = path / METADATA_FILE
     if validate:
         from .validate import validate as check
 
-        files = {name: table_path(path, name) for name in schema.TABLES}
-        files["metadata"] = path / METADATA_FILE
         check(ds, files)
+    key = (os.path.realpath(path), ident)
+    if key not in _WARNED:
+        _WARNED.add(key)
+        for w in _doubts(path, ds if validate else None, files):
+            warnings.warn(w, stacklevel=2)
     return ds
+
+
+def _doubts(path: Path, ds: Dataset | None, files: dict) -> list[DataWarning]:
+    """What :func:`load` warns about: missing checksums, and the borderline values of ``ds``
+    (see :func:`ttsim_jax.data.validate.borderline`; None: not looked for)."""
+    from .validate import borderline
+
+    out = []
+    bare = unprotected_files(path)
+    if bare:
+        out.append(DataWarning(
+            f"dataset without page checksums ({len(bare)} of {len(parquet_files(path))} Parquet files, as written before "
+            f"schema 1.1 or by another writer): a damaged file would load with changed values unnoticed; add them with "
+            f"'ttsim data upgrade {path}'", file=path))
+    return out + (borderline(ds, files) if ds is not None else [])
+
+
+def parquet_files(path) -> list[Path]:
+    """The Parquet files of dataset directory ``path``: its tables and the truth files it holds."""
+    path = Path(path)
+    names = [f"{name}.parquet" for name in schema.TABLES] + [n for n in TRUTH_FILES if n.endswith(".parquet")]
+    return [path / n for n in names if (path / n).is_file()]
+
+
+def unprotected_files(path) -> list[Path]:
+    """The Parquet files of dataset directory ``path`` (:func:`parquet_files`) whose pages carry no
+    CRC checksums: damage to them goes unnoticed on reading. :func:`upgrade` adds the checksums.
+
+    Raises :class:`DataError` naming a file whose page headers cannot be read (a damaged file).
+    """
+    out = []
+    for file in parquet_files(path):
+        try:
+            if not has_checksums(file):
+                out.append(file)
+        except (ValueError, IndexError, OSError, RecursionError) as e:  # page headers that are not Thrift
+            raise DataError(f"not a readable Parquet file; corrupted or truncated? ({e})", file=file) from None
+    return out
+
+
+def read_truth_json(path, dataset_id: str) -> dict:
+    """``truth.json`` of the generated dataset directory ``path``, as written (its id included).
+
+    Raises :class:`DataError` when it is not a JSON object or does not carry ``dataset_id`` (it
+    belongs to another dataset).
+    """
+    file = Path(path) / "truth.json"
+    try:
+        info = json.loads(file.read_text())
+    except json.JSONDecodeError as e:
+        raise DataError(f"not valid JSON ({e.msg} at line {e.lineno})", file=file) from None
+    if not isinstance(info, dict) or info.get(ID_KEY, "") != dataset_id:
+        raise DataError(f"truth file belongs to another dataset than {METADATA_FILE}; write the dataset again",
+                        file=file, column=ID_KEY)
+    return info
+
+
+def identical(a: pa.Table, b: pa.Table) -> bool:
+    """Whether two Arrow tables hold the same columns, types and values, bit for bit (NaNs with
+    their payloads, -0.0 apart from 0.0, nulls where they were); key-value metadata is not compared."""
+    if a.num_rows != b.num_rows or not a.schema.equals(b.schema, check_metadata=False):
+        return False
+    for x, y in zip(a.columns, b.columns):
+        if not pa.types.is_floating(x.type):
+            if not x.equals(y):
+                return False
+        elif not (x.is_null().equals(y.is_null())
+                  and np.asarray(x.fill_null(0).to_numpy()).tobytes() == np.asarray(y.fill_null(0).to_numpy()).tobytes()):
+            return False
+    return True
+
+
+def upgrade(path, out=None, *, overwrite: bool = False) -> Path:
+    """Rewrites dataset directory ``path`` in the current schema version, with page checksums and a
+    new dataset id in every file; every value, column type and other file is kept.
+
+    Every file is read (and its id checked) before anything is written, and every file written is
+    read back and compared with what was read; the new directory then replaces the target in one
+    step (:func:`ttsim_jax.io_atomic.atomic_directory`), so a failure at any point leaves the
+    original untouched.
+
+    Arguments:
+        path: the dataset directory.
+        out: where to write the upgraded copy (default: ``path`` itself, in place).
+        overwrite: with ``out``, replace a dataset already there.
+
+    Returns:
+        The directory written. Raises :class:`DataError` for a file that cannot be read or that
+        differs after writing, ``FileExistsError`` for an ``out`` that exists without ``overwrite``.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise DataError("no such dataset directory", file=path)
+    meta, meta_file = _metadata_dict(path)
+    ident = meta.get(ID_KEY, "")
+    tables = {file.name: read_parquet(file, ident, file.stem) for file in parquet_files(path)}
+    truth = read_truth_json(path, ident) if (path / "truth.json").is_file() else None
+    target = path if out is None else Path(out)
+    if out is None:
+        keep = [p.name for p in path.iterdir() if p.name not in owned_files()]
+    elif os.path.realpath(target) == os.path.realpath(path):
+        raise FileExistsError(f"{target} is the dataset being upgraded; leave out the output to upgrade in place")
+    else:
+        keep = _kept_entries(target, overwrite)
+    new_id = str(uuid.uuid4())
+    with atomic_directory(target, keep=keep) as tmp:
+        for name, data in tables.items():
+            write_parquet(data, tmp / name, new_id)
+            back = read_parquet(tmp / name, new_id, Path(name).stem)
+            if not (identical(back, data) and has_checksums(tmp / name)):
+                raise DataError("the rewritten copy differs from the original or has no checksums; the original "
+                                "is left as it was", file=path / name)
+        meta = {k: v for k, v in meta.items() if k != ID_KEY}
+        Metadata.from_dict(meta, file=meta_file)  # only known keys are carried over
+        _write_metadata(tmp, meta, new_id)
+        if truth is not None:
+            (tmp / "truth.json").write_text(json.dumps(dict(truth, **{ID_KEY: new_id}), indent=1) + "\n")
+    return target

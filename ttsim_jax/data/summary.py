@@ -20,17 +20,21 @@ def _speeds(ds: Dataset) -> np.ndarray:
     return np.linalg.norm(d, axis=-1) / dt
 
 
-def info(ds: Dataset, problems=None) -> dict:
+def info(ds: Dataset, problems=None, warnings=None, unprotected=None) -> dict:
     """Summary of ``ds``.
 
     Arguments:
         ds: the dataset.
         problems: optional list of validation problems to report.
+        warnings: optional list of borderline values to report
+            (:func:`ttsim_jax.data.validate.borderline`).
+        unprotected: optional (files without page checksums, Parquet files in all) of the
+            dataset's directory (:func:`ttsim_jax.data.io.unprotected_files`); None: not known.
 
     Returns:
         dict with counts (sessions, observations, segments, events by kind, racket states),
         speed percentiles [m/s], spin magnitude range over segments with spin [rad/s], time span,
-        and the validation summary.
+        whether the files are protected by checksums, and the validation summary.
     """
     seg = ds.segments
     kinds = {k: int(np.sum(ds.events["kind"] == k)) for k in schema.EVENT_KINDS}
@@ -51,7 +55,11 @@ def info(ds: Dataset, problems=None) -> dict:
         "racket_states": len(ds.rackets["event_id"]),
         "speed_p1_p50_p99": pct(speeds, [1, 50, 99]),
         "spin_min_median_max": [float(mags.min()), float(np.median(mags)), float(mags.max())] if len(mags) else [],
+        "checksums": None if unprotected is None else {"protected": not unprotected[0],
+                                                        "unprotected_files": [str(f) for f in unprotected[0]],
+                                                        "parquet_files": int(unprotected[1])},
         "problems": [str(p) for p in (problems or [])],
+        "warnings": [str(w) for w in (warnings or [])],
     }
 
 
@@ -73,6 +81,15 @@ def format_info(d: dict) -> str:
     if d["spin_min_median_max"]:
         lo, mid, hi = d["spin_min_median_max"]
         lines.append(f"spin [rad/s]:  {lo:.0f} .. {hi:.0f}, median {mid:.0f}")
-    lines.append("validation:    " + ("ok" if not d["problems"] else f"{len(d['problems'])} problem(s)"))
+    c = d.get("checksums")
+    if c is not None:
+        n_bare = len(c["unprotected_files"])
+        lines.append("checksums:     " + (f"every page of the {c['parquet_files']} Parquet files (protected: a damaged file is "
+                                          "refused on load)" if c["protected"] else
+                                          f"none in {n_bare} of {c['parquet_files']} Parquet files (not protected: damage "
+                                          "loads unnoticed; add them with 'ttsim data upgrade DIR')"))
+    lines.append("validation:    " + ("ok" if not d["problems"] else f"{len(d['problems'])} problem(s)")
+                 + (f", {len(d['warnings'])} warning(s)" if d.get("warnings") else ""))
     lines += [f"  - {p}" for p in d["problems"]]
+    lines += [f"  - warning: {w}" for w in d.get("warnings", [])]
     return "\n".join(lines)

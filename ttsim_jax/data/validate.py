@@ -4,6 +4,16 @@ Every check yields :class:`~ttsim_jax.data.errors.DataError` s naming the file, 
 and value. :func:`validate` raises the first; :func:`problems` lists them (for ``data info``).
 Loading, saving, importing and batching all validate, so a bad row stops the pipeline where it is
 read instead of silently corrupting a batch.
+
+Physical plausibility: a value no table tennis ball, racket or room produces (a spin of 1e9 rad/s,
+a racket at 80 m/s, a ball 20 m from the table) is an error; one beyond what has been measured in
+play but still possible (a 40 m/s ball, a 1,500 rad/s spin, a ball beyond the ITTF playing space)
+is a :class:`~ttsim_jax.data.errors.DataWarning` from :func:`borderline`, one per check with the
+count and the first case. Speeds are judged per flight segment (the median of its sample-to-sample
+speeds, which a tracking jump does not move; jumps themselves are breaks, see
+:mod:`ttsim_jax.data.tracks`), accelerations per segment too (a fitted parabola's, against gravity
+plus the most drag and Magnus force the segment's speed allows, beyond its fit's noise): a warning
+only, since jitter and hidden contacts make single frames unreliable.
 """
 
 from __future__ import annotations
@@ -14,11 +24,38 @@ import numpy as np
 
 from . import schema
 from .dataset import Dataset
-from .errors import DataError
+from .errors import DataError, DataWarning
+from .tracks import GRAVITY, MAX_SPEED, MIN_SAMPLES
 
 #: Largest plausible |coordinate| of a ball or racket in a table-tennis room [m]; a larger value
 #: almost always means millimetres were given as metres.
 MAX_ABS_POSITION = 10.0
+#: Half-length, half-width [m] and height above the table surface [m] of the ITTF playing space
+#: (at least 14 m x 7 m x 5 m high around the table): beyond it is borderline, since halls are
+#: often larger (MAX_ABS_POSITION is the error).
+ROOM = (7.0, 3.5, 5.0 + schema.FLOOR_Z)
+#: Fastest ball measured in play [m/s] (smashes; Tang 2002, the paper's range): a faster segment
+#: or racket is borderline; tracks.MAX_SPEED (50 m/s), which nothing in the game reaches, is the error.
+FASTEST_BALL = 35.0
+#: Largest spin measured in play [rad/s] (loops; Tang 2002, the paper's range): more is borderline.
+FASTEST_SPIN = 1000.0
+#: Spin [rad/s] whose surface speed (omega r) exceeds MAX_SPEED: friction at a contact drives the
+#: ball's surface towards the other surface's speed and no surface in the game moves that fast, so
+#: no contact can give it (2,500 rad/s; SpinDOE's largest estimate is 2,362 rad/s).
+MAX_SPIN = MAX_SPEED / schema.BALL_RADIUS
+#: Half the width of a blade [m] (about 15 cm wide): a racket turning at omega moves some point of
+#: its blade at least this times omega, whatever the axis; so a rate whose rim speed exceeds
+#: FASTEST_BALL (467 rad/s) is borderline, one beyond MAX_SPEED (667 rad/s) an error.
+BLADE_HALF_WIDTH = 0.075
+#: Most drag plus Magnus acceleration per squared air speed [1/m]: rho A / (2 m) = 0.28 for a 40 mm,
+#: 2.7 g ball in air of 1.2 kg/m^3, times |(C_D, C_M)| <= 1.25 (C_D 0.37-0.55 in the paper's table;
+#: lift coefficients of spinning spheres saturate near 0.6, and durr2026 caps its C_M at 1.0).
+AERO_PER_SPEED2 = 0.35
+#: Air speed [m/s] a ball may have on top of its own (indoor draughts; the generator's wind is
+#: within 0.5 m/s).
+DRAUGHT = 1.0
+#: Standard errors of a segment's fitted acceleration beyond the physical bound that make it borderline.
+ACCEL_SIGMAS = 5.0
 #: A labelled table contact must have the ball centre this close to z = ball radius [m].
 TABLE_CONTACT_TOL = 0.03
 #: |quaternion| must be 1 within this.
@@ -89,12 +126,19 @@ def _checks(ds: Dataset, files) -> Iterator[DataError]:
     yield from structural
     if structural:
         return
+    found = False
     for name, table in ds.tables().items():
-        yield from _check_values(name, table, _file_of(files, name))
-    yield from _check_ids(ds, files)
-    yield from _check_time_order(ds.observations, _file_of(files, "observations"))
-    yield from _check_references(ds, files)
-    yield from _check_table_level(ds, files)
+        for err in _check_values(name, table, _file_of(files, name)):
+            found = True
+            yield err
+    for check in (_check_ids(ds, files), _check_time_order(ds.observations, _file_of(files, "observations")),
+                  _check_references(ds, files), _check_table_level(ds, files)):
+        for err in check:
+            found = True
+            yield err
+    if found:  # the plausibility checks need finite values and grouped, time-ordered rows
+        return
+    yield from _plausibility(ds, files, "error")
 
 
 def _check_structure(ds: Dataset, files) -> Iterator[DataError]:
@@ -308,3 +352,192 @@ def _check_table_level(ds: Dataset, files) -> Iterator[DataError]:
                 f"({r} m): the table surface of this frame is not at z = 0 (shift z by {r - level:+.3f} m?)",
                 file=_file_of(files, "observations"), table="observations", row=row, column="z", value=zo[row],
             )
+
+
+# ------------------------------------------------------------------------------------ plausibility
+def borderline(ds: Dataset, files=None) -> list[DataWarning]:
+    """Values beyond what has been measured in table tennis but not beyond what it can produce, and
+    accelerations no flight explains (see the module docstring); one warning per check.
+
+    Arguments:
+        ds: a valid dataset (:func:`validate` passes).
+        files: where the tables came from, for messages (as for :func:`validate`).
+
+    Returns:
+        :class:`DataWarning` s naming the count, the first file, table, row, column and value.
+    """
+    return list(_plausibility(ds, files, "warning"))
+
+
+def _session_of(ds: Dataset, table: str, row: int) -> str:
+    """' (session S, NAME)': where an observation or segment row was recorded."""
+    sid = int(ds.table(table)["session_id"][row])
+    names = dict(zip(np.asarray(ds.sessions["session_id"]).tolist(), ds.sessions["name"]))
+    name = names.get(sid, "")
+    return f" (session {sid}{', ' + str(name) if name else ''})"
+
+
+def _magnitudes(table, cols) -> np.ndarray:
+    return np.linalg.norm(np.stack([np.asarray(table[c], np.float64) for c in cols], -1), axis=-1)
+
+
+def _plausibility(ds: Dataset, files, want: str):
+    """The DataErrors (``want`` = "error") or the DataWarnings (``want`` = "warning") of the
+    plausibility checks; the work of the other level is skipped."""
+
+    def over(table, cols, magnitude, limit, level, quantity, unit, reason):
+        """Rows whose ``magnitude`` exceeds ``limit``: the first, named by its largest column."""
+        bad = np.flatnonzero(magnitude > limit)
+        if level != want or not bad.size:
+            return
+        row = int(bad[0])
+        t = ds.table(table)
+        col = max(cols, key=lambda c: abs(float(t[c][row])))
+        where = _session_of(ds, table, row) if "session_id" in t else ""
+        if level == "error":
+            text = f"{quantity} of {magnitude[row]:.4g} {unit}{where}: {reason}"
+        else:
+            text = (f"{bad.size} rows have {quantity} above {limit:.4g} {unit}, up to {magnitude[bad].max():.4g} {unit}: "
+                    f"{reason}; the first{where}: {magnitude[row]:.4g} {unit}")
+        cls = DataWarning if level == "warning" else DataError
+        yield cls(text, file=_file_of(files, table), table=table, row=row, column=col, value=t[col][row])
+
+    spin_cols = ("spin_x", "spin_y", "spin_z")
+    warned = False
+    for table in ("observations", "segments"):
+        spin = _magnitudes(ds.table(table), spin_cols)
+        yield from over(table, spin_cols, spin, MAX_SPIN, "error", "a spin", "rad/s",
+                        f"beyond what any contact can give a ball ({MAX_SPIN:.0f} rad/s would move its surface faster "
+                        f"than {MAX_SPEED:g} m/s); is it in rad/s?")
+        if not warned:  # segment spins are usually their observations' mean: one warning for both
+            found = list(over(table, spin_cols, spin, FASTEST_SPIN, "warning", "a spin", "rad/s",
+                              "more than the largest measured in play (Tang 2002)"))
+            warned = bool(found)
+            yield from found
+    rk = ds.rackets
+    for cols, unit, scale, what in ((("vx", "vy", "vz"), "m/s", 1.0, "a face speed"),
+                                    (("wx", "wy", "wz"), "rad/s", BLADE_HALF_WIDTH, "a rotation rate")):
+        m = _magnitudes(rk, cols)
+        yield from over("rackets", cols, m, MAX_SPEED / scale, "error", what, unit,
+                        f"beyond what a racket reaches (its blade would move faster than {MAX_SPEED:g} m/s); "
+                        f"is it in {unit}?")
+        yield from over("rackets", cols, m, FASTEST_BALL / scale, "warning", what, unit,
+                        f"its blade would move faster than the fastest ball measured in play ({FASTEST_BALL:g} m/s)")
+    for table, cols in schema.POSITION_COLUMNS.items() if want == "warning" else ():
+        t = ds.table(table)
+        p = np.stack([np.asarray(t[c], np.float64) for c in cols], -1).reshape(-1, 3)
+        beyond = np.abs(p) / np.asarray(ROOM[:2] + (np.inf,))
+        beyond[:, 2] = p[:, 2] / ROOM[2]
+        bad = np.flatnonzero(beyond.max(-1, initial=0.0) > 1.0)
+        if bad.size:
+            row, col = int(bad[0]), cols[int(np.argmax(beyond[bad[0]]))]
+            where = _session_of(ds, table, row) if "session_id" in t else ""
+            text = (f"{bad.size} rows lie outside the ITTF playing space around the table (|x| <= {ROOM[0]:g} m, "
+                    f"|y| <= {ROOM[1]:g} m, z <= {ROOM[2]:.2f} m; halls may be larger); the first{where}")
+            yield DataWarning(text, file=_file_of(files, table), table=table, row=row, column=col, value=t[col][row])
+    yield from _segment_motion(ds, files, want)
+
+
+def _segment_motion(ds: Dataset, files, want: str):
+    """Speed (error and warning) checks per run of samples of one segment (or, outside segments,
+    of one session: data not yet segmented), acceleration (warning) checks per segment; those of
+    level ``want``."""
+    obs = ds.observations
+    seg, sid = np.asarray(obs["segment_id"]), np.asarray(obs["session_id"])
+    n = len(seg)
+    if n < 2:
+        return
+    start = np.flatnonzero(np.r_[True, (seg[1:] != seg[:-1]) | (sid[1:] != sid[:-1])])  # contiguous (validated)
+    count = np.diff(np.r_[start, n])
+    group = np.repeat(np.arange(len(start)), count)
+    t, pos = np.asarray(obs["t"], np.float64), ds.positions
+    inner = np.flatnonzero(group[1:] == group[:-1])
+    speed = np.zeros(len(start))  # median sample-to-sample speed: a tracking jump does not move it
+    if inner.size:
+        step = np.linalg.norm(pos[inner + 1] - pos[inner], axis=-1) / (t[inner + 1] - t[inner])
+        g, _, med = _group_medians(group[inner + 1], step)
+        speed[g] = med
+    f = _file_of(files, "observations")
+
+    def at(k):
+        row = int(start[k])
+        return dict(file=f, table="observations", row=row, column="t", value=obs["t"][row])
+
+    def run(k):
+        where = _session_of(ds, "observations", int(start[k]))
+        return (f"segment {int(seg[start[k]])}{where}" if seg[start[k]] >= 0 else f"the samples{where} outside segments") \
+            + " starting here"
+
+    if want == "error":
+        bad = np.flatnonzero(speed > MAX_SPEED)
+        if bad.size:
+            k = int(bad[0])
+            yield DataError(
+                f"{run(k)} fly at {speed[k]:.4g} m/s (median of their sample-to-sample speeds), beyond any ball in the "
+                f"game ({MAX_SPEED:g} m/s; the fastest measured is about {FASTEST_BALL:g} m/s): are t in seconds and "
+                "positions in metres?", **at(k))
+        return
+    bad = np.flatnonzero(speed > FASTEST_BALL)
+    if bad.size:
+        k = int(bad[0])
+        yield DataWarning(
+            f"{bad.size} segments (or stretches outside segments) fly faster than the fastest ball measured in play "
+            f"({FASTEST_BALL:g} m/s, median of their sample-to-sample speeds); the first: {run(k)}, at {speed[k]:.4g} m/s",
+            **at(k))
+    fit = (count >= MIN_SAMPLES) & (seg[start] >= 0)
+    if not fit.any():
+        return
+    a, bound, sigma = _parabola_accelerations(group, t, pos, speed)
+    excess = np.where(fit & np.isfinite(sigma), a - bound - ACCEL_SIGMAS * sigma, -np.inf)
+    bad = np.flatnonzero(excess > 0)
+    if bad.size:
+        k = int(bad[np.argmax(excess[bad])])
+        yield DataWarning(
+            f"{bad.size} of {int(fit.sum())} segments accelerate more than gravity plus drag and Magnus force allow, "
+            f"beyond their fit's noise; the worst, {run(k)}: |a - g| = {a[k]:.3g} m/s^2 (+- {sigma[k]:.2g}) where "
+            f"its speed allows at most {bound[k]:.3g} m/s^2: a contact or a tracking error inside it, wrong time stamps "
+            "or units, or z not up?", **at(k))
+
+
+def _group_medians(keys: np.ndarray, values: np.ndarray):
+    """Medians of ``values`` per run of equal ``keys`` (runs contiguous): (keys, first index, medians)."""
+    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    stop = np.r_[start[1:], len(keys)]
+    group = np.repeat(np.arange(len(start)), stop - start)
+    v = values[np.lexsort((values, group))]
+    return keys[start], start, 0.5 * (v[start + (stop - start - 1) // 2] + v[start + (stop - start) // 2])
+
+
+def _parabola_accelerations(group, t, pos, speed):
+    """Per group (contiguous runs of samples), the acceleration of a least-squares parabola in time
+    per axis, the physical bound on it and its standard error.
+
+    Arguments:
+        group: (N,) group index of each sample, runs 0, 1, ...; t: (N,) times [s]; pos: (N, 3) [m].
+        speed: (G,) each group's median sample-to-sample speed [m/s].
+
+    Returns:
+        (G,) |a - g| [m/s^2]; (G,) the bound AERO_PER_SPEED2 (v + DRAUGHT)^2 at the larger of the
+        median speed and the fitted speed at either end; (G,) the standard error of the fitted
+        acceleration per axis (NaN for fewer than 4 samples).
+    """
+    n_groups = len(speed)
+    count = np.bincount(group, minlength=n_groups)
+    start = np.r_[0, np.cumsum(count)[:-1]]
+    tau = t - (np.bincount(group, t, n_groups) / count)[group]  # centred: a well-conditioned fit
+    powers = np.stack([tau**k for k in range(5)], -1)
+    moments = np.stack([np.bincount(group, powers[:, k], n_groups) for k in range(5)], -1)
+    normal = np.stack([moments[:, i:i + 3] for i in range(3)], 1)  # (G, 3, 3)
+    rhs = np.stack([np.stack([np.bincount(group, powers[:, k] * pos[:, ax], n_groups) for ax in range(3)], -1)
+                    for k in range(3)], 1)  # (G, 3 powers, 3 axes)
+    with np.errstate(all="ignore"):
+        inv = np.linalg.pinv(normal)
+        c = inv @ rhs  # offset, velocity, half the acceleration
+        rss = np.maximum(np.bincount(group, np.sum(pos**2, -1), n_groups) - np.sum(c * rhs, axis=(1, 2)), 0.0)
+        dof = np.where(count > 3, 3 * (count - 3), np.nan)
+        sigma = 2.0 * np.sqrt(rss / dof * np.maximum(inv[:, 2, 2], 0.0))
+        a = np.linalg.norm(2.0 * c[:, 2] - np.array([0.0, 0.0, -GRAVITY]), axis=-1)
+        ends = np.stack([np.minimum.reduceat(tau, start), np.maximum.reduceat(tau, start)], -1)
+        v_ends = np.linalg.norm(c[:, None, 1] + 2.0 * c[:, None, 2] * ends[..., None], axis=-1).max(-1)
+    bound = AERO_PER_SPEED2 * (np.maximum(speed, v_ends) + DRAUGHT) ** 2
+    return a, bound, sigma

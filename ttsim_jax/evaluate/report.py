@@ -70,6 +70,27 @@ def _stats(x) -> dict:
     return dict(n=int(len(x)), median=float(np.median(x)), p75=float(np.percentile(x, 75)), mean=float(np.mean(x)))
 
 
+def _not_finite(values: dict, spin=None) -> dict:
+    """{model: why} for each model with items that have no finite value (so that its n is smaller
+    than the number of items): how many, and the largest spin among them.
+
+    Arguments:
+        values: {model: (S,) per-item values}, NaN where the model's simulation failed.
+        spin: optional (S, 3) the spins the items were flown with [rad/s].
+    """
+    out = {}
+    for name, v in values.items():
+        bad = ~np.isfinite(np.asarray(v, np.float64))
+        if not bad.any():
+            continue
+        text = (f"{int(bad.sum())} of {len(bad)} segments without a finite RMSE: the model's flight gave non-finite "
+                "positions (as with spins or speeds far beyond the range its drag and Magnus coefficients cover")
+        if spin is not None and len(spin):
+            text += f"; the largest spin among them is {float(np.linalg.norm(np.asarray(spin)[bad], axis=-1).max()):.4g} rad/s"
+        out[name] = text + ")"
+    return out
+
+
 def _abs_stats(e) -> dict:
     """:func:`_stats` of the signed errors' magnitudes ``|e|``, with their median ``bias``."""
     return dict(_stats(np.abs(e)), bias=_stats(e)["median"])
@@ -97,7 +118,8 @@ def summarise(result: dict) -> dict:
         else:
             per = _headline(f["rmse"], names, ref)
             out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
-                                 n_without_spin=f["n_without_spin"], unit="m", models=per)
+                                 n_without_spin=f["n_without_spin"], unit="m", models=per,
+                                 not_finite=_not_finite(f["rmse"], f.get("spin")))
     if "table" in result:
         t = result["table"]
         if "skipped" in t:
@@ -183,10 +205,12 @@ def _flight_md(f: dict, names: list, figures: dict) -> list:
             for n, m in f["models"].items()]
     spin = (f"segments with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
             "segments, none with a measured spin: every model flies with spin 0")
+    why = [f"n of {n}: {text}." for n, text in (f.get("not_finite") or {}).items()]
     return ([f"{f['n_segments']} {spin}; initial position the first observation, initial velocity fitted per "
              "segment.", ""]
             + _table_md(["model", "n", "median [mm]", "75th pct [mm]", "median reduction [%] [95 % CI]",
                          "75th pct reduction [%] [95 % CI]"], rows)
+            + (["", *why] if why else [])
             + ["", f"![flight RMSE]({figures['flight']})", ""])
 
 
@@ -205,7 +229,8 @@ def _table_contacts_md(t: dict, names: list, figures: dict) -> list:
 
 
 def _racket_md(r: dict, names: list, figures: dict) -> list:
-    head = ["model"] + [f"{b} (n={r['models'][names[0]][b]['n']})" for b in r["bands"]]
+    count = {b: r["models"][names[0]][b]["n"] for b in r["bands"]}
+    head = ["model"] + [f"{b} (n={count[b]}{'' if count[b] else ': no contact at this distance'})" for b in r["bands"]]
     rows = [[f"{n} {q}"] + [_cell(per[b][q], q == "|v|") for b in r["bands"]]
             for q in ("|v|", "|w|") for n, per in r["models"].items()]
     components = [[n] + [_num(per["all"][c]["median"], ".3f" if c[0] == "v" else ".1f") for c in COMPONENTS]

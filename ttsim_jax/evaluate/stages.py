@@ -147,8 +147,9 @@ def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
 
     Returns:
         dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_measured`` (whether the
-        segments have a measured spin), ``n_without_spin`` (segments left out for want of one) and
-        ``rmse`` {name: (S,) [m]}.
+        segments have a measured spin), ``n_without_spin`` (segments left out for want of one),
+        ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position) and
+        ``spin`` (S, 3) the spins flown [rad/s].
     """
     from ttsim_jax.evaluate.flight import flight_rmse
     from ttsim_jax.fit import aero as A
@@ -171,7 +172,8 @@ def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     for name, model in models:
         rmse[name] = flight_rmse(model, times, positions, spins[keep])
         tick()
-    return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse)
+    return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse,
+                spin=np.asarray(spins, np.float64).reshape(-1, 3)[keep])
 
 
 # ---------------------------------------------------------------------------------------------- table

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +104,7 @@ def build_dataset(raw: list[RawSession], frame: FrameTransform, metadata: Metada
     Returns:
         The dataset.
     """
-    from ..validate import validate
+    from ..validate import borderline, validate
 
     sid, ts, ps, names, notes, spins = [], [], [], [], [], []
     dropped = 0
@@ -142,6 +143,8 @@ def build_dataset(raw: list[RawSession], frame: FrameTransform, metadata: Metada
             obs["spin_conf"][rows] = spin_conf
         ds = segments_from_events(ds.replace(observations=obs))
     validate(ds)
+    for w in borderline(ds):
+        warnings.warn(w, stacklevel=2)
     return ds
 
 
