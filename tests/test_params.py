@@ -161,7 +161,7 @@ def _set(d, path, value):
 
 
 @pytest.mark.parametrize("path,value,fragments", [
-    (("table", "e_min"), {"value": 1.1, "unit": "1"}, ("table.e_min", "1.1", "exceeds table.e_max = 1.0")),
+    (("table", "e_min"), {"value": 1.1, "unit": "1"}, ("table.e_min", "1.1", "outside the physical range [0.0, 1.0]")),
     (("aero", "drag", "re_ref", "value"), [6640, 33201, 19920, 46481],
      ("aero.drag.re_ref", "entry 3 (19920.0) does not exceed entry 2 (33201.0)")),
     (("aero", "drag", "re_ref", "value"), [6640], ("aero.drag.re_ref", "at least 2")),
@@ -179,6 +179,12 @@ def test_inconsistent_values_are_refused(path, value, fragments):
     d = conti_dict()
     _set(d, path, value)
     expect_plain_error(d, *fragments)
+
+
+def test_a_restitution_clip_range_that_is_empty_is_refused():
+    d = conti_dict()
+    d["table"]["e_min"]["value"], d["table"]["e_max"]["value"] = 0.9, 0.8
+    expect_plain_error(d, "table.e_min", "0.9", "exceeds table.e_max = 0.8")
 
 
 def test_unsorted_breakpoints_of_one_row_name_that_row():

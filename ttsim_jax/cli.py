@@ -14,6 +14,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -471,6 +472,17 @@ def main(argv=None) -> int:
     before = os.environ.get(ENV)
     if args.memory_budget is not None:  # the library's size checks read it (ttsim_jax.sizes)
         os.environ[ENV] = str(args.memory_budget)
+    from ttsim_jax.data.errors import DataWarning
+
+    shown = warnings.showwarning
+
+    def show(message, category, *where):  # a warning about the user's data: one 'warning:' line
+        if issubclass(category, DataWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, *where)
+
+    warnings.showwarning = show
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
@@ -487,6 +499,7 @@ def main(argv=None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
     finally:
+        warnings.showwarning = shown
         if args.memory_budget is not None:
             if before is None:
                 os.environ.pop(ENV, None)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttsim_jax.bundled import config_dir  # noqa: F401 (the public name stays here)
 from ttsim_jax.physics.aero import (
     AeroParams,
     BlendedDragTable,
@@ -363,20 +363,6 @@ def model_from_dict(data: dict, file: str = "<dict>", dtype=None) -> Model:
         racket=RacketParams(kind=racket.pop("kind"), **{k: arr(v) for k, v in racket.items()}),
         name=str(data.get("name", Path(file).stem)),
     )
-
-
-def config_dir() -> Path:
-    """The folder of the bundled configs (``models/*.toml``, ``residual/*.toml``).
-
-    Returns:
-        ``ttsim_jax/configs`` of an installed wheel (found with :mod:`importlib.resources`), else,
-        in a source checkout or an editable install, the checkout's top-level ``configs/``: the
-        wheel is built from that folder, so both hold the same files.
-    """
-    packaged = resources.files("ttsim_jax") / "configs"
-    if packaged.is_dir():
-        return Path(str(packaged))
-    return Path(__file__).resolve().parents[1] / "configs"
 
 
 def available_models() -> list[str]:

@@ -52,8 +52,10 @@ def test_fit_contact_stages_write_their_values_and_counts(fitted):
         assert c["total"] == n_events
         assert c["used"] + c["held_out"] + sum(c["skipped"].values()) == n_events
         assert c["used"] >= 10 and c["held_out"] > 0
-    # The config holds the fitted values the summary reports.
+    # The config holds the fitted values the summary reports; no bounce gains energy (the free fit's
+    # e0 is above 1 on this sample).
     assert float(model.table.e0) == pytest.approx(table["fit"]["e0"], rel=1e-5)
+    assert table["fit"]["e0"] <= float(model.table.e_max) and table["fit"]["unconstrained"]["e0"] > 1.0
     assert float(model.table.e1) == pytest.approx(table["fit"]["e1"], rel=1e-5)
     np.testing.assert_allclose(np.asarray(model.table.residual[1]), table["fit"]["residual"]["dA_vw"], rtol=1e-5)
     pattern = np.array([table["fit"]["pattern"][k] for k in ("dA_vv", "dA_vw", "dA_wv", "dA_ww")], bool)

@@ -46,3 +46,18 @@ def test_bad_input_is_refused(model):
     y[7, 2] = np.nan
     with pytest.raises(ValueError, match=r"rows \[7\]"):
         R.fit_racket(np.zeros((20, 8)), y, model)
+
+
+def test_a_parameter_beyond_its_physical_range_is_held_at_the_bound(model):
+    """Contacts whose normal spin grows (e_s = 1.1, beyond the [0, 1] a model file allows): the free
+    fit finds e_s > 1; the fit holds it at 1, refits the others, and the written model loads."""
+    truth = model.racket.replace(e_s=model.racket.e_s * 0 + 1.1)
+    x, y = R.synthetic_arrays(truth, float(model.ball.radius), float(model.ball.mass), N, seed=4)
+    fit = R.fit_racket(x, y, load_model("durr2026").replace(ball=model.ball))
+    assert fit.values["e_s"] == 1.0 and fit.stderr["e_s"] == 0.0
+    assert len(fit.bounds) == 1 and fit.bounds[0].startswith("e_s = 1 (the free fit: 1.1")
+    lo, hi = R.bounds()
+    assert all(lo[i] <= fit.values[k] <= hi[i] for i, k in enumerate(R.PARAMETERS))
+    for k in ("e0", "e1", "et0", "et1"):  # e_s acts on the normal spin alone: the others are unaffected
+        assert fit.values[k] == pytest.approx(float(getattr(model.racket, k)), rel=1e-3, abs=1e-5)
+        assert fit.stderr[k] >= 0.0

@@ -6,12 +6,14 @@ can see at this noise: an entry whose effect on the bounces (|entry| x RMS of it
 nothing (dA_vv[2, 2] is e0's column; (R v)_y = 0). One shape (N bounces) for every fit.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.fit import table as T
+from ttsim_jax.physics import table as tbl
 
 N = 2000
 NOISE_VEL, NOISE_SPIN = 0.05, 5.0  # m/s, rad/s: states estimated from ~2 mm positions at 200 Hz
@@ -84,6 +86,23 @@ def test_noiseless_bounces_give_the_exact_model_and_skip_bounded_ones(truth):
     residual left out: the fit finds them from its own matrices."""
     model, table, res = truth
     data = T.synthetic_bounces(table, 0.02, N, seed=2)
+    assert np.all(data["weight"] == 1.0)  # the residual creates no energy on rally-like bounces
+    # so the first 100 become grazing drives with backspin (10-16 m/s, v_z -0.25 to -0.1 m/s), on
+    # most of which the raw residual would create energy and the simulator bounds it
+    rng = np.random.default_rng(5)
+    heading, vh = rng.uniform(-np.pi, np.pi, 100), rng.uniform(10.0, 16.0, 100)
+    c, s = np.cos(heading), np.sin(heading)
+    vel = np.stack([vh * c, vh * s, rng.uniform(-0.25, -0.1, 100)], 1)
+    w_loc = np.stack([rng.uniform(-150, 150, 100), rng.uniform(-550, -400, 100), rng.uniform(-300, 300, 100)], 1)
+    spin = np.stack([w_loc[:, 0] * c - w_loc[:, 1] * s, w_loc[:, 0] * s + w_loc[:, 1] * c, w_loc[:, 2]], 1)
+
+    def bounce(v, w):
+        base_v, base_w, dv, dw = tbl.residual_terms(table, 0.02, v, w)
+        return (*tbl.local_contact(table, 0.02, v, w), tbl.residual_bound(table.kappa, 0.02, v, w, base_v, base_w, dv, dw))
+
+    graze = jax.vmap(bounce)(jnp.asarray(vel, jnp.float32), jnp.asarray(spin, jnp.float32))
+    for k, x in zip(("vel_in", "spin_in", "vel_out", "spin_out", "weight"), (vel, spin, *graze)):
+        data[k] = np.concatenate([np.asarray(x, np.float64), data[k][100:]])
     assert np.sum(data["weight"] < 0.999) > 10  # the draw includes bounded bounces
     fit = T.fit_table(data["vel_in"], data["spin_in"], data["vel_out"], data["spin_out"], model)
     assert fit.n_bounded == int(np.sum(data["weight"] < 0.999))
@@ -115,3 +134,26 @@ def test_bad_input_is_refused(truth):
         T.fit_table(v, v, v, bad, model)
     with pytest.raises(ValueError, match="at least 10"):
         T.fit_table(v[:6], v[:6], v[:6], v[:6], model)
+
+
+def test_a_restitution_above_one_is_held_at_the_bound(truth):
+    """Bounces whose e_n extrapolates to e0 = 1.06 at v_z = 0 (the bounces themselves, v_z from -7 to
+    -2.5 m/s, have e_n 0.71-0.93; no residual matrices): a free fit finds e0 > 1, a bounce that
+    gains energy; the fit holds e0 at e_max = 1 and refits e1 there (the least-squares optimum on
+    the bound)."""
+    model, table, _ = truth
+    steep = table.replace(e0=jnp.asarray(1.06, jnp.float32), e1=jnp.asarray(0.05, jnp.float32),
+                          residual=jnp.zeros_like(table.residual))
+    data = T.synthetic_bounces(steep, 0.02, N, seed=4, noise_vel=NOISE_VEL, noise_spin=NOISE_SPIN)
+    fit = T.fit_table(data["vel_in"], data["spin_in"], data["vel_out"], data["spin_out"], model)
+    assert fit.unconstrained["e0"] == pytest.approx(1.06, abs=0.02)
+    assert fit.e0 == pytest.approx(float(model.table.e_max), abs=1e-6) and fit.stderr_e0 == 0.0
+    assert fit.bounds == ["e0 <= e_max = 1"] and "held at a physical bound" in fit.summary()
+    vz = data["vel_in"][:, 2]
+    e_n = fit.e0 + fit.e1 * vz
+    assert np.all((e_n >= 0.0) & (e_n <= 1.0))
+    # on the bound, e1 is the least-squares fit of v_z+ = -(1 + e1 v_z) v_z over the bounces used
+    used = fit.used
+    vzo = data["vel_out"][used, 2]
+    e1_closed = -np.sum((vzo + vz[used]) * vz[used] ** 2) / np.sum(vz[used] ** 4)
+    assert fit.e1 == pytest.approx(e1_closed, abs=1e-6)

@@ -94,12 +94,19 @@ def test_train_then_evaluate(workdir, capsys):
     assert meta["contacts"]["used"] == 100 and model.config.trunk == (16, 16)
     assert np.all(np.asarray(model.sigma_scale) > 0)
 
-    # a second run refuses to overwrite; --resume of the finished run returns the same model
+    # the finished run leaves no training state: a second run refuses only to overwrite the checkpoint,
+    # there is nothing to resume, and once the checkpoint is moved away the same command runs again
+    state = Path(str(out) + ".state")
+    assert not state.exists()
     assert run(argv) == 2
-    assert "--resume" in capsys.readouterr().err
-    assert run(argv + ["--resume"]) == 0
-    assert "all (n=10)" in capsys.readouterr().out
-    again = R.load_residual(out)
+    err = capsys.readouterr().err
+    assert "--force" in err and "--resume" not in err
+    assert run(argv + ["--resume"]) == 2
+    assert "finished run" in capsys.readouterr().err
+    out.rename(workdir / "kept.ttres")
+    assert run(argv) == 0
+    assert "all (n=10)" in capsys.readouterr().out and not state.exists()
+    again = R.load_residual(out)  # same data, settings and seed: the same network
     np.testing.assert_array_equal(np.asarray(again.sigma_scale), np.asarray(model.sigma_scale))
 
     assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(out), "--split", "test",

@@ -57,6 +57,7 @@ from ttsim_jax import effects as fx
 from ttsim_jax.diagnose import bumps, gusts, onsets
 from ttsim_jax.diagnose import stages as S
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
+from ttsim_jax.diagnose.defaults import MIN_REDUCTION
 from ttsim_jax.diagnose.phases import Phases, pad_rows
 
 #: Phases whose errors the candidates are fitted and scored on.
@@ -96,8 +97,6 @@ START_TYPICAL = {"table_unevenness": ("center", "width")}
 FINAL_GN = 3
 #: Items per stratum of the split (sorted by the model's error).
 STRATUM = 5
-#: Least held-out reduction [%] (lower end of the 95 % interval) of a significant candidate.
-MIN_REDUCTION = 1.0
 #: Least fall of the held-out RMS error of a significant candidate, per phase [m, m/s, m/s]: a
 #: reduction below the resolution of the phase's measurement is not a physical effect (with a
 #: perfect model, the contact states' polynomial estimates still err by millimetres per second).

@@ -46,12 +46,14 @@ def fraction(text: str) -> float:
 
 def register(subparsers) -> None:
     """Adds ``diagnose`` to the ``ttsim`` command."""
-    from ttsim_jax.diagnose.candidates import MIN_REDUCTION
-    from ttsim_jax.diagnose.diagnosis import Settings
-    from ttsim_jax.diagnose.where import FLAG_RATIO
+    from types import SimpleNamespace
 
-    d = Settings()
-    q = Settings.quick()
+    from ttsim_jax.diagnose import defaults
+    from ttsim_jax.diagnose.defaults import FLAG_RATIO, MIN_REDUCTION
+
+    d = SimpleNamespace(steps=defaults.STEPS, max_segments=defaults.MAX_SEGMENTS, test_fraction=defaults.TEST_FRACTION,
+                        seed=0)
+    q = SimpleNamespace(**{**vars(d), **defaults.QUICK})
     description = (
         "Diagnose the sim-to-real gap of a model on a dataset. WHERE: the model's errors per phase (flight "
         "segments, table contacts, racket contacts, landing of rollouts after racket contacts) binned by regime "

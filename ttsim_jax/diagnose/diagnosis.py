@@ -35,8 +35,9 @@ from ttsim_jax.diagnose import ambiguity as A
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import residuals as R
 from ttsim_jax.diagnose import where as W
+from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
-from ttsim_jax.diagnose.phases import MAX_SEGMENTS, collect
+from ttsim_jax.diagnose.phases import collect
 from ttsim_jax.fit.contacts import ContactFit
 
 
@@ -69,10 +70,10 @@ class Settings:
     """
 
     effects: tuple | None = None
-    test_fraction: float = 0.4
+    test_fraction: float = TEST_FRACTION
     seed: int = 0
-    steps: int = 100
-    lr: float = 0.1
+    steps: int = STEPS
+    lr: float = LEARNING_RATE
     landing: bool = True
     combine: bool = True
     max_segments: int = MAX_SEGMENTS
@@ -81,7 +82,7 @@ class Settings:
     @classmethod
     def quick(cls, **kw) -> "Settings":
         """Fewer steps and segments, no landing rollouts, no joint fit."""
-        return cls(**{**dict(steps=60, landing=False, combine=False, max_segments=96), **kw})
+        return cls(**{**QUICK, **kw})
 
 
 def _test_rows(pb, phase):

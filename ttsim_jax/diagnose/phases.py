@@ -26,6 +26,7 @@ import dataclasses
 
 import numpy as np
 
+from ttsim_jax.diagnose.defaults import MAX_SEGMENTS
 from ttsim_jax.fit.contacts import ContactFit
 
 #: Regime quantities: name -> (label, unit).
@@ -45,8 +46,6 @@ AXES = ("topspin", "backspin", "sidespin", "gyro")
 #: Observations kept per flight segment (its first ones): the padded length bounds the cost of every
 #: flight evaluation, and 128 samples at 200 Hz (0.64 s) hold most of a flight's deviation.
 MAX_SAMPLES = 128
-#: Flight segments used at most (a seeded random subset of more): the flight stage is the costly one.
-MAX_SEGMENTS = 128
 #: Padded lengths of the flight arrays (samples).
 CAPACITIES = (64, 128, 256, 512, 1024, 4096)
 

@@ -33,10 +33,9 @@ import math
 import numpy as np
 
 from ttsim_jax.diagnose.bootstrap import group_weights, ratio_ci
+from ttsim_jax.diagnose.defaults import FLAG_RATIO
 from ttsim_jax.diagnose.phases import AXES, REGIMES, contact_regimes, kinematic_regimes
 
-#: A bin stands out when its interval's lower end exceeds this times the phase's mean error.
-FLAG_RATIO = 1.25
 #: Fewest items of a bin (smaller bins are merged by using fewer quantiles).
 MIN_BIN = 8
 #: Fewest groups (segments, contacts) of a flagged bin.

@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ttsim_jax.fit.choices import ASSOCIATIONS
 from ttsim_jax.physics import aero as aero_stage
 
 #: Spin-rate scale of the Magnus regression's unknowns [rad/s] (keeps the columns comparable).
@@ -85,7 +86,6 @@ def _ridge(a, y, w, prior, alpha, extra_a=None, extra_y=None):
     return x
 
 
-ASSOCIATIONS = ("v_eff", "averaged")
 
 
 def force_weights(velocities, spin, kind: str):
@@ -334,8 +334,24 @@ def aero_sections(base_path, drag_cd, magnus_values: dict) -> dict:
             "aero.magnus": magnus_section(base.aero.magnus, magnus_values)}
 
 
+def config_text(base_path, sections: dict, *, name: str, source: str) -> str:
+    """A model TOML's text: ``base_path``'s file with some sections replaced.
+
+    Arguments:
+        base_path: the base model's TOML.
+        sections: section name (e.g. ``"table.residual"``) -> its new TOML text (header included).
+        name, source: the new model's ``name`` and ``source`` strings.
+
+    Returns:
+        The text.
+    """
+    text = replace_sections(Path(base_path).read_text(encoding="utf-8"), sections)
+    text = re.sub(r'^name = .*$', f"name = {_toml_string(name)}", text, count=1, flags=re.M)
+    return re.sub(r'^source = .*$', f"source = {_toml_string(source)}", text, count=1, flags=re.M)
+
+
 def write_config(base_path, out_path, sections: dict, *, name: str, source: str) -> Path:
-    """Writes a model TOML: ``base_path``'s file with some sections replaced.
+    """Writes a model TOML: ``base_path``'s file with some sections replaced (:func:`config_text`).
 
     Arguments:
         base_path: the base model's TOML.
@@ -349,9 +365,7 @@ def write_config(base_path, out_path, sections: dict, *, name: str, source: str)
     from ttsim_jax.io_atomic import atomic_write
     from ttsim_jax.params import load_model
 
-    text = replace_sections(Path(base_path).read_text(encoding="utf-8"), sections)
-    text = re.sub(r'^name = .*$', f"name = {_toml_string(name)}", text, count=1, flags=re.M)
-    text = re.sub(r'^source = .*$', f"source = {_toml_string(source)}", text, count=1, flags=re.M)
+    text = config_text(base_path, sections, name=name, source=source)
     out_path = Path(out_path)
     atomic_write(out_path, text.encode("utf-8"))
     load_model(out_path)

@@ -1,14 +1,16 @@
 """The ``ttsim fit``, ``ttsim train residual`` and ``ttsim evaluate residual`` commands. Thin:
-parsing and printing; the work is in :mod:`ttsim_jax.fit.identify`, :mod:`ttsim_jax.fit.table`,
-:mod:`ttsim_jax.fit.racket`, :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
+parsing and printing; the work is in :mod:`ttsim_jax.fit.pipeline` (the stages of ``fit``), which
+calls :mod:`ttsim_jax.fit.identify`, :mod:`ttsim_jax.fit.table` and :mod:`ttsim_jax.fit.racket`,
+and :mod:`ttsim_jax.fit.contacts` and :mod:`ttsim_jax.fit.residual`.
 
 ``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
 ``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user
 errors are raised (the library's errors, :class:`ttsim_jax.cli.UsageError`) and reported by
 :func:`ttsim_jax.cli.main` with status 2.
 
-    ttsim fit --data DATA --out MODEL.toml [--stages aero,table,racket[,residual]] [--base conti2026]
-              [--association averaged|v_eff] [--forms drag,magnus] [--min-spin-conf C] [--max-rmse-mm R]
+    ttsim fit --data DATA [--data DATA ...] --out MODEL.toml [--stages aero,table,racket[,residual]]
+              [--base conti2026] [--association averaged|v_eff] [--forms drag|magnus|drag,magnus]
+              [--min-spin-conf C] [--max-rmse-mm R]
               [--folds K] [--lambda-rule 1se|min] [--epochs N] [--test-fraction F] [--seed S] [--force] [--quiet]
     ttsim train residual --data DATA --out CHECKPOINT [--model conti2026|durr2026]
                          [--config configs/residual/NAME.toml] [--epochs N] [--seed S]
@@ -25,21 +27,14 @@ import json
 import math
 import os
 import sys
-import time
 import tomllib
 from pathlib import Path
 
 from ttsim_jax.cli import (UsageError, existing_dir, existing_file, finite_float, model_name_or_file, positive_float,
                            positive_int, seed, text_file, writable_file)
+from ttsim_jax.fit.pipeline import bundled_config
 
 MODELS = ("conti2026", "durr2026")
-
-
-def bundled_config(model: str) -> Path:
-    """The bundled residual config of a model family (``configs/residual/MODEL.toml``)."""
-    from ttsim_jax.params import config_dir
-
-    return config_dir() / "residual" / f"{model}.toml"
 
 
 def _bundled_values(table: str, key: str) -> str:
@@ -71,10 +66,9 @@ def _fraction(text: str) -> float:
     return value
 
 
-STAGES = ("aero", "table", "racket", "residual")
-
-
 def _stages(text: str) -> tuple:
+    from ttsim_jax.fit.choices import STAGES
+
     names = tuple(x.strip() for x in text.split(",") if x.strip())
     bad = [x for x in names if x not in STAGES]
     if bad or not names:
@@ -83,41 +77,50 @@ def _stages(text: str) -> tuple:
 
 
 def _register_fit(subparsers) -> None:
-    from ttsim_jax.fit.aero_forms import ASSOCIATIONS
+    from ttsim_jax.fit.choices import ASSOCIATIONS, DEFAULT_FORMS, DEFAULT_STAGES
 
     p = subparsers.add_parser(
         "fit",
         help="identify a model (aerodynamics, table and racket contacts, optionally the racket residual network) "
-        "from a dataset",
-        description="Identify a model from DATA, stage by stage (--stages), into ONE model config OUT (loadable with "
-        "load_model / --model OUT) and a summary OUT.fit.json (per stage: counts used and skipped by reason, fitted "
-        "values with standard errors, wall and CPU time). "
+        "from one or several datasets",
+        description="Identify a model from DATA (several --data are merged), stage by stage, into ONE model config "
+        "OUT (loadable with load_model / --model OUT) and a summary OUT.fit.json that holds the config's text "
+        "(per stage: counts used and skipped by reason, fitted values with standard errors, the fitted model against "
+        "the base on the held-out sessions, wall and CPU time). Without --stages, the stages "
+        f"{','.join(DEFAULT_STAGES)} that the data supports run and the others are skipped with the reason; a stage "
+        "named in --stages that the data cannot support is refused before any work. If a stage fails, the stages "
+        "fitted before it are written and the exit status is 1. "
         "aero: C_D, C_M and the initial state per flight segment with a measured spin (one compiled, batched "
         "Levenberg-Marquardt solver), segments above --max-rmse-mm dropped, the coefficients regressed into the "
         "paper's forms (the C_D breakpoint table over Re and Sp, C_M linear/quadratic in the spin rate per reference "
-        "speed). table: states before and after each table bounce, e0 and e1 of the restitution law and the four "
-        "local residual matrices by L1-regularised least squares (penalty by cross-validation; the sparsity "
-        "pattern is reported). racket: the updated base model's e0, e1, et0, et1, e_s by least squares on the "
-        "racket contacts' racket-frame states. residual: the racket residual network on what the fitted base model "
-        "leaves (as 'ttsim train residual'), written to OUT's stem + .ttres. Parameters of stages not run, and "
-        "entries without data, come from --base.",
+        "speed). table: states before and after each table bounce with a measured spin on both sides, e0 and e1 of "
+        "the restitution law (held within [e_min, e_max]: no bounce gains energy) and the four local residual "
+        "matrices by L1-regularised least squares (penalty by cross-validation; the sparsity pattern is reported). "
+        "racket: the updated base model's e0, e1, et0, et1, e_s by least squares on the racket contacts' "
+        "racket-frame states. residual: the racket residual network on what the fitted base model leaves (as 'ttsim "
+        "train residual'), written to OUT's stem + .ttres. Parameters of stages not run, and entries without data, "
+        "come from --base.",
     )
-    p.add_argument("--data", required=True, metavar="DATA", type=existing_dir,
-                   help="dataset directory (see docs/data_format.md; 'ttsim data import' converts the public datasets)")
+    p.add_argument("--data", required=True, action="append", metavar="DATA", type=existing_dir,
+                   help="dataset directory (see docs/data_format.md; 'ttsim data import' converts the public datasets); "
+                   "repeat it to fit several datasets together (merged, their ids renumbered)")
     p.add_argument("--out", required=True, metavar="OUT", type=writable_file,
                    help="model config to write, e.g. runs/fitted.toml ('.toml' is added if missing); the model's "
                    "name is the file's stem")
-    p.add_argument("--stages", type=_stages, default=("aero", "table", "racket"), metavar="LIST",
-                   help="comma-separated stages to run, of aero, table, racket, residual (default: aero,table,racket; "
-                   "residual trains the network, minutes)")
+    p.add_argument("--stages", type=_stages, metavar="LIST",
+                   help="comma-separated stages to run, of aero, table, racket, residual; each must be one the data "
+                   f"supports (default: those of {','.join(DEFAULT_STAGES)} that the data supports; residual trains "
+                   "the network, minutes)")
     p.add_argument("--base", default="conti2026", metavar="MODEL", type=model_name_or_file,
                    help="base model: ball, air, the forms' breakpoints, the values where data is missing, and every "
                    "parameter no stage fits (default: %(default)s)")
     p.add_argument("--association", choices=ASSOCIATIONS, default="averaged",
                    help="aero: how a segment's coefficient enters the forms: 'averaged', the force-weighted mean of "
                    "the form along the segment (default), or 'v_eff', the form at the paper's effective speed")
-    p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default="drag,magnus",
-                   help="aero: which forms to fit; the other keeps the base model's values (default: %(default)s)")
+    p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default=",".join(DEFAULT_FORMS),
+                   metavar="{drag,magnus | drag | magnus}",
+                   help="aero: which forms to fit; the other keeps the base model's values (default: %(default)s, "
+                   "which fits held-out measured flights best: see the README)")
     p.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C",
                    help="segments (aero) and contacts (table, racket: before and after) with a lower spin confidence "
                    "are not used (default: %(default)s)")
@@ -132,8 +135,9 @@ def _register_fit(subparsers) -> None:
     p.add_argument("--epochs", type=positive_int, metavar="N",
                    help="residual: maximum number of epochs (default: the bundled conti2026 residual config's)")
     p.add_argument("--test-fraction", type=_fraction, default=0.0, metavar="F",
-                   help="fraction of sessions held out of every stage, listed in OUT.fit.json for evaluation "
-                   "(default: %(default)s)")
+                   help="fraction of each dataset's sessions held out of every stage, listed in OUT.fit.json; the "
+                   "fitted model is compared with the base on them (the same sessions as 'ttsim evaluate --split test' "
+                   "with the same fraction and seed on that dataset; default: %(default)s)")
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the held-out draw and of the cross-validation folds (default: %(default)s)")
     p.add_argument("--force", action="store_true", help="overwrite OUT (and its network checkpoint) if it exists")
@@ -141,189 +145,85 @@ def _register_fit(subparsers) -> None:
     p.set_defaults(func=cmd_fit)
 
 
-class _Stage:
-    """Progress bar, wall and CPU time of one stage."""
+class _Bars:
+    """One progress bar per stage, for :func:`ttsim_jax.fit.pipeline.fit_dataset`'s ``progress``."""
 
-    def __init__(self, name: str, quiet: bool, seconds: dict):
-        self.name, self.quiet, self.seconds = name, quiet, seconds
+    def __init__(self):
+        self.bar, self.stage = None, None
 
-    def __enter__(self):
+    def __call__(self, stage: str, done: int, total: int) -> None:
         from tqdm import tqdm
 
-        self.bar = None if self.quiet else tqdm(total=0, desc=f"fit {self.name}", file=sys.stderr)
-        self.wall, self.cpu = time.perf_counter(), time.process_time()
-        return self
+        if stage != self.stage:
+            self.close()
+            self.bar, self.stage = tqdm(total=total, desc=f"fit {stage}", file=sys.stderr), stage
+        self.bar.total = total
+        self.bar.update(done - self.bar.n)
 
-    def progress(self, done, total):
-        if self.bar is not None:
-            self.bar.total = total
-            self.bar.update(done - self.bar.n)
-
-    def __exit__(self, *exc):
+    def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
-        self.seconds[self.name] = dict(wall=time.perf_counter() - self.wall, cpu=time.process_time() - self.cpu)
-        return False
-
-
-def _check_events(ds, stages, data) -> None:
-    """Refuses, before any work, a stage whose contacts the dataset does not have."""
-    import numpy as np
-
-    kinds = np.asarray(ds.events["kind"]).astype(str)
-    if "table" in stages and not np.any(kinds == "table"):
-        raise UsageError(f"--stages table: --data {data} has no table bounces (no event of kind 'table'); "
-                         "leave 'table' out of --stages")
-    for stage in ("racket", "residual"):
-        if stage in stages and len(ds.rackets["event_id"]) == 0:
-            raise UsageError(f"--stages {stage}: --data {data} has no racket contacts with a racket state (the "
-                             f"rackets table is empty); leave '{stage}' out of --stages")
-
-
-def _counts(total: int, used: int, skipped: dict, held_out: int) -> dict:
-    return dict(total=total, used=used, held_out=held_out, skipped={k: len(v) for k, v in skipped.items() if v})
+        self.bar, self.stage = None, None
 
 
 def cmd_fit(args) -> int:
-    """``fit``: identification of a dataset, stage by stage -> model config (+ checkpoint) + JSON summary."""
-    import numpy as np
+    """``fit``: identification of one or several datasets -> model config (+ checkpoint) + JSON summary."""
+    from ttsim_jax.fit.pipeline import (FitError, FitSettings, StageFailed, fit_dataset, load_datasets, output_paths,
+                                        write_fit)
 
-    from ttsim_jax.data import load
-    from ttsim_jax.fit.aero_forms import aero_sections, write_config
-    from ttsim_jax.fit.contacts import ContactFit
-    from ttsim_jax.fit.identify import split_sessions
-    from ttsim_jax.io_atomic import atomic_write
-    from ttsim_jax.params import load_model, resolve_model_path
+    paths = output_paths(args.out)
+    out = paths["toml"]
+    wanted = [paths["toml"], paths["json"]] + ([paths["network"]] if args.stages and "residual" in args.stages else [])
+    existing = [str(p) for p in wanted if p.exists()]
+    if existing and not args.force:
+        raise UsageError(f"--out {out}: the output already exists ({', '.join(existing)}); pass --force to "
+                         "overwrite it")
+    datasets, labels = load_datasets(args.data)
+    for ds, label in zip(datasets, labels):
+        print(f"loaded {label}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations, "
+              f"{len(ds.events['event_id'])} events")
+    settings = FitSettings(association=args.association, forms=tuple(args.forms.split(",")),
+                           min_spin_conf=args.min_spin_conf, max_rmse=args.max_rmse_mm / 1000.0, folds=args.folds,
+                           lambda_rule=args.lambda_rule, epochs=args.epochs, test_fraction=args.test_fraction,
+                           seed=args.seed)
+    bars = _Bars()
 
-    out = Path(args.out)
-    if out.suffix != ".toml":
-        out = out.with_name(out.name + ".toml")
-    summary_path = out.with_suffix(".fit.json")
-    network_path = out.with_suffix(".ttres")
-    if out.exists() and not args.force:
-        raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
-    stages = args.stages
-    if "residual" in stages and network_path.exists() and not args.force:
-        raise UsageError(f"--out {out}: the network checkpoint {network_path} already exists; pass --force")
-    ds = load(args.data)
-    print(f"loaded {args.data}: {len(ds.segments['segment_id'])} segments, {len(ds.observations['t'])} observations, "
-          f"{len(ds.events['event_id'])} events; stages {','.join(stages)}")
-    _check_events(ds, stages, args.data)
-    base_path = resolve_model_path(args.base)
-    model = load_model(base_path)
-    test_sessions = split_sessions(ds.segments["session_id"], args.test_fraction, args.seed)
-    contact_fit = ContactFit(min_spin_conf=args.min_spin_conf)
-    sections, seconds = {}, {}
-    meta = dict(data=os.fspath(args.data), model=str(out), base=str(base_path), stages=list(stages),
-                test_sessions=[int(x) for x in test_sessions], seconds=seconds)
+    def log(text):
+        bars.close()
+        print(text)
 
-    if "aero" in stages:
-        from ttsim_jax.fit.identify import identify_aero
-
-        with _Stage("aero", args.quiet, seconds) as st:
-            result = identify_aero(ds, base_path, association=args.association, min_spin_conf=args.min_spin_conf,
-                                   max_rmse=args.max_rmse_mm / 1000.0, test_fraction=args.test_fraction,
-                                   seed=args.seed, forms=tuple(args.forms.split(",")), progress=st.progress)
-        print(result.summary())
-        if result.drag is None:
-            raise UsageError(f"--data {args.data}: no segment with a measured spin (confidence >= "
-                             f"{args.min_spin_conf}) fits within {args.max_rmse_mm} mm; nothing to write (leave "
-                             "'aero' out of --stages to fit the other stages)")
-        sections.update(aero_sections(base_path, result.drag.values["cd"], result.magnus.values))
-        meta["aero"] = result.to_dict()
-
-    if "table" in stages:
-        from ttsim_jax.fit import table as T
-
-        with _Stage("table", args.quiet, seconds) as st:
-            bounces = T.table_bounces(ds, model, fit=contact_fit, validate=False, progress=st.progress)
-            session = dict(zip(np.asarray(ds.events["event_id"]).tolist(),
-                               np.asarray(ds.events["session_id"]).tolist()))
-            kept = ~np.isin([session[int(e)] for e in bounces.event_id], test_sessions)
-            settings = T.LassoSettings(folds=args.folds, rule=args.lambda_rule, seed=args.seed)
-            counts = _counts(bounces.n_bounces, int(kept.sum()), bounces.skipped, int((~kept).sum()))
-            if kept.sum() < 2 * args.folds:
-                raise UsageError(f"--stages table: --data {args.data} has {int(kept.sum())} usable table bounces "
-                                 f"({bounces.n_bounces} table events; skipped: {counts['skipped']}); at least "
-                                 f"{2 * args.folds} are needed for --folds {args.folds}")
-            fit = T.fit_table(bounces.vel_in[kept], bounces.spin_in[kept], bounces.vel_out[kept],
-                              bounces.spin_out[kept], model, settings)
-        counts["bounded"] = fit.n_bounded
-        print(f"table: {counts['used']} of {counts['total']} bounces used; skipped {counts['skipped']}, "
-              f"{counts['held_out']} held out\n" + fit.summary())
-        sections.update(T.table_sections(model.table, fit))
-        meta["table"] = dict(counts=counts, fit=fit.to_dict())
-        model = model.replace(table=fit.params(model.table))
-
-    arrays = None
-    if "racket" in stages or "residual" in stages:
-        from ttsim_jax.fit.contacts import contact_arrays
-
-        arrays_of = lambda m: contact_arrays(ds, m, n_inputs=8, fit=contact_fit, validate=False)  # noqa: E731
-    if "racket" in stages:
-        from ttsim_jax.fit import racket as RF
-
-        with _Stage("racket", args.quiet, seconds) as st:
-            arrays = arrays_of(model)
-            kept = ~np.isin(arrays.session_id, test_sessions)
-            counts = _counts(arrays.n_contacts, int(kept.sum()), arrays.skipped, int((~kept).sum()))
-            if kept.sum() < 2 * len(RF.PARAMETERS):
-                raise UsageError(f"--stages racket: --data {args.data} has {int(kept.sum())} usable racket contacts "
-                                 f"({arrays.n_contacts} racket events; skipped: {counts['skipped']}); at least "
-                                 f"{2 * len(RF.PARAMETERS)} are needed")
-            fit = RF.fit_racket(arrays.x[kept], arrays.y_obs[kept], model)
-            st.progress(1, 1)
-        print(f"racket: {counts['used']} of {counts['total']} contacts used; skipped {counts['skipped']}, "
-              f"{counts['held_out']} held out\n" + fit.summary())
-        sections.update(RF.racket_section(model.racket, fit))
-        meta["racket"] = dict(counts=counts, fit=fit.to_dict())
-        model = model.replace(racket=fit.params(model.racket))
-
-    if "residual" in stages:
-        from ttsim_jax.fit import residual as F
-        from ttsim_jax.physics.residual import save_residual
-
-        with _Stage("residual", args.quiet, seconds):
-            arrays = arrays_of(model)  # y_base of the fitted racket parameters
-            rows = ~np.isin(arrays.session_id, test_sessions)
-            config, tcfg = F.load_train_config(bundled_config("conti2026"))
-            if args.epochs is not None:
-                tcfg = dataclasses.replace(tcfg, max_epochs=args.epochs)
-            x, yb, yo = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows]
-            if len(x) < 3:
-                raise UsageError(f"--stages residual: --data {args.data} has {len(x)} usable racket contacts; at "
-                                 "least 3 are needed (train / validation / test)")
-            n_train = len(F.split_by_contact(len(x), tcfg.split, tcfg.seed)[0])
-            config = dataclasses.replace(config, n_clusters=min(config.n_clusters, n_train))
-            net, report = F.train_residual(x, yb, yo, config, tcfg, progress=not args.quiet)
-            info = {k: v for k, v in report.items() if k != "history"}
-            info.update(model=str(out), data=os.fspath(args.data), train_config=tcfg.to_dict(),
-                        contacts=dict(used=len(x), total=arrays.n_contacts, skipped=arrays.counts()))
-            save_residual(network_path, net, metadata=info)
-        print(f"residual: trained {report['epochs']} epochs on {len(x)} contacts (best validation loss "
-              f"{report['best_val_loss']:.4g}); wrote {network_path}")
-        meta["residual"] = dict(checkpoint=str(network_path), epochs=report["epochs"],
-                                best_val_loss=report["best_val_loss"], contacts=info["contacts"])
-
-    write_config(base_path, out, sections, name=out.stem,
-                 source=f"fitted by ttsim fit on {os.fspath(args.data)} (stages {','.join(stages)}) over "
-                 f"{base_path.name}")
-    atomic_write(summary_path, (json.dumps(meta, indent=1, default=_json_default) + "\n").encode("utf-8"))
-    for name, t in seconds.items():
+    data = " ".join(f"--data {x}" for x in labels)
+    try:
+        result = fit_dataset(datasets, args.base, stages=args.stages, settings=settings, labels=labels, name=out.stem,
+                             progress=None if args.quiet else bars, log=log)
+    except FitError as e:
+        bars.close()
+        if e.problems:
+            raise UsageError("; ".join(f"--stages {s}: {data}: {why}" for s, why in e.problems.items())
+                             + f"; leave {','.join(e.problems)} out of --stages (without --stages, the stages the data "
+                             "cannot fit are skipped)") from None
+        raise UsageError(f"{data}: {e}") from None
+    except StageFailed as e:
+        bars.close()
+        if not e.partial.fitted:
+            raise e.cause from None
+        written = write_fit(e.partial, out, force=args.force)
+        print(f"stage {e.stage} failed (below); wrote what the stages before it fitted "
+              f"({', '.join(e.partial.fitted)}) to {written['toml']} and {written['json']} (its 'failed' names the "
+              "stage)", file=sys.stderr)
+        raise e.cause from None
+    bars.close()
+    written = write_fit(result, out, force=args.force)
+    for name, t in result.report["seconds"].items():
         print(f"{name}: {t['wall']:.1f} s wall, {t['cpu']:.1f} s CPU")
-    extra = f" with --residual {network_path}" if "residual" in stages else ""
-    print(f"wrote {out} (load_model({str(out)!r}) or --model {out}){extra} and {summary_path}")
+    extra = f" with --residual {written['network']}" if "network" in written else ""
+    print(f"wrote {out} (load_model({str(out)!r}) or --model {out}){extra} and {written['json']}")
+    missed = [s for s in (args.stages or ()) if s in result.skipped]
+    if missed:
+        for s in missed:
+            print(f"error: --stages {s}: skipped: {result.skipped[s]}", file=sys.stderr)
+        return 1
     return 0
-
-
-def _json_default(value):
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def register(subparsers) -> None:
@@ -348,7 +248,7 @@ def register(subparsers) -> None:
                    help="dataset directory (see docs/data_format.md; the bundled sample is ttsim_jax/data/sample/games)")
     p.add_argument("--out", required=True, metavar="CHECKPOINT", type=writable_file,
                    help="residual checkpoint to write (e.g. runs/net.ttres); the training state goes to "
-                   "CHECKPOINT.state")
+                   "CHECKPOINT.state while it runs and is removed when it finishes")
     p.add_argument("--model", choices=MODELS, default="conti2026",
                    help="simulator model whose racket base model the network corrects (default conti2026: 8 inputs; "
                    "durr2026: 6 inputs, racket spin ignored)")
@@ -457,11 +357,15 @@ def cmd_train_residual(args) -> int:
         config = dataclasses.replace(config, n_clusters=args.clusters)
     out = Path(args.out)
     state = Path(str(out) + ".state")
-    if not args.resume and not args.force and (out.exists() or state.exists()):
-        existing = " and ".join(str(p) for p in (out, state) if p.exists())
-        raise UsageError(f"--out {out}: {existing} already exists: pass --resume to continue the run, or --force "
-                         "to start over")
+    if not args.resume and not args.force and state.exists():
+        raise UsageError(f"--out {out}: the training state {state} of an unfinished run exists: pass --resume to "
+                         "continue it, or --force to start over")
+    if not args.resume and not args.force and out.exists():
+        raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
     if args.resume and not state.exists():
+        if out.exists():
+            raise UsageError(f"--resume: {out} is a finished run (no training state {state} left): nothing to "
+                             "resume; pass --force to train again")
         raise UsageError(f"--resume: no training state {state} to continue")
     ds = load(args.data)
     arrays = _convert(ds, args.model, config.n_inputs)
@@ -485,6 +389,7 @@ def cmd_train_residual(args) -> int:
     meta.update(model=args.model, data=str(args.data), config_file=str(config_path), train_config=tcfg.to_dict(),
                 contacts=dict(used=len(arrays), total=arrays.n_contacts, skipped=arrays.counts()))
     save_residual(out, model, metadata=meta)
+    state.unlink(missing_ok=True)  # finished: a state left behind would only make the next run ask for --resume
 
     _, _, test = F.split_by_contact(len(arrays), tcfg.split, tcfg.seed)
     bands = _bands_with_total(model, arrays.x[test], arrays.y_base[test], arrays.y_obs[test], arrays.distance[test])

@@ -133,7 +133,8 @@ def split_sessions(session_ids, test_fraction: float, seed: int) -> np.ndarray:
 
 def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "averaged", min_spin_conf: float = 0.5,
                   max_rmse: float = 0.02, min_samples: int = 5, test_fraction: float = 0.0, seed: int = 0,
-                  alpha: float = 1.0, forms: tuple = FORMS, progress: Callable | None = None) -> AeroIdentification:
+                  alpha: float = 1.0, forms: tuple = FORMS, progress: Callable | None = None,
+                  test_sessions=None) -> AeroIdentification:
     """Identifies C_D(Re, Sp) and C_M(v, w) from a dataset's flight segments.
 
     Arguments:
@@ -148,6 +149,8 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
         forms: which forms to regress (``"drag"``, ``"magnus"``); one left out keeps the base
             model's values.
         progress: optional ``progress(n_done, n_total)`` called after each fitted batch.
+        test_sessions: the held-out session ids, given instead of drawn with ``test_fraction`` and
+            ``seed`` (:func:`ttsim_jax.fit.pipeline.held_out_sessions` draws them per dataset).
 
     Returns:
         :class:`AeroIdentification`.
@@ -165,7 +168,9 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     t0 = time.perf_counter()
     seg = ds.segments
     n_obs = dict(zip(*np.unique(ds.observations["segment_id"], return_counts=True)))
-    test_sessions = split_sessions(seg["session_id"], test_fraction, seed)
+    if test_sessions is None:
+        test_sessions = split_sessions(seg["session_id"], test_fraction, seed)
+    test_sessions = np.asarray(test_sessions, np.int64)
     counts = dict(segments=len(seg["segment_id"]), too_short=0, low_spin_conf=0, held_out=0)
     for k, sid in enumerate(seg["segment_id"]):
         if n_obs.get(sid, 0) < min_samples:

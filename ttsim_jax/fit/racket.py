@@ -50,20 +50,31 @@ def _predict(theta, base, x, radius, mass):
     return jax.vmap(lambda xi: racket_stage.base_response(params, xi[:3], xi[3:6], xi[6:8], radius, mass))(x)
 
 
-def _residuals(theta, base, x, y, real, radius, mass, spin_scale):
-    v, w = _predict(theta, base, x, radius, mass)
+def _residuals(theta, fixed, held, base, x, y, real, radius, mass, spin_scale):
+    v, w = _predict(jnp.where(fixed, held, theta), base, x, radius, mass)
     keep = real[:, None]
     return jnp.concatenate([(keep * (v - y[:, :3])).ravel(), (keep * spin_scale * (w - y[:, 3:])).ravel()])
 
 
 @jax.jit
-def _solve(theta0, base, x, y, real, radius, mass, spin_scale):
+def _solve(theta0, fixed, held, base, x, y, real, radius, mass, spin_scale):
+    """Least squares over theta with the ``fixed`` entries held at ``held`` (their Jacobian columns
+    are zero, so they keep their start value and get no standard error)."""
     from jaxopt import LevenbergMarquardt
 
     solver = LevenbergMarquardt(residual_fun=_residuals, maxiter=100, tol=1e-10, xtol=1e-10, gtol=1e-10,
                                 solver="cholesky", materialize_jac=True, implicit_diff=False)
-    theta, state = solver.run(theta0, base, x, y, real, radius, mass, spin_scale)
-    return theta, state.residual, state.jac  # of the last accepted step: the solution
+    theta, state = solver.run(jnp.where(fixed, held, theta0), fixed, held, base, x, y, real, radius, mass, spin_scale)
+    return jnp.where(fixed, held, theta), state.residual, state.jac  # of the last accepted step: the solution
+
+
+def bounds() -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) of :data:`PARAMETERS`: the physical ranges a model file allows
+    (:data:`ttsim_jax.params.SCHEMA`; a restitution above 1 would create energy)."""
+    from ttsim_jax.params import SCHEMA
+
+    entries = [SCHEMA["racket"][k] for k in PARAMETERS]
+    return np.array([e.lo for e in entries], np.float64), np.array([e.hi for e in entries], np.float64)
 
 
 @dataclasses.dataclass
@@ -75,12 +86,15 @@ class RacketFit:
         n_used: contacts in the fit.
         errors: 'base' / 'fitted' -> {'velocity' [m/s], 'spin' [rad/s]}: median norm of the error of
             the model given to :func:`fit_racket` and of the fitted base model.
+        bounds: the parameters held at a bound of their physical range (:func:`bounds`), one
+            description each (with the free fit's value); empty when the free fit is within them.
     """
 
     values: dict
     stderr: dict
     n_used: int
     errors: dict
+    bounds: list = dataclasses.field(default_factory=list)
 
     def params(self, base: racket_stage.RacketParams) -> racket_stage.RacketParams:
         return updated_params(base, [self.values[k] for k in PARAMETERS])
@@ -88,16 +102,28 @@ class RacketFit:
     def summary(self) -> str:
         vals = ", ".join(f"{k} = {self.values[k]:.4f} +- {self.stderr[k]:.4f}" for k in PARAMETERS)
         b, f = self.errors["base"], self.errors["fitted"]
-        return (f"{vals} ({self.n_used} contacts)\nmedian |error| base -> fitted: velocity {b['velocity']:.3f} -> "
-                f"{f['velocity']:.3f} m/s, spin {b['spin']:.1f} -> {f['spin']:.1f} rad/s")
+        held = f"\nheld at a physical bound: {'; '.join(self.bounds)}" if self.bounds else ""
+        return (f"{vals} ({self.n_used} contacts){held}\nmedian |error| base -> fitted: velocity {b['velocity']:.3f} "
+                f"-> {f['velocity']:.3f} m/s, spin {b['spin']:.1f} -> {f['spin']:.1f} rad/s")
 
     def to_dict(self) -> dict:
-        return dict(values=self.values, stderr=self.stderr, n_used=self.n_used, errors=self.errors)
+        return dict(values=self.values, stderr=self.stderr, n_used=self.n_used, errors=self.errors, bounds=self.bounds)
 
 
 def _median_errors(v, w, y) -> dict:
     return dict(velocity=float(np.median(np.linalg.norm(np.asarray(v) - y[:, :3], axis=1))),
                 spin=float(np.median(np.linalg.norm(np.asarray(w) - y[:, 3:], axis=1))))
+
+
+def racket_errors(params: racket_stage.RacketParams, x, y_obs, radius, mass) -> dict:
+    """Median norm of the velocity [m/s] and spin [rad/s] error of the racket base model ``params``
+    over racket-frame contacts ``x`` (N, 8) against ``y_obs`` (N, 6) (NaN with no contact)."""
+    x, y = np.asarray(x, np.float64).reshape(-1, 8), np.asarray(y_obs, np.float64).reshape(-1, 6)
+    n = len(x)
+    if n == 0:
+        return dict(velocity=float("nan"), spin=float("nan"))
+    jx = jnp.asarray(np.concatenate([x, np.repeat(x[:1], -(-n // PAD) * PAD - n, 0)]), jnp.float32)
+    return _median_errors(*(np.asarray(a)[:n] for a in predict(params, jx, radius, mass)), y)
 
 
 def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> RacketFit:
@@ -138,14 +164,24 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     n = len(x)
     real = np.arange(-(-n // PAD) * PAD) < n  # padded rows (weight 0): one compiled solver for most datasets
     jx, jy = (jnp.asarray(np.concatenate([a, np.repeat(a[:1], len(real) - n, 0)]), jnp.float32) for a in (x, y))
-    theta, r, jac = (np.asarray(a, np.float64) for a in _solve(jnp.asarray(theta0, jnp.float32), start, jx, jy,
-                                                                jnp.asarray(real, jnp.float32), radius, mass,
-                                                                jnp.asarray(scale, jnp.float32)))
-    s2 = float(np.sum(r**2)) / max(6 * n - len(theta), 1)
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    lo, hi = bounds()
+    fixed, held, notes = np.zeros(len(PARAMETERS), bool), np.clip(theta0, lo, hi), []
+    for _ in PARAMETERS:  # a parameter the fit puts outside its range is held at the bound, the others refitted
+        theta, r, jac = (np.asarray(a, np.float64) for a in _solve(
+            jnp.asarray(held, jnp.float32), jnp.asarray(fixed), jnp.asarray(held, jnp.float32), start, jx, jy,
+            jnp.asarray(real, jnp.float32), radius, mass, jnp.asarray(scale, jnp.float32)))
+        beyond = np.where(fixed, 0.0, np.maximum(lo - theta, theta - hi))
+        if not np.any(beyond > 0):
+            break
+        k = int(np.argmax(beyond))
+        fixed[k], held = True, np.where(fixed, held, theta)
+        held[k] = np.clip(theta[k], lo[k], hi[k])
+        notes.append(f"{PARAMETERS[k]} = {held[k]:g} (the free fit: {theta[k]:.4g})")
+    s2 = float(np.sum(r**2)) / max(6 * n - int((~fixed).sum()), 1)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)  # the held parameters' columns are zero: no error
     se = np.sqrt(np.maximum(np.diag(cov), 0.0))
     result = RacketFit(values={k: float(v) for k, v in zip(PARAMETERS, theta)},
-                       stderr={k: float(v) for k, v in zip(PARAMETERS, se)}, n_used=len(x), errors={})
+                       stderr={k: float(v) for k, v in zip(PARAMETERS, se)}, n_used=len(x), errors={}, bounds=notes)
     fitted = (np.asarray(a)[:n] for a in predict(updated_params(base, theta), jx, radius, mass))
     base_pred = (np.asarray(a)[:n] for a in predict(base, jx, radius, mass))
     result.errors = dict(base=_median_errors(*base_pred, y), fitted=_median_errors(*fitted, y))

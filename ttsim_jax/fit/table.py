@@ -23,10 +23,13 @@ sparse pattern; ``"min"``: the best). The base depends on e_n through the slidin
 fit is repeated ``outer`` times with the updated (e0, e1). The lasso selects the entries; their
 values are then refitted by ordinary least squares on that selection (the relaxed lasso: the
 penalty's shrinkage would otherwise leak into e0, e1 through the uncentred features), and
-entries below ``min_t`` standard errors in that refit are dropped.
+entries below ``min_t`` standard errors in that refit are dropped. The refit keeps e_n within
+the base model's [e_min, e_max] (a bounce gains no energy) at v_z = 0 and at the fastest bounce:
+where the free fit leaves that range, the restitution is the least-squares fit on the bound
+(:attr:`TableFit.bounds` says which).
 
 The simulator fades the residual below ``RESIDUAL_FADE_SPEED`` of horizontal speed and scales it
-down where it would create energy or normal speed (:func:`~ttsim_jax.physics.table.residual_bound`);
+down where it would create energy (:func:`~ttsim_jax.physics.table.residual_bound`);
 the fit uses only bounces where both are 1: slower bounces are skipped (``slow_horizontal``), and
 bounces where the fitted matrices would be bounded are dropped and the fit repeated once
 (``residual_bounded``).
@@ -38,7 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import time
+import itertools
 from typing import Callable
 
 import jax
@@ -59,7 +62,7 @@ SKIP_REASONS.update(
     not_approaching="ball not moving down before the bounce (v_z- >= 0)",
     not_leaving="ball leaves with less normal speed than the rest threshold (sustained contact)",
     slow_horizontal="horizontal speed below min_horizontal_speed: the residual is faded there",
-    residual_bounded="the fitted residual would be scaled down by the energy / normal-speed bound",
+    residual_bounded="the fitted residual would be scaled down by the energy bound",
 )
 
 
@@ -257,6 +260,9 @@ class TableFit:
         errors: 'base' / 'fitted' -> component -> median absolute error of the model given to
             :func:`fit_table` and of the fitted one on the used bounces.
         settings: the :class:`LassoSettings` as a dict.
+        bounds: the physical bounds the fit holds (e_n within [e_min, e_max] over the bounces'
+            normal speeds), one description each; empty when the free fit is within them.
+        unconstrained: ``{"e0": ..., "e1": ...}`` of the free fit where a bound holds.
     """
 
     e0: float
@@ -276,6 +282,8 @@ class TableFit:
     used: np.ndarray
     errors: dict
     settings: dict
+    bounds: list = dataclasses.field(default_factory=list)
+    unconstrained: dict = dataclasses.field(default_factory=dict)
 
     def params(self, table):
         """``table`` (TableParams) with the fitted e0, e1 and residual matrices."""
@@ -302,6 +310,9 @@ class TableFit:
                  f"{self.lambdas[self.lambda_min_index]:.3g}), {int(self.pattern.sum())} of the 29 identifiable "
                  "entries non-zero (x; - not identifiable):"]
         lines += ["  " + t for t in self.pattern_text()]
+        if self.bounds:
+            lines.append(f"held at a physical bound: {'; '.join(self.bounds)} (the free fit: e0 = "
+                         f"{self.unconstrained['e0']:.4f}, e1 = {self.unconstrained['e1']:.4f} s/m)")
         comps = list(self.errors["fitted"])
         lines.append("median |error| base -> fitted: " + ", ".join(
             f"{c} {self.errors['base'][c]:.3g} -> {self.errors['fitted'][c]:.3g}" for c in comps))
@@ -316,7 +327,8 @@ class TableFit:
                     pattern_text=self.pattern_text(), cv_lambda=float(self.lambdas[self.lambda_index]),
                     cv_lambda_min=float(self.lambdas[self.lambda_min_index]), lambdas=clean(self.lambdas),
                     cv_mean=clean(self.cv_mean), cv_se=clean(self.cv_se), n_used=self.n_used,
-                    n_bounded=self.n_bounded, errors=self.errors, settings=self.settings)
+                    n_bounded=self.n_bounded, errors=self.errors, settings=self.settings, bounds=self.bounds,
+                    unconstrained=self.unconstrained)
 
 
 _COMPONENTS = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")
@@ -330,10 +342,78 @@ def _errors(table, radius, vel, spin, vel_out, spin_out, rows) -> dict:
     return {c: float(np.median(err[:, k])) if len(err) else float("nan") for k, c in enumerate(_COMPONENTS)}
 
 
-def _restitution_ols(vz_in, vz_out, w):
-    """(e0, e1) of v_z+ = -(e0 + e1 v_z) v_z by weighted least squares."""
+def bounce_errors(table, radius, vel_in, spin_in, vel_out, spin_out) -> dict:
+    """Component -> median |model - observed| of the table model ``table`` over bounces.
+
+    Arguments:
+        table: TableParams; radius: the ball's radius [m].
+        vel_in, spin_in, vel_out, spin_out: (N, 3) states before / after each bounce.
+
+    Returns:
+        ``{"v_x": ..., ..., "w_z": ...}`` [m/s, rad/s] (NaN with no bounce).
+    """
+    n = len(vel_in)
+    size = padded_size(n)
+    vin, win = (jnp.asarray(_pad(np.asarray(a, np.float64).reshape(-1, 3), size) if n else np.zeros((size, 3)),
+                            jnp.float32) for a in (vel_in, spin_in))
+    out = [np.asarray(a, np.float64).reshape(-1, 3) for a in (vel_out, spin_out)]
+    out = [_pad(a, size) if n else np.zeros((size, 3)) for a in out]
+    return _errors(table, jnp.asarray(radius, jnp.float32), vin, win, out[0], out[1], np.arange(size) < n)
+
+
+def _bounded_lstsq(a, y, cons_a, cons_b):
+    """Least squares ``a x ~ y`` subject to ``cons_a x <= cons_b`` (a few constraints).
+
+    The optimum of a convex quadratic over a polyhedron solves the equality-constrained problem of
+    its active constraints, so every set of at most ``len(x)`` constraints is solved that way and
+    the feasible solution with the least residual kept.
+
+    Returns:
+        (x, standard errors (0 along what the active constraints fix), active (bool per constraint)).
+    """
+    n, p = a.shape
+    m = len(cons_b)
+    best = None
+    for k in range(min(p, m) + 1):
+        for act in itertools.combinations(range(m), k):
+            c, d = cons_a[list(act)], cons_b[list(act)]
+            kkt = np.block([[a.T @ a, c.T], [c, np.zeros((k, k))]])
+            x = np.linalg.lstsq(kkt, np.concatenate([a.T @ y, d]), rcond=None)[0][:p]
+            if k and not np.allclose(c @ x, d, atol=1e-9):
+                continue  # dependent constraints that cannot hold together
+            if np.any(cons_a @ x > cons_b + 1e-9):
+                continue
+            sse = float(np.sum((a @ x - y) ** 2))
+            if best is None or sse < best[0] - 1e-12:
+                best = (sse, x, act)
+        if best is not None and k == 0:
+            break  # the free fit is feasible: no bound is active
+    sse, x, act = best
+    free = np.linalg.svd(cons_a[list(act)])[2][len(act):].T if act else np.eye(p)  # null space of the active rows
+    s2 = sse / max(n - free.shape[1], 1)
+    cov = free @ np.linalg.pinv(free.T @ a.T @ a @ free) @ free.T * s2
+    return x, np.sqrt(np.maximum(np.diag(cov), 0.0)), np.isin(np.arange(m), act)
+
+
+def _restitution_bounds(e0, e1, vz_min, e_min, e_max):
+    """Constraints ``c (de0, de1) <= d`` keeping e_n = (e0 + de0) + (e1 + de1) v_z within
+    [e_min, e_max] at v_z = 0 and at the fastest bounce's ``vz_min`` (e_n is linear in v_z, so the
+    two ends bound it over the bounces' range), and their descriptions."""
+    c, d, what = [], [], []
+    for v in (0.0, vz_min):
+        here = e0 + e1 * v
+        c += [[1.0, v], [-1.0, -v]]
+        d += [e_max - here, here - e_min]
+        at = "e0" if v == 0.0 else f"e_n at v_z = {v:.2f} m/s"
+        what += [f"{at} <= e_max = {e_max:g}", f"{at} >= e_min = {e_min:g}"]
+    return np.asarray(c), np.asarray(d), what
+
+
+def _restitution_ols(vz_in, vz_out, w, e_min, e_max):
+    """(e0, e1) of v_z+ = -(e0 + e1 v_z) v_z by weighted least squares, e_n within [e_min, e_max]."""
     a = np.stack([-vz_in, -vz_in**2], 1) * np.sqrt(w)[:, None]
-    return np.linalg.lstsq(a, vz_out * np.sqrt(w), rcond=None)[0]
+    c, d, _ = _restitution_bounds(0.0, 0.0, float(np.min(vz_in[w > 0])), e_min, e_max)
+    return _bounded_lstsq(a, vz_out * np.sqrt(w), c, d)[0]
 
 
 def _masks():
@@ -354,21 +434,26 @@ def _grams(z, u, w):
     return (z * w[:, None]).T @ z / s, (z * w[:, None]).T @ u / s
 
 
-def _refit(x, y, rows, support):
+def _refit(x, y, rows, support, bounds):
     """Least squares of each target column on its selected features (the relaxed lasso: the L1
-    penalty selects, this fit removes its shrinkage). Returns (coefficients, standard errors), both
-    (6, 7), zero / nan off the support."""
+    penalty selects, this fit removes its shrinkage); the v_z row's de0, de1 (columns 2 and 6)
+    under ``bounds`` = (c, d) of :func:`_restitution_bounds`. Returns (coefficients, standard
+    errors, both (6, 7), zero / nan off the support; active (bool per bound))."""
     b, se = np.zeros(support.shape), np.full(support.shape, np.nan)
+    active = np.zeros(len(bounds[1]), bool)
     for i in range(support.shape[0]):
         cols = np.flatnonzero(support[i])
         if len(cols) == 0:
             continue
         a = x[rows][:, cols]
-        sol, *_ = np.linalg.lstsq(a, y[rows, i], rcond=None)
-        s2 = float(np.sum((y[rows, i] - a @ sol) ** 2)) / max(int(rows.sum()) - len(cols), 1)
-        b[i, cols] = sol
-        se[i, cols] = np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(a.T @ a)), 0.0))
-    return b, se
+        cons = np.zeros((len(bounds[1]), len(cols)))
+        if i == 2:  # columns 2 and 6 are always in the v_z row's support (fit_table)
+            cons[:, np.searchsorted(cols, 2)], cons[:, np.searchsorted(cols, 6)] = bounds[0][:, 0], bounds[0][:, 1]
+        sol, err, act = _bounded_lstsq(a, y[rows, i], cons, bounds[1] if i == 2 else np.ones(len(bounds[1])))
+        b[i, cols], se[i, cols] = sol, err
+        if i == 2:
+            active = act
+    return b, se, active
 
 
 # Bounces are padded (with weight 0) to a multiple of this, so that datasets of different sizes
@@ -421,7 +506,8 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     weights = real.astype(np.float64)
     folds = _pad(np.random.default_rng(settings.seed).permutation(n) % settings.folds, len(real))
     penalty, mask = _masks()
-    e0, e1 = _restitution_ols(vin[:, 2], vout[:, 2], weights)
+    e_min, e_max = float(m.table.e_min), float(m.table.e_max)
+    e0, e1 = _restitution_ols(vin[:, 2], vout[:, 2], weights, e_min, e_max)
     passes = settings.outer + 1
     n_bounded = 0
     table = m.table
@@ -452,11 +538,17 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
         chosen = best if settings.rule == "min" else int(np.flatnonzero(cv_mean <= cv_mean[best] + cv_se[best])[0])
         support = (coef[-1, chosen] != 0.0) & (mask > 0)
         support[2, 2] = support[2, 6] = True
-        b, se = _refit(x, y, weights > 0, support)
+        # a restitution above 1 (a bounce that gains energy) or below 0 is held at the bound
+        cons, lim, what = _restitution_bounds(e0, e1, float(np.min(vin[weights > 0, 2])), e_min, e_max)
+        b, se, active = _refit(x, y, weights > 0, support, (cons, lim))
         if settings.min_t > 0:  # prune entries the refit cannot tell from zero, refit the rest
             weak = np.abs(b) < settings.min_t * np.nan_to_num(se, nan=np.inf)
             weak[2, 2] = weak[2, 6] = False
-            b, se = _refit(x, y, weights > 0, support & ~weak)
+            support = support & ~weak
+            b, se, active = _refit(x, y, weights > 0, support, (cons, lim))
+        free = _refit(x, y, weights > 0, support, (cons, np.full(len(lim), np.inf)))[0]
+        unconstrained = dict(e0=float(e0 + free[2, 2]), e1=float(e1 + free[2, 6]))
+        bounds = [w for w, a in zip(what, active) if a]
         e0, e1 = e0 + b[2, 2], e1 + b[2, 6]
         b[2, 2] = 0.0
         residual = np.stack([b[:3, :3], b[:3, 3:6], b[3:, :3], b[3:, 3:6]])
@@ -477,7 +569,8 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     result = TableFit(e0=float(e0), e1=float(e1), stderr_e0=stderr_e0, stderr_e1=stderr_e1, residual=residual,
                       stderr=stderr, pattern=pattern, lambdas=lambdas, cv_mean=cv_mean, cv_se=cv_se,
                       lambda_index=chosen, lambda_min_index=best, n_used=int(act.sum()), n_bounded=n_bounded,
-                      used=act[:n], errors={}, settings=dataclasses.asdict(settings))
+                      used=act[:n], errors={}, settings=dataclasses.asdict(settings), bounds=bounds,
+                      unconstrained=unconstrained if bounds else {})
     result.errors = dict(base=_errors(m.table, radius, jv, jw, vout, wout, act),
                          fitted=_errors(result.params(m.table), radius, jv, jw, vout, wout, act))
     return result

@@ -1,0 +1,118 @@
+"""`ttsim fit` on several datasets, on data that cannot support every stage, and when a stage fails
+(:mod:`ttsim_jax.fit.pipeline`, through the command line in-process), on parts of the bundled
+sample (3 sessions, 238 segments, 115 table bounces, 51 racket contacts)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ttsim_jax import load_model
+from ttsim_jax.cli import main
+from ttsim_jax.data import load, save, validate
+from ttsim_jax.data.dataset import select_rows
+from ttsim_jax.data.merge import id_offsets, merge_datasets
+
+SAMPLE = Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games"
+
+
+@pytest.fixture(scope="module")
+def sample():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the sample predates page checksums
+        return load(SAMPLE)
+
+
+def sessions_of(ds, keep):
+    """The rows of ``ds`` in sessions ``keep`` (ids unchanged)."""
+    tables = {}
+    for name in ("sessions", "observations", "events", "segments"):
+        t = ds.table(name)
+        tables[name] = select_rows(t, np.isin(t["session_id"], keep))
+    tables["rackets"] = select_rows(ds.rackets, np.isin(ds.rackets["event_id"], tables["events"]["event_id"]))
+    return ds.replace(**tables)
+
+
+def test_merged_datasets_keep_their_references(sample):
+    a, b = sessions_of(sample, [0]), sessions_of(sample, [1, 2])
+    merged = merge_datasets([a, b], ["first", "second"])
+    validate(merged)
+    for name in ("sessions", "observations", "events", "rackets", "segments"):
+        assert merged.n_rows(merged.table(name)) == sample.n_rows(sample.table(name))
+    off = id_offsets([a, b])[1]
+    assert off["session_id"] == 1 and off["event_id"] > int(a.events["event_id"].max())
+    # b's rows point at b's rows: the same observations per segment, the same events around them
+    seg = merged.segments
+    second = seg["session_id"] >= off["session_id"]
+    np.testing.assert_array_equal(seg["segment_id"][second] - off["segment_id"], b.segments["segment_id"])
+    ends = seg["end_event_id"][second]
+    np.testing.assert_array_equal(np.where(ends >= 0, ends - off["event_id"], -1), b.segments["end_event_id"])
+    counts = lambda d: np.unique(d.observations["segment_id"][d.observations["segment_id"] >= 0], return_counts=True)[1]  # noqa: E731
+    np.testing.assert_array_equal(counts(merged), np.concatenate([counts(a), counts(b)]))
+    assert [str(n).split("/")[0] for n in merged.sessions["name"]] == ["first", "second", "second"]
+    assert len(np.unique(merged.events["event_id"])) == len(merged.events["event_id"])
+
+
+def test_fit_of_two_datasets_is_the_fit_of_their_union(sample, tmp_path, capsys):
+    save(sessions_of(sample, [0]), tmp_path / "a")
+    save(sessions_of(sample, [1, 2]), tmp_path / "b")
+    both, whole = tmp_path / "both", tmp_path / "whole"
+    assert main(["fit", "--data", str(tmp_path / "a"), "--data", str(tmp_path / "b"), "--out", str(both),
+                 "--stages", "aero", "--quiet"]) == 0
+    assert main(["fit", "--data", str(SAMPLE), "--out", str(whole), "--stages", "aero", "--quiet"]) == 0
+    info = json.loads(both.with_suffix(".fit.json").read_text())
+    assert info["data"] == [str(tmp_path / "a"), str(tmp_path / "b")]
+    assert info["aero"]["counts"]["segments"] == 238
+    assert info["aero"]["counts"]["used"] == json.loads(whole.with_suffix(".fit.json").read_text())["aero"]["counts"]["used"]
+    np.testing.assert_allclose(np.asarray(load_model(both.with_suffix(".toml")).aero.drag.cd),
+                               np.asarray(load_model(whole.with_suffix(".toml")).aero.drag.cd), rtol=1e-4)
+    # the JSON holds the config it was written with
+    assert info["model_toml"] == both.with_suffix(".toml").read_text()
+
+
+def test_default_stages_skip_what_the_data_cannot_fit(sample, tmp_path, capsys):
+    data = tmp_path / "no_rackets"  # as the public datasets: racket hits seen as 'other' events, no racket states
+    events = dict(sample.events, kind=np.where(sample.events["kind"] == "racket", "other", sample.events["kind"]))
+    save(sample.replace(events=events, rackets=select_rows(sample.rackets, np.zeros(len(sample.rackets["event_id"]),
+                                                                                   bool))), data)
+    out = tmp_path / "fitted"
+    assert main(["fit", "--data", str(data), "--out", str(out), "--test-fraction", "0.3", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "racket: skipped: no racket contacts with a racket state" in text
+    info = json.loads(out.with_suffix(".fit.json").read_text())
+    assert info["fitted"] == ["aero", "table"] and list(info["skipped"]) == ["racket"]
+    assert load_model(out.with_suffix(".toml")).racket.kind == load_model("conti2026").racket.kind
+    # fitted against the base on the held-out sessions, and what is worse is said
+    for stage in ("aero", "table"):
+        c = info["comparison"][stage]
+        assert c["on"] == "held_out" and c["n"] > 0
+        assert c["worse"] == [k for k in c["base"] if c["fitted"][k] > c["base"][k]]
+        assert (f"warning: {stage}: the fitted model is worse" in text) == bool(c["worse"])
+    # asked for by name, a stage the data cannot support is refused before any work
+    assert main(["fit", "--data", str(data), "--out", str(tmp_path / "x"), "--stages", "aero,racket", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--stages racket" in err and str(data) in err and "no racket contacts" in err
+    assert not (tmp_path / "x.toml").exists() and not (tmp_path / "x.fit.json").exists()
+
+
+def test_what_was_fitted_is_written_when_a_later_stage_fails(tmp_path, monkeypatch, capsys):
+    from ttsim_jax.fit import table
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the table solver broke")
+
+    monkeypatch.setattr(table, "fit_table", broken)
+    out = tmp_path / "partial"
+    with pytest.raises(RuntimeError, match="the table solver broke"):
+        main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "aero,table", "--quiet"])
+    assert "stage table failed" in capsys.readouterr().err
+    model, base = load_model(out.with_suffix(".toml")), load_model("conti2026")
+    assert not np.allclose(np.asarray(model.aero.drag.cd), np.asarray(base.aero.drag.cd))
+    assert float(model.table.e0) == float(base.table.e0)
+    info = json.loads(out.with_suffix(".fit.json").read_text())
+    assert info["fitted"] == ["aero"] and info["partial"]
+    assert info["failed"]["stage"] == "table" and "the table solver broke" in info["failed"]["error"]
+    assert info["model_toml"] == out.with_suffix(".toml").read_text()

@@ -1,0 +1,11 @@
+"""The choices of an identification (stages, coefficient forms, force associations): plain names,
+so that ``ttsim fit``'s options are checked without importing JAX."""
+
+STAGES = ("aero", "table", "racket", "residual")
+DEFAULT_STAGES = ("aero", "table", "racket")
+FORMS = ("drag", "magnus")
+#: The aerodynamic forms fitted by default: the C_D table alone, the C_M form kept from the base
+#: (on held-out SpinDOE segments the C_M fit makes the flights worse: benchmarks/fit_real.py).
+DEFAULT_FORMS = ("drag",)
+#: How a segment's velocity is paired with its fitted force: at the effective velocity or averaged.
+ASSOCIATIONS = ("v_eff", "averaged")
