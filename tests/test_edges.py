@@ -150,34 +150,6 @@ def test_balls_starting_inside_table_net_or_racket_are_refused(dtype):
 
 
 # --------------------------------------------------------------------------- residual bounds
-def energy(v, w):
-    return np.asarray(tbl.kinetic_energy(MODEL.table.kappa, R, v, w))
-
-
-def test_table_contact_never_creates_energy_or_normal_speed():
-    rng = np.random.default_rng(0)
-    n = 4000
-    speed_h = rng.uniform(0.0, 25.0, n)
-    heading = rng.uniform(0.0, 2 * np.pi, n)
-    vz = -np.exp(rng.uniform(np.log(0.05), np.log(12.0), n))
-    v = np.stack([speed_h * np.cos(heading), speed_h * np.sin(heading), vz], -1)
-    w = rng.uniform(-1200.0, 1200.0, (n, 3))
-    post_v, post_w = jax.vmap(tbl.local_contact, in_axes=(None, None, 0, 0))(MODEL.table, R, jnp.asarray(v),
-                                                                            jnp.asarray(w))
-    ratio = energy(post_v, post_w) / energy(jnp.asarray(v), jnp.asarray(w))
-    assert ratio.max() <= 1.0 + 1e-12
-    assert np.all(np.asarray(post_v[:, 2]) <= -vz + 1e-12)
-    # the raw matrices do create energy on this grid: the bound is doing work
-    bound = tbl.residual_bound
-    try:
-        tbl.residual_bound = lambda *a: jnp.ones(())
-        raw_v, raw_w = jax.vmap(tbl.local_contact, in_axes=(None, None, 0, 0))(MODEL.table, R, jnp.asarray(v),
-                                                                              jnp.asarray(w))
-    finally:
-        tbl.residual_bound = bound
-    assert (energy(raw_v, raw_w) / energy(jnp.asarray(v), jnp.asarray(w))).max() > 1.005
-
-
 def test_grazing_ball_bounces_lower_each_time_and_rests():
     b = Ball.create([[-1.3, 0.0, 0.03]], [[2.0, 0.0, -0.5]])
     r = run(MODEL, b)
@@ -185,6 +157,22 @@ def test_grazing_ball_bounces_lower_each_time_and_rests():
     bounces = np.asarray(r.events.post.vel[0, : len(k), 2])[np.asarray(k) == TABLE]
     assert len(bounces) >= 2
     assert np.all(np.diff(bounces) <= 0.0)
+
+
+def test_skimming_ball_hops_higher_and_never_gains_energy():
+    # v_xy = 3 m/s, v_z = -0.15 m/s: the law's normal restitution is above 1 (physics/table.py), so
+    # the hops grow while the ball has horizontal speed to give (they shrink once friction took it:
+    # the grazing ball above), and the kinetic energy at each impact (the same height) only falls
+    b = Ball.create([[-1.3, 0.0, 0.021]], [[3.0, 0.0, -0.15]])
+    r = run(MODEL, b)
+    k = np.asarray(kinds(r))
+    table = k == TABLE
+    hops = np.asarray(r.events.post.vel[0, : len(k), 2])[table]
+    e_pre = np.asarray(tbl.kinetic_energy(MODEL.table.kappa, R, r.events.pre.vel[0, : len(k)],
+                                          r.events.pre.spin[0, : len(k)]))[table]
+    assert len(hops) >= 6 and hops[-1] > 1.5 * hops[0]
+    assert np.all(np.diff(hops) > 0.0)
+    assert np.all(np.diff(e_pre) < 0.0)
 
 
 def test_vertical_drop_stays_vertical(dtype):

@@ -189,14 +189,9 @@ def _contact(table, radius, vel, spin):
     """(v+, w+, residual weight) of the full table model for (N, 3) surface-frame states."""
 
     def one(v, w):
-        vp, wp = table_stage.local_contact(table, radius, v, w)
-        zero = table.replace(residual=jnp.zeros_like(table.residual))
-        bv, bw = table_stage.local_contact(zero, radius, v, w)
-        rot = table_stage.residual_frame(v)
-        dv, dw = table_stage.apply_matrices(tuple(-rot.T @ da @ rot for da in table.residual), v, w)
-        lam = table_stage.residual_fade(v)
-        lam = lam * table_stage.residual_bound(table.kappa, radius, v, w, bv, bw, lam * dv, lam * dw)
-        return vp, wp, lam
+        bv, bw, dv, dw = table_stage.residual_terms(table, radius, v, w)
+        lam = table_stage.residual_bound(table.kappa, radius, v, w, bv, bw, dv, dw)
+        return bv + lam * dv, bw + lam * dw, table_stage.residual_fade(v) * lam
 
     return jax.vmap(one)(vel, spin)
 
