@@ -73,9 +73,10 @@ class AeroIdentification:
         used = self.used
         lines.append(f"        C_D median {np.median(self.fits.cd[used]):.3f}, C_M median {np.median(self.fits.cm[used]):.3f}, "
                      f"drag v_eff {np.min(self.fits.v_eff_drag[used]):.1f}-{np.max(self.fits.v_eff_drag[used]):.1f} m/s")
+        rms = lambda form: (f"{form.rms_residual:.4f}" if np.isfinite(form.rms_residual)  # noqa: E731
+                            else "not fitted (the base model's)")
         lines.append(f"regress ({self.association}; {', '.join(self.settings['forms'])}): weighted RMS residual of the "
-                     f"C_D table {self.drag.rms_residual:.4f}, of the C_M form {self.magnus.rms_residual:.4f} (nan: "
-                     "not fitted, the base model's)")
+                     f"C_D table {rms(self.drag)}, of the C_M form {rms(self.magnus)}")
         lines.append("  C_D table (rows: reference speeds; * = entry supported by data, support >= 1):")
         for k, row in enumerate(self.drag.values["cd"]):
             cells = " ".join(f"{v:.3f}{'*' if self.drag.support[k, j] >= 1 else ' '}" for j, v in enumerate(row))
