@@ -143,8 +143,7 @@ def segment_batch(
     S = len(rows) if pad_to is None else int(pad_to)
     if S < len(rows):
         raise ValueError(f"pad_to={pad_to} is smaller than the {len(rows)} segments requested")
-    order = np.argsort(obs["segment_id"], kind="stable")  # keeps time order within a segment
-    sorted_ids = obs["segment_id"][order]
+    members_of = ds.segment_rows(seg["segment_id"][rows])
     times = np.zeros((S, T), dtype)
     pos = np.zeros((S, T, 3), dtype)
     mask = np.zeros((S, T), bool)
@@ -156,8 +155,7 @@ def segment_batch(
     p_all = ds.positions
     for j, k in enumerate(rows):
         sid = seg["segment_id"][k]
-        lo, hi = np.searchsorted(sorted_ids, [sid, sid + 1])
-        members = order[lo:hi][:T]
+        members = members_of[j][:T]
         n = len(members)
         seg_id[j] = sid
         ses_id[j] = seg["session_id"][k]

@@ -107,6 +107,22 @@ class Dataset:
         o = self.observations
         return np.stack([o["spin_x"], o["spin_y"], o["spin_z"]], axis=-1)
 
+    def segment_rows(self, segment_ids=None) -> list[np.ndarray]:
+        """The observation rows of each segment, in time order.
+
+        Arguments:
+            segment_ids: the segments (default: every row of the segments table, in its order).
+
+        Returns:
+            One int array per segment (empty for a segment without observations).
+        """
+        ids = self.segments["segment_id"] if segment_ids is None else segment_ids
+        order = np.argsort(self.observations["segment_id"], kind="stable")  # keeps time order within a segment
+        sorted_ids = self.observations["segment_id"][order]
+        lo = np.searchsorted(sorted_ids, ids, side="left")
+        hi = np.searchsorted(sorted_ids, ids, side="right")
+        return [order[a:b] for a, b in zip(lo, hi)]
+
     def replace(self, **changes) -> "Dataset":
         """A copy with some tables (or the metadata) replaced."""
         return dataclasses.replace(self, **changes)

@@ -424,14 +424,10 @@ def filter_segments(
             report.dropped["low_spin_conf"].append(int(sid))
             alive[k] = False
     if max_rmse is not None and alive.any():
-        order = np.argsort(obs["segment_id"], kind="stable")
-        sorted_ids = obs["segment_id"][order]
         todo = np.flatnonzero(alive)
         times, positions, spins = [], [], []
         pos = ds.positions
-        for k in todo:
-            lo, hi = np.searchsorted(sorted_ids, [ids[k], ids[k] + 1])
-            rows = order[lo:hi]
+        for k, rows in zip(todo, ds.segment_rows(ids[todo])):
             times.append(obs["t"][rows])
             positions.append(pos[rows])
             spins.append([seg["spin_x"][k], seg["spin_y"][k], seg["spin_z"][k]])

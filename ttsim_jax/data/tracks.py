@@ -262,9 +262,7 @@ def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_sam
     if fit and len(seg["segment_id"]):
         from .flightfit import ballistic_rmse_many
 
-        order = np.argsort(obs["segment_id"], kind="stable")
-        sorted_ids = obs["segment_id"][order]
-        rows = [order[slice(*np.searchsorted(sorted_ids, [i, i + 1]))] for i in seg["segment_id"]]
+        rows = ds.segment_rows()
         usable = [k for k, r in enumerate(rows) if len(r) >= 3]
         if usable:
             spins = np.stack([seg[f"spin_{a}"] for a in "xyz"], -1)[usable]

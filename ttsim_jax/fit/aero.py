@@ -551,15 +551,11 @@ def dataset_segments(ds, min_samples: int = 5):
         (segment_ids (S,), times list, positions list, spins (S, 3), spin_conf (S,)).
     """
     seg, obs = ds.segments, ds.observations
-    order = np.argsort(obs["segment_id"], kind="stable")
-    sorted_ids = obs["segment_id"][order]
     pos = ds.positions
     ids, times, positions, spins, conf = [], [], [], [], []
-    for k, sid in enumerate(seg["segment_id"]):
-        lo, hi = np.searchsorted(sorted_ids, [sid, sid + 1])
-        if hi - lo < min_samples:
+    for k, (sid, rows) in enumerate(zip(seg["segment_id"], ds.segment_rows())):
+        if len(rows) < min_samples:
             continue
-        rows = order[lo:hi]
         ids.append(int(sid))
         times.append(obs["t"][rows])
         positions.append(pos[rows])
