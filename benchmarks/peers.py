@@ -14,6 +14,10 @@ Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1
 - ``numba``: the same physics written by hand, ``@njit(parallel=True)`` with ``prange`` over balls
   (``benchmarks/peers_numba.py``).
 - ``numba_cuda``: the same hand-written loop, one CUDA thread per ball (only with a GPU).
+- ``numba_lean``, ``numba_cuda_lean``: a lean hand-written loop of flight + table only, as one
+  writes it for speed (``peers_numba.make_lean_physics``): the same RK4, tables and bounce, the
+  table as the plane z = r with a linear time of impact, the tables read by bracketing; no
+  Hermite time of impact, table edges, net or event log. Flight + table only (``table``).
 - ``mujoco``: a free sphere (r = 0.02 m, 2.7 g) with MuJoCo's ellipsoid fluid model and a box
   table, flight + table only: similar physics, not the same (``benchmarks/peers_mujoco.py``).
 - ``mjx``: the same MuJoCo model under MJX on the JAX device, if it runs.
@@ -23,7 +27,8 @@ rackets of ``ttsim_jax.policies``, the "updated" racket model; kernel, plain sca
 ``network`` (the same with conti2026's racket residual network evaluated at every racket contact,
 untrained, of the bundled size, so of the same cost as a trained one; only the kernel has it, so
 only the kernel runs). ``targets`` in the JSON divides the kernel of each
-configuration by numba's flight + table of the same run and batch.
+configuration by numba's flight + table of the same run and batch, ``targets_lean`` by the lean
+loop's (``kernel_fused``, where it ran, as ``table_fused``).
 Before timing, the peers' first table bounces are compared with the kernel's on the same shots:
 a benchmark of wrong physics is worthless.
 
@@ -68,6 +73,7 @@ CONFIGS = ("table", "rackets", "network")
 TITLES = {"table": "flight + table", "rackets": "flight + table + 2 rackets",
           "network": "+ 2 rackets + residual network"}
 JAX_PEERS = ("kernel", "kernel_fused", "plain_scan")  # they take the shots as JAX arrays
+NUMBA_PEERS = ("numba", "numba_cuda", "numba_lean", "numba_cuda_lean")
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 
 
@@ -171,7 +177,8 @@ class Peers:
             net = init_model(load_residual_config(REPO / "configs" / "residual" / f"{MODEL}.toml"), jax.random.PRNGKey(0))
             model = load_model(MODEL, dtype=jnp.float32, residual=net)
             self.skipped["plain_scan"] = "no residual network in the plain scan"
-            self.skipped["numba"] = self.skipped["numba_cuda"] = "no residual network in the numba loops"
+            for n in NUMBA_PEERS:
+                self.skipped[n] = "no residual network in the numba loops"
         self.model, self.config = model, config
         self.policy = tracking_rackets() if config != "table" else None
         self.runs: dict = {}
@@ -191,15 +198,25 @@ class Peers:
             self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
         numba_mod, why = (None, None) if "numba" in self.skipped else _optional("numba")
         if why:
-            self.skipped["numba"] = self.skipped["numba_cuda"] = why
+            for n in NUMBA_PEERS:
+                self.skipped[n] = why
         elif numba_mod is not None:
             params = numba_mod.pack_params(model, tracking_rackets().params)
             on = self.policy is not None
+            cuda = numba_mod.cuda_available()
             self.runs["numba"] = lambda b, n: numba_mod.rollout_cpu(params, b, n, DT, on)[::2]
-            if numba_mod.cuda_available():
+            if cuda:
                 self.runs["numba_cuda"] = lambda b, n: numba_mod.rollout_cuda(params, b, n, DT, on)[::2]
+            if on:
+                self.skipped["numba_lean"] = self.skipped["numba_cuda_lean"] = "flight + table only (no rackets)"
             else:
-                self.skipped["numba_cuda"] = "no CUDA GPU visible to numba"
+                self.runs["numba_lean"] = lambda b, n: numba_mod.rollout_cpu(params, b, n, DT, False, lean=True)[::2]
+                if cuda:
+                    self.runs["numba_cuda_lean"] = \
+                        lambda b, n: numba_mod.rollout_cuda(params, b, n, DT, False, lean=True)[::2]
+            for n in ("numba_cuda", "numba_cuda_lean"):
+                if n not in self.runs:
+                    self.skipped.setdefault(n, "no CUDA GPU visible to numba")
         if config != "table":
             self.skipped["mujoco"] = self.skipped["mjx"] = "flight + table only (no rackets)"
             return
@@ -305,7 +322,7 @@ def time_batch(peers: Peers, batch: int, n_steps: int, repeats: int, max_batch: 
                       first_call_s=first[n], compile_s=max(0.0, first[n] - med))
     for n in peers.runs:
         if n not in names:
-            flag = {"kernel_fused": "fused", "plain_scan": "plain"}.get(n, n)
+            flag = {"kernel_fused": "fused", "plain_scan": "plain", "numba_lean": "numba"}.get(n, n)
             out[n] = dict(skipped=f"batch above --max-batch-{flag} ({max_batch[n]})")
     return out
 
@@ -314,7 +331,7 @@ def compile_numba(peers: Peers) -> dict:
     """Seconds of numba's first call (compilation) on one ball and one step, per numba peer."""
     out = {}
     _, shots = _shots(1)
-    for n in ("numba", "numba_cuda"):
+    for n in NUMBA_PEERS:
         if n in peers.runs:
             out[n] = _call(peers.runs[n], shots, 1)
     return out
@@ -329,7 +346,7 @@ def plot(report: dict, path: Path) -> None:
 
     configs = list(report["configs"])
     colours = {n: f"C{i}" for i, n in enumerate(("kernel", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx",
-                                                  "kernel_fused"))}
+                                                  "kernel_fused", "numba_lean", "numba_cuda_lean"))}
     fig, axes = plt.subplots(1, len(configs), figsize=(6 * len(configs), 4.5), squeeze=False)
     for ax, cfg in zip(axes[0], configs):
         rows = report["configs"][cfg]["results"]
@@ -354,18 +371,31 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def targets(report: dict) -> list[dict]:
-    """Per batch: each configuration's kernel throughput over numba's flight + table in the same run
-    (the ratios the kernel is held to: >= 0.5 for ``table``, >= 0.35 for ``network``)."""
+def targets(report: dict, base_peer: str = "numba") -> list[dict]:
+    """Per batch: each configuration's kernel throughput over ``base_peer``'s flight + table in the
+    same run (the ratios the kernel is held to: >= 0.5 for ``table``, >= 0.35 for ``network``); the
+    fused kernel's, where it ran, as ``table_fused``."""
     rows = {}
-    base = {r["batch"]: r["peers"].get("numba", {}).get("ball_steps_per_s")
+    base = {r["batch"]: r["peers"].get(base_peer, {}).get("ball_steps_per_s")
             for r in report["configs"].get("table", {}).get("results", [])}
     for cfg, c in report["configs"].items():
         for r in c["results"]:
-            k, n = r["peers"]["kernel"].get("ball_steps_per_s"), base.get(r["batch"])
-            if k and n:
-                rows.setdefault(r["batch"], {"batch": r["batch"]})[cfg] = k / n
+            n = base.get(r["batch"])
+            for peer, key in (("kernel", cfg), ("kernel_fused", f"{cfg}_fused")):
+                k = r["peers"].get(peer, {}).get("ball_steps_per_s")
+                if k and n:
+                    rows.setdefault(r["batch"], {"batch": r["batch"]})[key] = k / n
     return [rows[b] for b in sorted(rows)]
+
+
+def write_report(report: dict, path: Path, complete: bool) -> None:
+    """Writes ``report`` with its ``targets`` to ``path`` (JSON); ``complete``: False while batches remain
+    (what a run cut short leaves)."""
+    report["complete"] = complete
+    report["targets"] = targets(report)
+    report["targets_lean"] = targets(report, "numba_lean")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2))
 
 
 def _versions() -> dict:
@@ -392,6 +422,8 @@ def main(argv=None) -> int:
                    help="largest batch MuJoCo runs (it is far slower) (default: %(default)s)")
     p.add_argument("--max-batch-plain", type=int, default=1 << 30,
                    help="largest batch the plain scan runs (default: no limit)")
+    p.add_argument("--max-batch-numba", type=int, default=1 << 30,
+                   help="largest batch the numba CPU loops (numba, numba_lean) run (default: no limit)")
     p.add_argument("--max-batch-fused", type=int, default=None,
                    help="largest batch the fused kernel runs (default: no limit on a GPU, 4096 elsewhere, where "
                         "Pallas runs in interpret mode)")
@@ -430,7 +462,10 @@ def main(argv=None) -> int:
                          "plain_scan: end-of-step contact check, no time of impact; its first bounce is the "
                          "linear interpolation of the step's end points (diagnostic only)",
                          "numba: dead balls (floor, out, rest) stop their loop; the kernel and the plain scan "
-                         "step every ball for every step (branch-free)"],
+                         "step every ball for every step (branch-free)",
+                         "numba_lean, numba_cuda_lean: flight + table only, the table as the plane z = r with a "
+                         "linear time of impact, the coefficient tables read by bracketing; no Hermite time of "
+                         "impact, table edges, net or event log"],
                   configs={})
     for cfg in configs:
         print(f"[{cfg}] setting up peers", flush=True)
@@ -443,11 +478,16 @@ def main(argv=None) -> int:
         agree = agreement(peers, args.agree_balls, 1000)
         for n, a in agree.items():
             if a["median_m"] is not None:
-                print(f"    {n:11s} median {a['median_m'] * 1e3:9.4f} mm  max {a['max_m'] * 1e3:9.4f} mm "
+                print(f"    {n:15s} median {a['median_m'] * 1e3:9.4f} mm  max {a['max_m'] * 1e3:9.4f} mm "
                       f"({a['compared']} compared{', against ' + a['against'] if 'against' in a else ''})", flush=True)
         max_batch = {"mujoco": args.max_batch_mujoco, "plain_scan": args.max_batch_plain, "mjx": args.max_batch_mjx,
-                     "kernel_fused": args.max_batch_fused}
+                     "kernel_fused": args.max_batch_fused, "numba": args.max_batch_numba,
+                     "numba_lean": args.max_batch_numba}
         rows = []
+        report["configs"][cfg] = dict(
+            rackets="tracking_rackets() (2, ttsim_jax.policies), updated racket model" if cfg != "table" else None,
+            residual_network=f"configs/residual/{MODEL}.toml, untrained (PRNGKey(0))" if cfg == "network" else None,
+            skipped=peers.skipped, numba_compile_s=numba_compile, agreement_first_bounce=agree, results=rows)
         for batch in batches:
             n_steps = steps_for(batch, args.budget)
             print(f"  batch {batch} x {n_steps} steps", flush=True)
@@ -456,19 +496,15 @@ def main(argv=None) -> int:
             for n, r in res.items():
                 if "ball_steps_per_s" in r:
                     r["ratio_to_kernel"] = r["ball_steps_per_s"] / kernel
-                    print(f"    {n:11s} {r['ball_steps_per_s']:14,.0f} ball-steps/s  x{r['ratio_to_kernel']:.3f} "
+                    print(f"    {n:15s} {r['ball_steps_per_s']:14,.0f} ball-steps/s  x{r['ratio_to_kernel']:.3f} "
                           f"of kernel (compile/warm-up {r['compile_s']:.1f} s)", flush=True)
             rows.append(dict(batch=batch, n_steps=n_steps, peers=res))
-        report["configs"][cfg] = dict(
-            rackets="tracking_rackets() (2, ttsim_jax.policies), updated racket model" if cfg != "table" else None,
-            residual_network=f"configs/residual/{MODEL}.toml, untrained (PRNGKey(0))" if cfg == "network" else None,
-            skipped=peers.skipped, numba_compile_s=numba_compile, agreement_first_bounce=agree, results=rows)
-    report["targets"] = targets(report)
-    for row in report["targets"]:
-        print(f"  batch {row['batch']}: kernel / numba flight + table: "
-              + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "batch"), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+            write_report(report, args.out, complete=False)  # a run cut short keeps what it measured
+    write_report(report, args.out, complete=True)
+    for key, base in (("targets", "numba"), ("targets_lean", "numba_lean")):
+        for row in report[key]:
+            print(f"  batch {row['batch']}: kernel / {base} flight + table: "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "batch"), flush=True)
     print(f"written {args.out}")
     png = args.plot or args.out.with_suffix(".png")
     plot(report, png)

@@ -1,8 +1,9 @@
-"""Renders the peers benchmark's JSON files as the README's throughput tables, so that a table is
-always the numbers of one run and never typed by hand.
+"""Renders the peers benchmark's JSON files as the throughput tables of the docs
+(``docs/measurements/performance.md``) and of ``benchmarks/README.md``, so that a table is always
+the numbers of one run and never typed by hand.
 
     python benchmarks/readme_tables.py                      # print the tables
-    python benchmarks/readme_tables.py --write README.md benchmarks/README.md
+    python benchmarks/readme_tables.py --write docs/measurements/performance.md benchmarks/README.md
 
 One table per entry of :data:`TABLES`: the CPU run (``results/peers_cpu.json``) between the lines
 ``<!-- peers-table:start -->`` and ``<!-- peers-table:end -->``, the GPU runs
@@ -27,7 +28,7 @@ DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json",
           "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json",
           "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json"}
-PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_cuda", "mujoco", "mjx")
+PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_lean", "numba_cuda", "numba_cuda_lean", "mujoco", "mjx")
 
 
 def markers(name: str = "peers-table") -> tuple[str, str]:
@@ -70,10 +71,12 @@ def render(result: dict, source: str) -> str:
     skipped |= {f"{p} at batch {r['batch']:,}: {v['skipped']}" for c in configs.values() for r in c["results"]
                 for p, v in r["peers"].items() if "skipped" in v}
     skipped = sorted(skipped)
-    targets = result.get("targets", [])  # peers.py's kernel / numba flight + table, per configuration
+    # peers.py's kernel / numba's and / the lean loop's flight + table, per configuration
+    targets = [(row, "numba's") for row in result.get("targets", [])]
+    targets += [(row, "the lean loop's") for row in result.get("targets_lean", [])]
     lines += [""] if targets else []
-    for row in targets:
-        lines.append(f"- the kernel over numba's flight + table at batch {row['batch']:,}: "
+    for row, base in targets:
+        lines.append(f"- the kernel over {base} flight + table at batch {row['batch']:,}: "
                      + ", ".join(f"{cfg} {v:.2f}" for cfg, v in row.items() if cfg != "batch"))
     if skipped:
         lines += [""] + [f"- not run, {s}" for s in skipped]

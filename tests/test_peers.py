@@ -88,13 +88,70 @@ def test_numba_agrees_with_kernel(setup, cfg):
     assert np.max(np.linalg.norm(first[ok] - k_first[ok], axis=-1)) < 1e-5
 
 
-def test_numba_stays_float32():
+def test_lean_loop_agrees_with_kernel(setup):
+    """The lean loop (plane z = r, linear time of impact) meets the table where the kernel does."""
+    pn = pytest.importorskip("benchmarks.peers_numba", reason="numba not installed (pip install -e .[bench])")
+    model, _, shots, kernel = setup
+    params = pn.pack_params(model, tracking_rackets().params)
+    state, status, first = pn.rollout_cpu(params, shots, N_STEPS, peers.DT, False, lean=True)
+    k_pos, k_first = kernel["table"]
+    np.testing.assert_array_equal(np.isfinite(first[:, 0]), np.isfinite(k_first[:, 0]))
+    ok = np.isfinite(k_first[:, 0])
+    # the linear zero of the height on a path curved by at most |a| dt^2 / 8 (a few um at 1 ms): a
+    # bounce found at a step's end point instead would be up to |v| dt (1-2 cm) off
+    assert np.max(np.linalg.norm(first[ok] - k_first[ok], axis=-1)) < 3e-5
+    assert np.max(np.linalg.norm(state[:, :3] - k_pos, axis=-1)) < 3e-5
+    with pytest.raises(ValueError, match="no rackets"):
+        pn.rollout_cpu(params, shots, 1, peers.DT, True, lean=True)
+
+
+def test_bracketed_tables_equal_the_kernels_flight():
+    """One RK4 step of the hand-written stages, tables read as ramps or by bracketing, equals
+    ``aero.flight_step`` over speeds and spins that reach every part of the C_D and C_M tables
+    (below the first and beyond the last reference, Sp beyond its last breakpoint, both C_M branches)."""
+    pn = pytest.importorskip("benchmarks.peers_numba", reason="numba not installed (pip install -e .[bench])")
+    from numba import njit
+
+    from ttsim_jax.physics import aero
+
+    model = load_model("conti2026", dtype=jnp.float32)
+    p = pn.pack_params(model, tracking_rackets().params)
+    rng = np.random.default_rng(3)
+    n, dt = 64, np.float32(0.01)
+    unit = lambda: (lambda u: u / np.linalg.norm(u, axis=-1, keepdims=True))(rng.normal(size=(n, 3)))  # noqa: E731
+    vel = (unit() * rng.uniform(0.5, 40.0, (n, 1))).astype(np.float32)
+    spin = (unit() * rng.uniform(0.0, 1000.0, (n, 1))).astype(np.float32)
+    pos = np.zeros((n, 3), np.float32)
+    step = jax.jit(jax.vmap(lambda v, w: aero.flight_step(model.aero, model.ball.radius, model.ball.mass,
+                                                          jnp.zeros(3, jnp.float32), v, w, 0.0, dt)[1]))
+    dv_ref = np.asarray(step(vel, spin)) - vel
+    for bracket in (False, True):
+        rk4 = pn.make_stages(njit, bracket=bracket)[3]
+        got = np.array([rk4(p["scalars"], p["re_ref"], p["sp"], p["cd"], p["v_ref"], p["mag"], *pos[i], *vel[i],
+                            *spin[i], dt)[3:] for i in range(n)]) - vel
+        # float32 rounding of v1 - v0 at |v| <= 40 m/s; a C_D or C_M off by 1 % moves dv by more
+        np.testing.assert_allclose(got, dv_ref, rtol=2e-3, atol=2e-5, err_msg=f"bracket={bracket}")
+
+
+def test_targets_divide_by_the_chosen_loop():
+    """Each configuration's kernel (and the fused kernel) over numba's or the lean loop's flight + table."""
+    rate = lambda x: {"ball_steps_per_s": x}  # noqa: E731
+    report = {"configs": {
+        "table": {"results": [{"batch": 8, "peers": {"kernel": rate(2.0), "kernel_fused": rate(6.0), "numba": rate(4.0),
+                                                    "numba_lean": rate(8.0)}}]},
+        "rackets": {"results": [{"batch": 8, "peers": {"kernel": rate(1.0), "numba": rate(3.0)}}]}}}
+    assert peers.targets(report) == [{"batch": 8, "table": 0.5, "table_fused": 1.5, "rackets": 0.25}]
+    assert peers.targets(report, "numba_lean") == [{"batch": 8, "table": 0.25, "table_fused": 0.75, "rackets": 0.125}]
+
+
+@pytest.mark.parametrize("lean", [False, True])
+def test_numba_stays_float32(lean):
     pn = pytest.importorskip("benchmarks.peers_numba", reason="numba not installed (pip install -e .[bench])")
     import numba
 
     pn.rollout_cpu(pn.pack_params(load_model("conti2026", dtype=jnp.float32), tracking_rackets().params),
-                   peers._shots(1)[1], 1, peers.DT, True)
-    disp = pn._run_ball_cpu
+                   peers._shots(1)[1], 1, peers.DT, not lean, lean=lean)
+    disp = pn._run_lean_cpu if lean else pn._run_ball_cpu
     assert disp.signatures
     for sig in disp.signatures:
         typemap = disp.overloads[sig].type_annotation.typemap
@@ -102,7 +159,8 @@ def test_numba_stays_float32():
 
 
 def test_cuda_loop_matches_cpu_loop_in_the_simulator(setup, tmp_path):
-    """The CUDA kernel, run by numba's CUDA simulator (no GPU needed), equals the CPU loop."""
+    """The CUDA kernels (full with rackets, lean), run by numba's CUDA simulator (no GPU needed),
+    equal the CPU loops."""
     pn = pytest.importorskip("benchmarks.peers_numba", reason="numba not installed (pip install -e .[bench])")
     model, _, shots, _ = setup
     params = pn.pack_params(model, tracking_rackets().params)
@@ -114,12 +172,17 @@ from ttsim_jax.state import Ball
 d = np.load({str(tmp_path / "in.npz")!r})
 params = {{k: d[k] for k in ("scalars", "re_ref", "sp", "cd", "v_ref", "mag", "residual", "rot")}}
 assert pn.cuda_available()
-state, status, first = pn.rollout_cuda(params, Ball(d["pos"], d["vel"], d["spin"]), {N_STEPS}, {peers.DT}, True)
-np.savez({str(tmp_path / "out.npz")!r}, state=state, status=status, first=first)
+balls = Ball(d["pos"], d["vel"], d["spin"])
+state, status, first = pn.rollout_cuda(params, balls, {N_STEPS}, {peers.DT}, True)
+lean_state, lean_status, lean_first = pn.rollout_cuda(params, balls, {N_STEPS}, {peers.DT}, False, lean=True)
+np.savez({str(tmp_path / "out.npz")!r}, state=state, status=status, first=first, lean_state=lean_state,
+         lean_status=lean_status, lean_first=lean_first)
 """
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(REPO))
     subprocess.run([sys.executable, "-c", script], env=env, check=True, timeout=300)
     out = np.load(tmp_path / "out.npz")
-    state, status, first = pn.rollout_cpu(params, shots, N_STEPS, peers.DT, True)
-    np.testing.assert_allclose(out["state"], state, rtol=0, atol=1e-5)
-    np.testing.assert_array_equal(out["status"], status)
+    for prefix, lean in (("", False), ("lean_", True)):
+        state, status, first = pn.rollout_cpu(params, shots, N_STEPS, peers.DT, not lean, lean=lean)
+        np.testing.assert_allclose(out[prefix + "state"], state, rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(out[prefix + "status"], status)
+        np.testing.assert_allclose(out[prefix + "first"], first, rtol=0, atol=1e-5)
