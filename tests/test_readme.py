@@ -1,4 +1,6 @@
-"""The README's API example runs as written, and its two commands are the ones CI uses."""
+"""The README's API example runs as written, its two commands are the ones CI uses, it stays a front
+page whose links (and the docs pages' links) resolve, and the throughput tables of the docs and of
+benchmarks/README.md are those of the committed benchmark JSON."""
 
 import re
 
@@ -47,6 +49,25 @@ def test_ci_runs_the_readme_test_command():
     assert command in (REPO / ".ci" / "run").read_text()
 
 
+LINK = re.compile(r"\]\(([^)\s]+)\)")  # a Markdown link's or image's target
+
+
+def test_readme_is_a_front_page_and_every_relative_link_resolves():
+    """At most 250 lines; every relative link of the README and of the docs pages names a file of
+    the repository (``mkdocs build --strict`` checks the anchors too, but needs the docs extra)."""
+    readme = (REPO / "README.md").read_text()
+    assert len(readme.splitlines()) <= 250
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    assert len(pages) > 10, "the docs pages are missing"
+    broken = []
+    for page in pages:
+        for target in LINK.findall(page.read_text()):
+            path = target.split("#")[0]
+            if path and not re.match(r"^[a-z]+:", path) and not (page.parent / path).exists():
+                broken.append(f"{page.relative_to(REPO)}: {target}")
+    assert not broken, broken
+
+
 def test_throughput_tables_are_the_committed_benchmark_json():
     import importlib.util
     import json
@@ -56,10 +77,11 @@ def test_throughput_tables_are_the_committed_benchmark_json():
     spec.loader.exec_module(tables)
     blocks = tables.rendered()
     assert set(blocks) == {"peers-table", "peers-gpu-table", "peers-gpu-fused-table", "peers-network-table"}
-    for name in ("README.md", "benchmarks/README.md"):
+    for name in ("docs/measurements/performance.md", "benchmarks/README.md"):
         for marker, table in blocks.items():
-            assert tables.block_of((REPO / name).read_text(), marker) == table, \
-                f"{name}: rerun python benchmarks/readme_tables.py --write README.md benchmarks/README.md"
+            assert tables.block_of((REPO / name).read_text(), marker) == table, (
+                f"{name}: rerun python benchmarks/readme_tables.py --write docs/measurements/performance.md "
+                "benchmarks/README.md")
     expected = blocks["peers-table"]
     # the check can fail: a changed number is caught
     assert tables.block_of(tables.replace_block("x\n" + tables.START + "\n" + tables.END, expected.replace("M", "k"),

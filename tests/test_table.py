@@ -122,7 +122,7 @@ def test_table_contact_mirror_symmetric_without_residual(name):
 
 def test_paper_residual_matrices_break_mirror_symmetry():
     # dA_vv[1, 2] couples the normal velocity into the sideways one: the fitted table is not
-    # mirror-symmetric. Documented in the README; this test keeps the statement true.
+    # mirror-symmetric. Documented in docs/physics.md; this test keeps the statement true.
     m = load_model("conti2026")
     mir = np.array([1.0, -1.0, 1.0])
     v, w = np.array([4.0, 1.2, -3.0]), np.zeros(3)

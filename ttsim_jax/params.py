@@ -138,7 +138,7 @@ SCHEMA: dict[str, dict[str, Entry]] = {
 SCHEMA["aero.drag:table_blended"] = SCHEMA["aero.drag:table"]
 SCHEMA["aero.magnus:table_values"] = SCHEMA["aero.magnus:table"]
 # A model file's ``kind`` of each coefficient model -> its class. Two readings of the paper's tables
-# (see README "Open readings"): "table" is the default, the other a named variant.
+# (see docs/physics.md, "Open readings"): "table" is the default, the other a named variant.
 DRAG_KINDS = {"constant": ConstantCoefficient, "table": DragTable, "table_blended": BlendedDragTable}
 MAGNUS_KINDS = {"constant": ConstantCoefficient, "durr": DurrMagnus, "table": MagnusTable,
                 "table_values": MagnusValueTable}

@@ -120,7 +120,7 @@ def _register_fit(subparsers) -> None:
     p.add_argument("--forms", choices=("drag,magnus", "drag", "magnus"), default=",".join(DEFAULT_FORMS),
                    metavar="{drag,magnus | drag | magnus}",
                    help="aero: which forms to fit; the other keeps the base model's values (default: %(default)s, "
-                   "which fits held-out measured flights best: see the README)")
+                   "which fits held-out measured flights best: see docs/measurements/fitting.md)")
     p.add_argument("--min-spin-conf", type=finite_float, default=0.5, metavar="C",
                    help="segments (aero) and contacts (table, racket: before and after) with a lower spin confidence "
                    "are not used (default: %(default)s)")
