@@ -38,3 +38,18 @@ def test_cache_folder_setting_and_a_given_cache(tmp_path):
     assert out["off"] == [None, None]
     assert out["moved"] == [str(tmp_path / "mine")] * 2 and (tmp_path / "mine").is_dir()
     assert out["given"] == [str(tmp_path / "jax")] * 2 and not (tmp_path / "jax").exists()
+
+
+def test_compile_notice_prints_one_line_only_for_a_slow_call(capsys):
+    """The line comes while a slow first call is still running, and a quick call prints nothing."""
+    import time
+
+    from ttsim_jax.cache import compile_notice
+
+    with compile_notice("the quick program", 5.0, after_s=0.5):
+        pass
+    with compile_notice("the slow program", 120.0, after_s=0.05):
+        time.sleep(0.5)
+    time.sleep(0.6)  # past the quick block's timer: cancelled, it says nothing
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ttsim_jax: compiling the slow program: about 120 s the first time")

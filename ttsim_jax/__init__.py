@@ -17,6 +17,7 @@ _NAMES = {
     **dict.fromkeys(["EventLog", "RacketPolicy", "RallyResult", "RallyState", "RolloutOutput", "init_state",
                      "per_ball_axes", "rollout", "simulate"], "ttsim_jax.kernel"),
     **dict.fromkeys(["Ball", "Racket"], "ttsim_jax.state"),
+    "enable_compilation_cache": "ttsim_jax.cache",
 }
 __getattr__, __dir__ = exports(__name__, _NAMES)
 __all__ = [*_NAMES, "__version__"]

@@ -6,8 +6,11 @@ only costs the time to make it again.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
+import sys
+import threading
 from pathlib import Path
 
 
@@ -17,9 +20,10 @@ def cache_root() -> Path:
 
 
 def enable_compilation_cache() -> str | None:
-    """Turns on JAX's persistent compilation cache for the ``ttsim`` commands, so that a command run
-    again (a sensitivity study, a fit, training) loads its compiled programs instead of compiling
-    them for minutes.
+    """Turns on JAX's persistent compilation cache, so that a command run again (a sensitivity study,
+    a fit, training) or a new Python process loads its compiled programs instead of compiling them
+    for minutes. The ``ttsim`` commands call it, and so does every ReturnBall environment when it
+    is made (``ttsim_jax.env``); library code may call it first thing too.
 
     The folder is ``$TTSIM_COMPILE_CACHE`` if set (``off`` turns the cache off), else
     ``cache_root()/xla/<host name>``: one per machine, since an executable compiled for one CPU may
@@ -45,3 +49,31 @@ def enable_compilation_cache() -> str | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     return str(folder)
+
+
+@contextlib.contextmanager
+def compile_notice(what: str, expected_s: float, after_s: float = 3.0):
+    """Prints one line to stderr if the block is still running after ``after_s`` seconds: a first
+    call is compiling ``what``, which takes about ``expected_s`` seconds the first time; quick
+    calls (a program in memory or loaded from the compilation cache) print nothing.
+
+    Arguments:
+        what: the program, as the line names it ("the ReturnBall step for 8 environments").
+        expected_s: its compile time measured on 2 CPU cores [s].
+        after_s: how long the block runs before the line is printed [s].
+    """
+    def say():
+        import jax
+
+        later = ("later runs load it from the compilation cache" if jax.config.jax_compilation_cache_dir
+                 else "the compilation cache is off")
+        print(f"ttsim_jax: compiling {what}: about {expected_s:.0f} s the first time on 2 CPU cores; {later}",
+              file=sys.stderr, flush=True)
+
+    timer = threading.Timer(after_s, say)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()

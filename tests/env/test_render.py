@@ -69,7 +69,7 @@ def test_paths_restart_only_for_finished_environments():
                                           rate=np.zeros((b, 2))),
             progress=Rally(bounced=np.zeros(b, bool), hit=np.zeros(b, bool), outcome=np.zeros(b, int),
                            landing=np.zeros((b, 2))),
-            t=np.arange(b))
+            t=np.arange(b) + int(round(10 * x)))
 
     trails.update(state(0.1))
     trails.update(state(0.2), restart=np.array([False, False, False]))
@@ -78,6 +78,12 @@ def test_paths_restart_only_for_finished_environments():
     np.testing.assert_allclose(trails.paths[1][0], -0.3)
     drawn = trails.draw()
     assert len(drawn) == 2 and drawn[0].shape == (560, 640, 3)
+    # next-step autoreset: an ended episode is held (path and clock) until its new one is shown
+    trails.update(state(0.4), restart=np.array([False, False, False]), hold=np.array([True, False, False]))
+    assert [len(p) for p in trails.paths] == [3, 2] and list(trails.now[3]) == [3, 5]
+    trails.update(state(0.5), restart=np.array([True, False, False]))
+    assert [len(p) for p in trails.paths] == [1, 3]
+    np.testing.assert_allclose(trails.paths[0][0], 0.5)
 
 
 def test_an_episode_is_animated_up_to_its_end(frames, tmp_path):

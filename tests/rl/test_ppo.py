@@ -10,13 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import ttsim_jax.rl
 from ttsim_jax.cli import main
 from ttsim_jax.params import ConfigError
 from ttsim_jax.rl.checkpoint import CheckpointError, read_checkpoint, restore_runner
 from ttsim_jax.rl.config import load_ppo_config, parse_ppo_config
 from ttsim_jax.rl.normalise import RunningStats
 from ttsim_jax.rl.ppo import _program_key, gae, optimizer
-from ttsim_jax.rl.train import CHECKPOINT, CURVE, METRICS, train
+from ttsim_jax.rl.training import CHECKPOINT, CURVE, METRICS, train
 
 # the motion penalty dominates this task's reward: a quick, sure signal for a short run
 TASK = """
@@ -117,7 +118,8 @@ def files(tmp_path_factory):
 @pytest.fixture(scope="module")
 def runs(files):
     config = load_ppo_config(files / "ppo.toml")
-    straight = train(config, files / "straight", progress=None)
+    # the public entry point, given the file as `ttsim train ppo --config` is
+    straight = ttsim_jax.rl.train(files / "ppo.toml", files / "straight", progress=None)
     half = dataclasses.replace(config, train=dataclasses.replace(config.train, total_env_steps=5120))
     train(half, files / "resumed", progress=None)
     first = read_checkpoint(files / "resumed" / CHECKPOINT)
@@ -214,3 +216,47 @@ def test_a_checkpoint_from_before_the_plan_in_the_state_restores_with_zeros_ther
     restored = restore_runner(template, {"runner": old}, "old.msgpack")
     np.testing.assert_array_equal(restored["env_state"].plan, np.zeros((4, 8), np.float32))
     np.testing.assert_array_equal(restored["env_state"].t, np.ones(4, np.int32))
+
+
+def test_train_is_callable_from_the_package():
+    """``ttsim_jax.rl.train`` is the trainer ``ttsim train ppo`` runs, also once its module is
+    imported (the module is ``training``, so the name is not shadowed)."""
+    import ttsim_jax.rl.training
+
+    assert ttsim_jax.rl.train is ttsim_jax.rl.training.train is train
+    assert ttsim_jax.rl.load_ppo_config is load_ppo_config
+    with pytest.raises(ValueError, match="overrides apply to a config read from a file"):
+        train(load_ppo_config(), "unused", overrides={"train.seed": 1})
+
+
+def test_bundled_policy_is_small_restores_for_its_task_and_names_its_config():
+    """The policy ``ttsim play`` plays by default: a few hundred kB at most, its runner restores
+    against a fresh one of its config (a small unaimed bank: the shapes do not depend on it), and
+    its config is the shipped configs/ppo/return_ball_small.toml, so it can be trained again."""
+    from ttsim_jax.env.config import load_task_config
+    from ttsim_jax.env.return_ball import ReturnBall
+    from ttsim_jax.params import config_dir
+    from ttsim_jax.rl import ppo
+    from ttsim_jax.rl.checkpoint import BUNDLED_POLICY
+
+    assert BUNDLED_POLICY.stat().st_size < 300_000
+    payload = read_checkpoint(BUNDLED_POLICY)
+    config = parse_ppo_config(payload["config"], payload["config_source"])
+    shipped = load_ppo_config(config_dir() / "ppo" / "return_ball_small.toml")
+    assert dataclasses.replace(config, source="", text="") == dataclasses.replace(shipped, source="", text="")
+    assert payload["config_source"] == "configs/ppo/return_ball_small.toml"  # no path of the machine it came from
+    env = ReturnBall(load_task_config(config.task, {"shots.bank": 8, "shots.aim": False}), config.ppo.num_envs)
+    params = env.default_params()
+    template = jax.eval_shape(lambda k: ppo.init_runner(env, params, config, k), jax.random.PRNGKey(0))
+    runner = restore_runner(template, payload, BUNDLED_POLICY)
+    assert int(runner.update) * config.batch_size == payload["history"][-1]["env_steps"] > 0
+
+
+@pytest.mark.slow
+def test_cli_plays_the_bundled_policy_without_a_policy_option(capsys):
+    """``ttsim play`` out of the box: the bundled policy on the default task returns most shots
+    (the tracker's own stroke returns about 88 %; a random constant stroke adjustment far fewer)."""
+    assert main(["play", "--episodes", "64", "--seed", "3", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["episodes"] >= 50 and s["legal_rate"] >= 0.7
+    assert s["task"].endswith("return_ball.toml") and s["env_steps_trained"] > 1_000_000

@@ -15,7 +15,9 @@ Everything is batched over a leading axis of ``num_envs`` environments (one ball
 the kernel's batch axis) and pure: ``reset(key, params) -> (obs, state)`` and
 ``step(key, state, action, params) -> (obs, state, reward, terminated, truncated, info)``, with the
 automatic reset of finished environments inside (:meth:`ReturnBall.step`; :meth:`ReturnBall.step_env`
-without it). Both jit and vmap (e.g. over keys).
+without it). Both jit and vmap (e.g. over keys); :class:`~ttsim_jax.env.single.SingleReturnBall`
+is one environment without the batch axis, for the user to vmap as in gymnax. Environments of
+equal settings are equal (and hash alike), so they share their compiled programs.
 
 Reward of a step (weights in ``[reward]`` of the task file):
 ``contact`` on the first legal racket contact; on a legal return ``legal + target * max(0, 1 - d /
@@ -28,13 +30,14 @@ counted apart (``info["outcome"] == SHOT_FAULT``).
 
 from __future__ import annotations
 
-from functools import partial
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttsim_jax.cache import compile_notice, enable_compilation_cache
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import TaskConfig, load_task_config
@@ -47,6 +50,9 @@ from ttsim_jax.state import Ball
 # How an episode ended (``info["outcome"]``); RUNNING while it goes on.
 RUNNING, LEGAL, NET, OUT, MISS, VOLLEY, SHOT_FAULT = range(7)
 OUTCOME_NAMES = ("running", "legal", "net", "out", "miss", "volley", "shot_fault")
+# The step info of an episode's first observation, where nothing has happened yet (``shot_type``
+# aside, which is the episode's own).
+RESET_INFO = {"outcome": RUNNING, "legal": False, "contact": False, "landing_error": -1.0}
 # Slots of the event log of one control step (10 ms hold two or three events at most).
 MAX_EVENTS = 4
 # Cap of the ball-racket distance in the approach term [m].
@@ -261,6 +267,19 @@ class ReturnBall:
         self.obs_dim = (25 if self.config.observation.spin else 22) + PLAN_DIM * self.config.observation.plan
         self.latency = self.config.observation.latency_steps
         self._params = None
+        # what the compiled programs depend on: the task's settings (not the file they were read
+        # from), the batch and the kernel's options (hashed once: jit hashes it at every call)
+        self._identity = (dataclasses.replace(self.config, source=""), self.num_envs, self.block_size, self.reference)
+        self._hash = hash(self._identity)
+        # environments made after this one (in another process too) load its compiled programs
+        enable_compilation_cache()
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and other._identity == self._identity
+
+    def __hash__(self) -> int:
+        # jit takes the environment as a static argument: equal settings share one compiled program
+        return self._hash
 
     # ------------------------------------------------------------------ parameters
     def default_params(self) -> EnvParams:
@@ -407,7 +426,11 @@ class ReturnBall:
             (-1 unless legal), ``contact`` (B,) and ``shot_type`` (B,).
         """
         k_phys, k_obs = jax.random.split(key)
-        action = jnp.asarray(action, jnp.float32).reshape(self.num_envs, self.action_dim)
+        action = jnp.asarray(action, jnp.float32)
+        if action.shape != (self.num_envs, self.action_dim):
+            raise ValueError(f"action of shape {action.shape}: expected ({self.num_envs}, {self.action_dim}), one "
+                             f"action of {self.action_dim} numbers in [-1, 1] for each of the {self.num_envs} "
+                             "environments")
         if self.config.control.action == "intercept":
             # the tracker reads the ball as the policy sees it (noise and latency included)
             seen = self.seen_ball(state)
@@ -474,17 +497,20 @@ class ReturnBall:
         obs, nxt, reward, terminated, truncated, info = self.step_env(k_step, state, action, params)
         obs_r, fresh = self.reset(k_reset, params)
         done = terminated | truncated
-
-        def pick(a, b):
-            if a.ndim == 0 or a.shape[0] != self.num_envs:  # batch-wide scalars (the kernel's clock)
-                return b
-            return jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
-
-        merged = jax.tree.map(pick, fresh, nxt)
-        # a fresh ball resumes the running kernel state (its clock and step length), not a new rally
-        merged = merged.replace(rally=merged.rally.replace(step=nxt.rally.step, t0=nxt.rally.t0, dt=nxt.rally.dt))
         info = dict(info, final_obs=obs)
-        return jnp.where(done[:, None], obs_r, obs), merged, reward, terminated, truncated, info
+        return jnp.where(done[:, None], obs_r, obs), select(done, fresh, nxt), reward, terminated, truncated, info
+
+
+def select(mask, where_set: EnvState, elsewhere: EnvState) -> EnvState:
+    """The environments of ``where_set`` where ``mask`` (B,) is set, of ``elsewhere`` elsewhere; the
+    kernel's batch-wide clock (``rally.step``, ``t0``, ``dt``) is ``elsewhere``'s: a fresh ball
+    resumes the running kernel state, not a new rally."""
+    def pick(a, b):
+        if a.ndim == 0:  # batch-wide scalars (the kernel's clock)
+            return b
+        return jnp.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+
+    return jax.tree.map(pick, where_set, elsewhere)
 
 
 def measure(key, ball: Ball, params: EnvParams) -> Ball:
@@ -521,18 +547,43 @@ _reset = jax.jit(lambda env, key, params: env.reset(key, params), static_argnums
 _step = jax.jit(lambda env, key, state, action, params: env.step(key, state, action, params), static_argnums=(0,))
 _step_env = jax.jit(lambda env, key, state, action, params: env.step_env(key, state, action, params),
                     static_argnums=(0,))
+_select = jax.jit(select)
+
+# First-call compile times of the default (intercept) task on 2 busy CPU cores [s], cold cache: what
+# the one-line notice announces (one environment's reset 12 s and step 82 s, see docs/rl.md; the
+# step with the reset inside compiles both).
+COMPILE_S = {"reset": 15.0, "step": 100.0, "step without reset": 90.0}
+_compiled: set = set()
+
+
+def _call(name: str, fn, env: ReturnBall, *args):
+    """``fn(env, *args)``; its first call for an environment's settings in this process prints one
+    line if it is still compiling after a few seconds."""
+    what = (name, env._identity)  # not the environment: the set keeps no shot bank alive
+    if what in _compiled:
+        return fn(env, *args)
+    n = env.num_envs
+    with compile_notice(f"the ReturnBall {name} ({n} environment{'s' * (n > 1)})", COMPILE_S[name]):
+        out = fn(env, *args)
+    _compiled.add(what)
+    return out
 
 
 def jit_reset(env: ReturnBall, key, params):
-    """Jitted :meth:`ReturnBall.reset` (the env object is static: one compile per env)."""
-    return _reset(env, _key(key), params)
+    """Jitted :meth:`ReturnBall.reset`; environments of equal settings share the compiled program."""
+    return _call("reset", _reset, env, _key(key), params)
 
 
 def jit_step(env: ReturnBall, key, state, action, params):
-    """Jitted :meth:`ReturnBall.step` (one compile per env)."""
-    return _step(env, _key(key), state, jnp.asarray(action, jnp.float32), params)
+    """Jitted :meth:`ReturnBall.step` (compiled once per settings, as :func:`jit_reset`)."""
+    return _call("step", _step, env, _key(key), state, jnp.asarray(action, jnp.float32), params)
 
 
 def jit_step_env(env: ReturnBall, key, state, action, params):
-    """Jitted :meth:`ReturnBall.step_env`."""
-    return _step_env(env, _key(key), state, jnp.asarray(action, jnp.float32), params)
+    """Jitted :meth:`ReturnBall.step_env` (compiled once per settings, as :func:`jit_reset`)."""
+    return _call("step without reset", _step_env, env, _key(key), state, jnp.asarray(action, jnp.float32), params)
+
+
+def jit_select(mask, where_set: EnvState, elsewhere: EnvState) -> EnvState:
+    """Jitted :func:`select` (compiled in a second)."""
+    return _select(jnp.asarray(mask), where_set, elsewhere)

@@ -18,6 +18,9 @@ from flax import serialization
 from ttsim_jax.io_atomic import atomic_write
 
 FORMAT = "ttsim-ppo/1"
+# A small policy trained on the default task (configs/ppo/return_ball_small.toml), shipped with the
+# package so that ``ttsim play`` works before any training.
+BUNDLED_POLICY = Path(__file__).resolve().parent / "policies" / "return_ball.msgpack"
 
 
 class CheckpointError(ValueError):
@@ -64,7 +67,7 @@ def restore_runner(template, payload: dict, path=""):
 
     A checkpoint written before the environment state carried the tracker's plan
     (:attr:`~ttsim_jax.env.return_ball.EnvState.plan`, derived from the rest of the state) gets
-    zeros there; :func:`~ttsim_jax.rl.train.train` recomputes it on resuming."""
+    zeros there; :func:`~ttsim_jax.rl.training.train` recomputes it on resuming."""
     stored = payload["runner"]
     state = stored.get("env_state") if isinstance(stored, dict) else None
     if isinstance(state, dict) and "plan" not in state:

@@ -1,4 +1,4 @@
-"""``ttsim train ppo`` and ``ttsim play``: thin wrappers over :mod:`ttsim_jax.rl.train`."""
+"""``ttsim train ppo`` and ``ttsim play``: thin wrappers over :mod:`ttsim_jax.rl.training`."""
 
 from __future__ import annotations
 
@@ -36,12 +36,13 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_train_ppo)
 
     q = subparsers.add_parser(
-        "play", help="evaluate a PPO checkpoint on ReturnBall",
+        "play", help="evaluate a PPO checkpoint (default: the bundled policy) on ReturnBall",
         description="Plays one episode in each of N environments with the checkpoint's policy (mean action) and "
                     "prints the legal-return rate, the landing error to the target and the share of each outcome; "
                     "optionally draws sample rallies.")
-    q.add_argument("--policy", required=True, type=existing_file, metavar="CKPT",
-                   help="checkpoint written by 'ttsim train ppo' (OUT/checkpoint.msgpack)")
+    q.add_argument("--policy", default=None, type=existing_file, metavar="CKPT",
+                   help="checkpoint written by 'ttsim train ppo' (OUT/checkpoint.msgpack; default: the bundled "
+                        "policy, a small one trained on the default task for a few minutes)")
     q.add_argument("--task", default=None, metavar="TASK",
                    help="bundled task name (return_ball, return_ball_pro; return_ball_accel, return_ball_pro_accel for "
                         "an accel policy) or task .toml (default: the checkpoint's)")
@@ -60,7 +61,7 @@ def cmd_train_ppo(args) -> int:
 
     from ttsim_jax.cli import UsageError
     from ttsim_jax.rl.config import load_ppo_config
-    from ttsim_jax.rl.train import CHECKPOINT, train
+    from ttsim_jax.rl.training import CHECKPOINT, train
 
     config = load_ppo_config(args.config)
     t = config.train
@@ -86,10 +87,12 @@ def cmd_play(args) -> int:
     from ttsim_jax.cli import UsageError
     from ttsim_jax.env.config import load_task_config
     from ttsim_jax.rl import ppo
-    from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner
+    from ttsim_jax.rl.checkpoint import BUNDLED_POLICY, read_checkpoint, restore_runner
     from ttsim_jax.rl.config import parse_ppo_config
-    from ttsim_jax.rl.train import build, require_envs, task_path
+    from ttsim_jax.rl.training import build, require_envs, task_path
 
+    if args.policy is None:
+        args.policy = BUNDLED_POLICY
     payload = read_checkpoint(args.policy)
     config = parse_ppo_config(payload["config"], payload["config_source"])
     trained = load_task_config(task_path(config)).control.action

@@ -3,7 +3,7 @@ bonus, all inside one jitted function that runs a chunk of updates (``lax.scan``
 batched functional environment.
 
 A training run calls :func:`make_chunk`'s function repeatedly and reports, evaluates and
-checkpoints between calls (:mod:`ttsim_jax.rl.train`); everything the run needs to resume lives in
+checkpoints between calls (:mod:`ttsim_jax.rl.training`); everything the run needs to resume lives in
 the :class:`Runner` pytree.
 """
 
@@ -99,19 +99,25 @@ def gae(values, rewards, dones, last_value, gamma, lam):
 
 
 def ppo_loss(net, params, batch, clip_eps, vf_coef, ent_coef):
-    """The PPO loss of a minibatch (dict of obs, action, log_prob, advantage, target) and its parts."""
+    """The PPO loss of a minibatch (dict of obs, action, log_prob, advantage, target, and optionally
+    ``mask``: 1 for the transitions to learn from, 0 for those to leave out, such as the steps that
+    only restart an environment under gymnasium's next-step autoreset) and its parts."""
+    mask = batch.get("mask")
+    average = jnp.mean if mask is None else lambda x: jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
     mean, log_std, value = net.apply(params, batch["obs"])
     log_prob = gaussian_log_prob(mean, log_std, batch["action"])
     ratio = jnp.exp(log_prob - batch["log_prob"])
     adv = batch["advantage"]
-    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    centre = average(adv)
+    spread = adv.std() if mask is None else jnp.sqrt(average((adv - centre) ** 2))
+    adv = (adv - centre) / (spread + 1e-8)
     surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * adv)
-    policy_loss = -surrogate.mean()
-    value_loss = 0.5 * jnp.mean((value - batch["target"]) ** 2)
+    policy_loss = -average(surrogate)
+    value_loss = 0.5 * average((value - batch["target"]) ** 2)
     entropy = gaussian_entropy(log_std)
     total = policy_loss + vf_coef * value_loss - ent_coef * entropy
     return total, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
-                   "clip_fraction": jnp.mean(jnp.abs(ratio - 1.0) > clip_eps)}
+                   "clip_fraction": average(jnp.abs(ratio - 1.0) > clip_eps)}
 
 
 def make_update(env: ReturnBall, config: PPOConfig):

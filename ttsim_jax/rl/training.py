@@ -17,7 +17,7 @@ from ttsim_jax.env.return_ball import ReturnBall
 from ttsim_jax.io_atomic import atomic_write
 from ttsim_jax.rl import ppo
 from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner, save_checkpoint
-from ttsim_jax.rl.config import PPOConfig, parse_ppo_config
+from ttsim_jax.rl.config import PPOConfig, load_ppo_config, parse_ppo_config
 from ttsim_jax.sizes import require as require_memory
 
 CHECKPOINT = "checkpoint.msgpack"
@@ -106,19 +106,29 @@ def plot_curve(history: list, path) -> None:
     atomic_write(path, buf.getvalue())
 
 
-def train(config: PPOConfig, out, resume: bool = False, progress=print) -> dict:
-    """Trains PPO on the config's task, checkpointing into ``out``.
+def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: bool = False, progress=print,
+          overrides: dict | None = None) -> dict:
+    """Trains PPO on the config's task, checkpointing into ``out``: what ``ttsim train ppo`` runs,
+    callable from Python (``ttsim_jax.rl.train``).
 
     Arguments:
-        config: the :class:`~ttsim_jax.rl.config.PPOConfig` (on resume, the checkpoint's own config
-            is used, with this one's ``total_env_steps`` and ``time_limit_s``).
+        config: a :class:`~ttsim_jax.rl.config.PPOConfig`, a PPO .toml path, or None for the bundled
+            ``configs/ppo/return_ball.toml`` (on resume, the checkpoint's own config is used, with
+            this one's ``total_env_steps`` and ``time_limit_s``).
         out: run folder (``checkpoint.msgpack``, ``metrics.json``, ``learning_curve.png``).
         resume: continue from ``out/checkpoint.msgpack``.
         progress: called with one line of text after each chunk (None: silent).
+        overrides: ``{"section.key": value}`` on top of a config read from a file
+            (``{"train.total_env_steps": 1_000_000}``).
 
     Returns:
-        The last history record (with the final evaluation).
+        The last history record (with the final evaluation); the policy is in
+        ``out/checkpoint.msgpack`` (``ttsim play --policy``).
     """
+    if not isinstance(config, PPOConfig):
+        config = load_ppo_config(config, overrides)
+    elif overrides:
+        raise ValueError("overrides apply to a config read from a file; change a PPOConfig with dataclasses.replace")
     out = Path(out)
     history, elapsed = [], 0.0
     payload = None

@@ -1,0 +1,137 @@
+"""PPO over gymnasium's vector API, CleanRL style: ``gymnasium.make_vec("ttsim/ReturnBall-v0")``
+under gymnasium's vector wrappers, a rollout loop on the host, one jitted update per iteration.
+
+    python examples/ppo_gymnasium.py --num-envs 64 --total-timesteps 200000
+
+This is how any gymnasium-based RL code sees the environment (next-step autoreset, numpy arrays).
+The library's own trainer (``ttsim_jax.rl.train``, ``ttsim train ppo``) keeps the whole loop on the
+device and trains far faster.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import tomllib
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from gymnasium.wrappers import vector as wrappers
+
+import ttsim_jax  # noqa: F401  (registers ttsim/ReturnBall-v0)
+from ttsim_jax.rl.networks import ActorCritic, gaussian_log_prob
+from ttsim_jax.rl.ppo import gae, ppo_loss
+
+
+def parse(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--task", default="return_ball", help="bundled task name or task .toml")
+    p.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                   help="task setting, TOML value (e.g. shots.bank=256); repeatable")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--total-timesteps", type=int, default=200_000)
+    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--num-steps", type=int, default=64, help="steps per environment per rollout")
+    p.add_argument("--learning-rate", type=float, default=3e-4)
+    p.add_argument("--gamma", type=float, default=0.99)
+    p.add_argument("--gae-lambda", type=float, default=0.95)
+    p.add_argument("--num-minibatches", type=int, default=4)
+    p.add_argument("--update-epochs", type=int, default=4)
+    p.add_argument("--clip-coef", type=float, default=0.2)
+    p.add_argument("--ent-coef", type=float, default=0.0)
+    p.add_argument("--vf-coef", type=float, default=0.5)
+    p.add_argument("--max-grad-norm", type=float, default=0.5)
+    return p.parse_args(argv)
+
+
+def make_env(args):
+    overrides = {}
+    for item in args.override:
+        key, _, value = item.partition("=")
+        overrides[key] = tomllib.loads(f"v = {value}")["v"]
+    env = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=args.num_envs, task=args.task, overrides=overrides,
+                             autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP)
+    env = wrappers.FlattenObservation(env)
+    env = wrappers.RecordEpisodeStatistics(env)
+    env = wrappers.ClipAction(env)
+    env = wrappers.NormalizeObservation(env)
+    env = wrappers.TransformObservation(env, lambda obs: np.clip(obs, -10, 10))
+    env = wrappers.NormalizeReward(env, gamma=args.gamma)
+    return wrappers.TransformReward(env, lambda reward: np.clip(reward, -10, 10))
+
+
+def main(argv=None) -> dict:
+    args = parse(argv)
+    envs = make_env(args)
+    n, t = args.num_envs, args.num_steps
+    iterations = max(args.total_timesteps // (n * t), 1)
+    net = ActorCritic(action_dim=envs.single_action_space.shape[0], hidden=(64, 64))
+    key = jax.random.PRNGKey(args.seed)
+    key, k_init = jax.random.split(key)
+    params = net.init(k_init, jnp.zeros((1,) + envs.single_observation_space.shape, jnp.float32))
+    tx = optax.chain(optax.clip_by_global_norm(args.max_grad_norm), optax.adam(args.learning_rate, eps=1e-5))
+    opt_state = tx.init(params)
+
+    @jax.jit
+    def act(params, obs, key):
+        mean, log_std, value = net.apply(params, obs)
+        action = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+        return action, gaussian_log_prob(mean, log_std, action), value
+
+    @jax.jit
+    def update(params, opt_state, data, key):
+        def epoch(carry, k):
+            perm = jax.random.permutation(k, n * t)
+            batches = jax.tree.map(lambda a: a[perm].reshape((args.num_minibatches, -1) + a.shape[1:]), data)
+
+            def minibatch(carry, batch):
+                params, opt_state = carry
+                (loss, _), grads = jax.value_and_grad(
+                    lambda p: ppo_loss(net, p, batch, args.clip_coef, args.vf_coef, args.ent_coef), has_aux=True)(params)
+                updates, opt_state = tx.update(grads, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), loss
+
+            return jax.lax.scan(minibatch, carry, batches)
+
+        (params, opt_state), losses = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, args.update_epochs))
+        return params, opt_state, losses.mean()
+
+    obs, _ = envs.reset(seed=args.seed)
+    restarting = np.zeros(n, bool)  # next-step autoreset: these environments' next step only restarts them
+    returns, legal, start = [], [], time.perf_counter()
+    for iteration in range(1, iterations + 1):
+        buffer = {k: [] for k in ("obs", "action", "log_prob", "value", "reward", "done", "mask")}
+        for _ in range(t):
+            key, k_act = jax.random.split(key)
+            obs = np.asarray(obs, np.float32)  # the wrappers' statistics are float64
+            action, log_prob, value = act(params, obs, k_act)
+            next_obs, reward, terminated, truncated, info = envs.step(np.asarray(action))
+            for k, v in (("obs", obs), ("action", action), ("log_prob", log_prob), ("value", value),
+                         ("reward", np.float32(reward)), ("done", terminated | truncated), ("mask", ~restarting)):
+                buffer[k].append(np.asarray(v))
+            if "episode" in info:
+                returns += info["episode"]["r"][info["_episode"]].tolist()
+                legal += info["legal"][info["_episode"]].tolist()
+            obs, restarting = next_obs, terminated | truncated
+        data = {k: jnp.asarray(np.stack(v)) for k, v in buffer.items()}
+        last_value = act(params, np.asarray(obs, np.float32), key)[2]
+        advantages, targets = gae(data["value"], data["reward"], data["done"], last_value, args.gamma, args.gae_lambda)
+        batch = {"obs": data["obs"], "action": data["action"], "log_prob": data["log_prob"],
+                 "advantage": advantages, "target": targets, "mask": data["mask"].astype(jnp.float32)}
+        key, k_update = jax.random.split(key)
+        params, opt_state, loss = update(params, opt_state, jax.tree.map(lambda a: a.reshape((n * t,) + a.shape[2:]),
+                                                                          batch), k_update)
+        recent = slice(-100, None)
+        print(f"iteration {iteration}/{iterations}  steps {iteration * n * t:,}  "
+              f"SPS {iteration * n * t / (time.perf_counter() - start):,.0f}  loss {float(loss):+.3f}  "
+              f"episodes {len(returns)}  return {np.mean(returns[recent]) if returns else float('nan'):+.3f}  "
+              f"legal {np.mean(legal[recent]) if legal else float('nan'):.2f}", flush=True)
+    envs.close()
+    return {"iterations": iterations, "episodes": len(returns), "returns": returns, "loss": float(loss)}
+
+
+if __name__ == "__main__":
+    main()
