@@ -22,8 +22,8 @@ def cache_root() -> Path:
 def enable_compilation_cache() -> str | None:
     """Turns on JAX's persistent compilation cache, so that a command run again (a sensitivity study,
     a fit, training) or a new Python process loads its compiled programs instead of compiling them
-    for minutes. The ``ttsim`` commands call it, and so does every ReturnBall environment when it
-    is made (``ttsim_jax.env``); library code may call it first thing too.
+    for minutes. The ``ttsim`` commands call it, and so do :func:`ttsim_jax.load_model` (a library
+    user's first step) and every ReturnBall environment when it is made (``ttsim_jax.env``).
 
     The folder is ``$TTSIM_COMPILE_CACHE`` if set (``off`` turns the cache off), else
     ``cache_root()/xla/<host name>``: one per machine, since an executable compiled for one CPU may

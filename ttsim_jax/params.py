@@ -460,6 +460,9 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
     Returns:
         A validated :class:`Model`.
     """
+    from ttsim_jax.cache import enable_compilation_cache
+
+    enable_compilation_cache()  # a library user's first step: later processes load what this one compiles
     path = resolve_model_path(name_or_path)
     model = model_from_dict(read_model_file(path), str(path), dtype)
     if isinstance(residual, (str, Path)):
