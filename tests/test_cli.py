@@ -96,3 +96,20 @@ def test_argument_errors_come_before_jax_is_imported():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.stdout.split("\n")[0] == "2 []", (p.stdout, p.stderr)
     assert "--shots" in p.stderr
+
+
+def test_simulate_times_its_throughput_with_the_program_it_compiled(tmp_path, capsys, monkeypatch):
+    """The throughput re-timing call passes the same arguments as the first (record_every
+    included), so it runs the compiled program instead of compiling a second one."""
+    calls = []
+    real = ttsim_jax.simulate
+
+    def spy(*args, **kwargs):
+        calls.append((args[2:], kwargs))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ttsim_jax, "simulate", spy)
+    assert main(["simulate", "--shots", "8", "--no-aim", "--duration", "0.5", "--plot", str(tmp_path / "s.png")]) == 0
+    assert len(calls) == 2 and calls[0] == calls[1], calls
+    assert calls[0][1]["record_every"] > 0
+    assert "ball-steps/s" in capsys.readouterr().out
