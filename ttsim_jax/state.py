@@ -59,8 +59,8 @@ class Racket:
         rot: (..., 3, 3) rotation racket frame -> world frame.
         vel: (..., 3) linear velocity of the face centre [m/s].
         ang_vel: (..., 3) angular velocity, world frame [rad/s].
-        face: (..., 2) semi-axes of the elliptic face outline along racket y and z [m]; a contact
-            point outside it misses the racket.
+        face: (..., 2) semi-axes of the elliptic face outline along racket y and z [m]; beyond it
+            a ball meets only the rim (its centre within a radius of the outline).
     """
 
     pos: jnp.ndarray

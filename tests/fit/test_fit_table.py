@@ -98,7 +98,8 @@ def test_noiseless_bounces_give_the_exact_model_and_skip_bounded_ones(truth):
 
     def bounce(v, w):
         base_v, base_w, dv, dw = tbl.residual_terms(table, 0.02, v, w)
-        return (*tbl.local_contact(table, 0.02, v, w), tbl.residual_bound(table.kappa, 0.02, v, w, base_v, base_w, dv, dw))
+        lam = tbl.residual_bound(table.kappa, 0.02, v, w, base_v, base_w, dv, dw)
+        return (*tbl.local_contact(table, 0.02, v, w), lam)
 
     graze = jax.vmap(bounce)(jnp.asarray(vel, jnp.float32), jnp.asarray(spin, jnp.float32))
     for k, x in zip(("vel_in", "spin_in", "vel_out", "spin_out", "weight"), (vel, spin, *graze)):

@@ -66,7 +66,9 @@ def test_kernel_matches_network_applied_by_hand(setup):
     ev = result.events
     for b, k in hits:
         pre = jax.tree.map(lambda a: a[b, k], ev.pre)
-        racket = racket_at(ev.time[b, k])
+        # the racket at the contact: the schedule's sample at the step's start, moved and turned on
+        start = np.floor(float(ev.time[b, k]) / 1e-3) * 1e-3
+        racket = racket_stage.advance(racket_at(start), ev.time[b, k] - start)
         st = racket_stage.racket_frame_state(base.racket, racket, radius, pre.pos, pre.vel, pre.spin)
         v_b, w_b = racket_stage.base_response(base.racket, st["v"], st["w"], st["d"], radius, mass)
         x = jnp.concatenate([st["v"], st["w"], st["d"]])[None]
@@ -207,8 +209,9 @@ def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
             jax.random.key(2), True)
     every = _events(*args)
     gathered = _events(*args, net_rows=2)
-    kind = np.asarray(every[1])
-    assert list(kind) == [TABLE] * n_table + [RACKET] * 2
+    kind = np.asarray(every[1])  # (rows, events in the step)
+    assert list(kind[:, 0]) == [TABLE] * n_table + [RACKET] * 2 and np.all(kind[:, 1:] == 0)
     for a, g in zip(jax.tree.leaves(every), jax.tree.leaves(gathered)):
         np.testing.assert_allclose(np.asarray(g), np.asarray(a), atol=1e-12)
-    assert np.all(np.asarray(every[7])[n_table:] != 0.0) and np.all(np.asarray(every[7])[:n_table] == 0.0)  # sigma
+    sigma = np.asarray(every[7])[:, 0]
+    assert np.all(sigma[n_table:] != 0.0) and np.all(sigma[:n_table] == 0.0)

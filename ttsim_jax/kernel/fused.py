@@ -38,7 +38,7 @@ from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import table as table_stage
 from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN
-from ttsim_jax.physics.numerics import TINY
+from ttsim_jax.physics.numerics import component_norm
 
 # Free-flight steps per kernel launch (a ball flies about 100-300 steps between contacts).
 SUBSTEPS = 32
@@ -226,13 +226,6 @@ def _coefficient_fns(rd: _Reader, layout: Layout, radius, nu):
     return drag, magnus
 
 
-def _norm(x, y, z):
-    """``numerics.safe_norm`` of a vector given by its components."""
-    n2 = x * x + y * y + z * z
-    ok = n2 > TINY
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
-
-
 # --------------------------------------------------------------------------- the kernel
 def _kernel(layout: Layout, substeps: int, p_ref, *refs):
     """One block of balls: up to ``substeps`` RK4 steps each, stopping before a flagged step.
@@ -255,10 +248,10 @@ def _kernel(layout: Layout, substeps: int, p_ref, *refs):
     state = tuple(r[...] for r in ins[:9])
     budget = ins[9][...]
     w = state[6:9]
-    spin_rate = _norm(*w)
+    spin_rate = component_norm(*w)
 
     def accel(v):
-        speed = _norm(*v)
+        speed = component_norm(*v)
         cd, cm = drag(speed, spin_rate), magnus(speed, spin_rate)
         c = kd * cd * speed
         cross = (w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0])

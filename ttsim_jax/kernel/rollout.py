@@ -410,11 +410,12 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             262,144 balls, 0.88-0.94x a hand-written numba loop; benchmarks/README.md).
             ``jax.grad`` always differentiates the reference path.
         until_events: each ball stops advancing once this rollout's event log has counted that many
-            of its events (its state is frozen there, still ``alive``; a later rollout, with a fresh
-            log, moves it on), and a step where no ball advances is skipped whole: a branch per step,
-            which pays where most of a batch finishes early (a shot's flight to its landing, through
-            a horizon long enough for the slowest; forward or reverse mode) and costs a
-            device-to-host copy per step on a GPU. 0 (default): balls run to the end. At most
+            of its events (after the step that reached it, whose further events, such as a bounce
+            just after a net crossing, are logged too; its state is frozen there, still ``alive``; a
+            later rollout, with a fresh log, moves it on), and a step where no ball advances is
+            skipped whole: a branch per step, which pays where most of a batch finishes early (a
+            shot's flight to its landing, through a horizon long enough for the slowest; forward or
+            reverse mode) and costs a device-to-host copy per step on a GPU. 0 (default): balls run to the end. At most
             ``max_events``; not on the fused path.
         memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
             need more is refused before compiling, with the sizes.

@@ -10,7 +10,10 @@ have none:
    exact detection (:func:`detect`: time of impact refined on the Hermite path, face and table
    outlines), the contact models, the racket residual network, the rest of the step after the
    contact (:func:`finish`) and the bookkeeping (:func:`resolve`) run; the rows are scattered back
-   and their events appended to the log. A step with more such balls than ``capacity`` runs the
+   and their events appended to the log. A step's events are handled one after the other in time
+   order, each at its own time: after one, the rest of the step is searched again from the state
+   after it (up to ``EVENTS_PER_STEP``), so that a ball crossing the net and landing a fraction of a
+   millisecond later logs the crossing and bounces where it meets the table. A step with more such balls than ``capacity`` runs the
    same function on the whole batch (same result, full cost); a step with none skips it. The choice
    is a ``lax.switch`` at batch level, outside any vmap, so only one branch runs.
 
@@ -21,7 +24,7 @@ Per-ball parameters: ``model_axes`` is a pytree prefix of the model, like ``jax.
 
 from __future__ import annotations
 
-from functools import partial
+from functools import partial, reduce
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +41,11 @@ from ttsim_jax.state import Ball, Racket
 
 # Beyond these a state is flagged invalid and frozen (m/s, rad/s, m).
 MAX_SPEED, MAX_SPIN, MAX_DISTANCE = 200.0, 2.0e4, 100.0
+# The most events of one ball handled in one step; each kind (each racket) happens at most once in
+# a step, so three cover a net crossing, a bounce and a racket contact within the same step.
+EVENTS_PER_STEP = 3
+# The candidates of :func:`detect` that are not rackets, in their order (a Proposal's ``slot``).
+FIXED_SLOTS = (ev.TABLE, ev.REST, ev.FLOOR, ev.NET)
 # The "single" buffering's network rows: 1/NET_FRACTION of the contact buffer (B/32 rows), for buffers
 # of at least NET_MIN_BUFFER rows. Two tracking rackets and 65,536 realistic shots over 1,000 steps
 # gave at most 101 racket contacts in a step (0.15 % of the balls; the buffer of B/32 holds 3.1 %,
@@ -54,12 +62,14 @@ class Proposal:
         tau: time of the event as a fraction of the step (1 if none).
         racket: index of the racket hit, -1 otherwise.
         pre: :class:`Ball` at the event (the free-flight path at tau).
+        slot: the event's candidate (``FIXED_SLOTS``, then one per racket).
     """
 
     kind: jnp.ndarray
     tau: jnp.ndarray
     racket: jnp.ndarray
     pre: Ball
+    slot: jnp.ndarray
 
 
 # --------------------------------------------------------------------------- one ball
@@ -108,30 +118,55 @@ def refused_starts(model: Model, axes, ball: Ball, rackets: Racket | None, racke
     return jax.vmap(inside, in_axes=(phys_axes, 0, 0 if rackets_batched else None))(phys, ball, rackets)
 
 
-def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt):
-    """Whether :func:`detect` or :func:`resolve` could report anything for this step (one ball).
+def may_hit(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt, span=None):
+    """For each candidate of :func:`detect`, in its order (``FIXED_SLOTS``, then the rackets), a
+    cheap superset of its hits (one ball, from ``ball`` to ``free`` over ``dt``): the sign changes of
+    the gap functions behind it; the conditions that need the time of impact are left to
+    :func:`detect`. Every candidate added there needs its test here.
 
-    A superset of the events: the sign changes of the gap functions behind every candidate of
-    :func:`detect` (the conditions that need the time of impact are left to it), leaving play and
-    an invalid state. Every candidate added to :func:`detect` needs its test here.
+    Arguments:
+        rackets: the rackets at the start of the path; or, with ``span``, where they are at some
+            time within the ``span`` seconds before it starts, which leaves only their reach
+            (``events.racket_within_reach``) as their test (the rest of a step, tested against the
+            rackets at the start of the step).
+
+    Returns:
+        (fixed, rackets): a list of () bool in the order of ``FIXED_SLOTS``, and (R,) bool (None
+        without rackets).
     """
     radius, _ = ball_properties(model)
     p0, v0, p1, v1 = ball.pos, ball.vel, free.pos, free.vel
-    flag = ev.table_may_hit(model.table, model.effects, radius, p0, p1)
-    # sustained contact (it slides in :func:`settle` and may come to rest)
-    flag |= table_stage.touching(model.table, model.effects, radius, p0, v0)
-    flag |= ev.floor_may_hit(model.table, radius, p1)
-    flag |= ev.net_may_hit(p0, p1)
-    if rackets is not None:
-        flag |= racket_may_hit(model, ball, free, rackets, dt)
-    return flag | ev.out_of_play(p1) | ~is_valid(free)
+    fixed = [ev.table_may_hit(model.table, model.effects, radius, p0, p1),
+             # sustained contact: it slides in :func:`settle` and may come to rest
+             table_stage.touching(model.table, model.effects, radius, p0, v0),
+             ev.floor_may_hit(model.table, radius, p1), ev.net_may_hit(p0, p1)]
+    if rackets is None:
+        return fixed, None
+    if span is None:
+        return fixed, _racket_flags(model, ball, free, rackets, dt)
+    return fixed, jax.vmap(ev.racket_within_reach, in_axes=(0,) + (None,) * 7)(rackets, radius, p0, v0, p1, v1, dt,
+                                                                              span + dt)
+
+
+def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt):
+    """Whether :func:`detect` or :func:`resolve` could report anything for this step (one ball):
+    :func:`may_hit`, leaving play or an invalid state."""
+    fixed, near = may_hit(model, ball, free, rackets, dt)
+    flag = reduce(jnp.logical_or, fixed)
+    if near is not None:
+        flag |= jnp.any(near)
+    return flag | ev.out_of_play(free.pos) | ~is_valid(free)
+
+
+def _racket_flags(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
+    radius, _ = ball_properties(model)
+    return jax.vmap(ev.racket_may_hit, in_axes=(0,) + (None,) * 6)(rackets, radius, ball.pos, ball.vel, free.pos,
+                                                                  free.vel, dt)
 
 
 def racket_may_hit(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
     """Whether the ball may meet any racket in the step (one ball; the racket test of :func:`may_have_event`)."""
-    radius, _ = ball_properties(model)
-    return jnp.any(jax.vmap(ev.racket_may_hit, in_axes=(0,) + (None,) * 6)(rackets, radius, ball.pos, ball.vel,
-                                                                          free.pos, free.vel, dt))
+    return jnp.any(_racket_flags(model, ball, free, rackets, dt))
 
 
 def may_need_network(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
@@ -142,14 +177,17 @@ def may_need_network(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
             | table_stage.touching(model.table, model.effects, radius, ball.pos, ball.vel))
 
 
-def detect(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt) -> Proposal:
-    """The earliest event of the step for one ball, with its refined time of impact.
+def detect(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt, done=None, elapsed=0.0) -> Proposal:
+    """The earliest event of the step (or of the rest of a step) for one ball, with its refined time
+    of impact.
 
     Arguments:
         model: model parameters (its ``residual`` is not used here).
         ball: one ball at the start of the step, (3,) fields; free: the same at its end in free flight.
-        rackets: :class:`Racket` with (R, ...) fields, or None.
-        dt: step length [s].
+        rackets: :class:`Racket` with (R, ...) fields at the start of the step, or None.
+        dt: step length [s] (of the rest of the step).
+        done: (len(FIXED_SLOTS) + R,) bool, candidates left out (already handled in this step), or None.
+        elapsed: time [s] from the start of the step to ``ball`` (the rest of a step starts later).
 
     Returns:
         A :class:`Proposal`.
@@ -167,13 +205,14 @@ def detect(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt) -> 
              (ev.NET, ev.net_candidate(model.table, radius, p0, v0, p1, v1, dt))]
     n_fixed = len(cands)
     if rackets is not None:
-        rc = jax.vmap(ev.racket_candidate, in_axes=(0, None, None, None, None, None, None))(
-            rackets, radius, p0, v0, p1, v1, dt)
+        rc = jax.vmap(ev.racket_candidate, in_axes=(0,) + (None,) * 7)(rackets, radius, p0, v0, p1, v1, dt, elapsed)
         cands += [(ev.RACKET, ev.Candidate(rc.hit[j], rc.tau[j])) for j in range(rc.hit.shape[0])]
+    if done is not None:
+        cands = [(k, c.replace(hit=c.hit & ~done[j])) for j, (k, c) in enumerate(cands)]
     kind, tau, index = ev.earliest(cands)
     pos, vel = ev.hermite(p0, v0, p1, v1, dt, tau)
     racket_index = jnp.where(kind == ev.RACKET, index - n_fixed, -1).astype(jnp.int32)
-    return Proposal(kind=kind, tau=tau, racket=racket_index, pre=Ball(pos, vel, w0 + tau * (w1 - w0)))
+    return Proposal(kind=kind, tau=tau, racket=racket_index, pre=Ball(pos, vel, w0 + tau * (w1 - w0)), slot=index)
 
 
 def respond(model: Model, pre: Ball, kind, racket: Racket | None):
@@ -215,33 +254,30 @@ def finish(model: Model, post: Ball, tau, t, dt) -> Ball:
     return Ball(post.pos + rest * post.vel + 0.5 * rest * rest * acc, post.vel + rest * acc, post.spin + rest * dspin)
 
 
-def resolve(ball: Ball, alive, free: Ball, prop: Proposal, post: Ball, after: Ball, t, dt):
-    """Completes a step for one ball that may have an event: the next state and what to log.
+def resolve(ball: Ball, alive, nxt: Ball, kind, time, t, dt):
+    """Completes a step for one ball that may have had events: the next state and what to log.
 
     Arguments:
         ball: the state at the start of the step; alive: whether the ball is in play;
-        free: the state at the end of the step in free flight; prop: from :func:`detect`;
-        post, after: the state just after the contact and at the end of the step (used for table
-        and racket contacts only); t, dt: step start and length.
+        nxt: the state at the end of the step after its events (the free flight if none);
+        kind, time: (S,) the step's events in time order (NONE after the last) and their times;
+        t, dt: step start and length.
 
     Returns:
-        (next ball, kind, event time, logged post-event state, stops): kind is NONE when nothing
-        happened; ``stops`` says the ball leaves play (FLOOR, OUT, INVALID, REST).
+        (next ball, kind (S,), time (S,), stopped): a step without events that ends out of play logs
+        OUT, a step that ends in an invalid state logs INVALID (in place of its events, frozen);
+        ``stopped`` is the kind that takes the ball out of play (FLOOR, OUT, INVALID, REST), 0 if none.
     """
-    kind = prop.kind
-    bounced = (kind == ev.TABLE) | (kind == ev.RACKET)
-    nxt = jax.tree.map(lambda a, b, c: jnp.where(bounced, a, jnp.where(kind == ev.FLOOR, b, c)),
-                       after, prop.pre, free)
-    out = (kind == ev.NONE) & ev.out_of_play(nxt.pos)
-    kind = jnp.where(out, ev.OUT, kind)
+    out = (kind[0] == ev.NONE) & ev.out_of_play(nxt.pos)
     invalid = ~is_valid(nxt)
-    kind = jnp.where(invalid, ev.INVALID, kind)
-    nxt = jax.tree.map(lambda a, b: jnp.where(invalid | ~alive, b, a), nxt, ball)
+    first = jnp.where(invalid, ev.INVALID, jnp.where(out, ev.OUT, kind[0]))
+    later = jnp.arange(kind.shape[0]) > 0
+    kind = jnp.where(later, jnp.where(invalid, ev.NONE, kind), first)
     kind = jnp.where(alive, kind, ev.NONE)
-    time = t + jnp.where(out | invalid, 1.0, prop.tau) * dt
-    log_post = jax.tree.map(lambda a, b: jnp.where(bounced, a, b), post, prop.pre)
-    stops = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.INVALID) | (kind == ev.REST)
-    return nxt, kind, time, log_post, stops
+    time = jnp.where(later | ~(out | invalid), time, t + dt)
+    nxt = jax.tree.map(lambda a, b: jnp.where(invalid | ~alive, b, a), nxt, ball)
+    terminal = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.INVALID) | (kind == ev.REST)
+    return nxt, kind, time, jnp.max(jnp.where(terminal, kind, 0))
 
 
 # --------------------------------------------------------------------------- batch
@@ -278,16 +314,27 @@ def _residual_rows(residual, res_axes, x, eps):
 
 
 def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_batched, rows, ball_id, t, dt,
-            key, sample, net_rows=None):
-    """Exact detection, contact response and bookkeeping for the balls ``rows`` (C,) of the batch.
+            key, sample, net_rows=None, unrolled=False):
+    """Exact detection, contact responses and bookkeeping for the balls ``rows`` (C,) of the batch.
 
-    Rows out of range (>= B) are unused buffer slots; their results are dropped by the scatters.
-    ``net_rows``: evaluate the residual network only on that many rows, gathered from those with a
-    racket contact (the caller guarantees there are no more); None: on every row.
+    Each row's step is handled in up to ``EVENTS_PER_STEP`` stages: a stage finds the earliest event
+    on what is left of the step (:func:`detect`), applies
+    it at its own time (:func:`respond`, the residual network, :func:`finish`) and leaves the state
+    after it (bounced, or unchanged after a net crossing, whose remaining path is the same free
+    flight) to the next stage; a kind (a racket) handled in the step is not sought again in it, a
+    terminal event ends the step. Rows out of range (>= B) are unused buffer slots; their results
+    are dropped by the scatters. ``net_rows``: evaluate the residual network only on that many rows,
+    gathered from those with a racket contact in the stage (the caller guarantees there are no
+    more); None: on every row. ``unrolled``: the first stage outside any loop and one branch for
+    the others (for a GPU, where a loop's every iteration and every branch costs a device-to-host
+    copy of its predicate; the stage is compiled twice); else one loop over the stages, each after
+    the first skipped where no row needs it (compiled once).
 
     Returns:
-        (rows, next ball (C, 3), kind (C,), event time (C,), racket index (C,), pre, log_post,
-        contact (C, 2), sigma (C, 6), stops (C,)).
+        (next ball (C, 3), kind (C, S), event time (C, S), racket index (C, S), pre, log_post
+        ((C, S, 3) fields), contact (C, S, 2), sigma (C, S, 6), stopped (C,)), S = EVENTS_PER_STEP:
+        each row's events in time order (NONE after the last) and the kind that took it out of play
+        (0 if none).
     """
     b = alive.shape[0]
     safe = jnp.minimum(rows, b - 1)
@@ -298,47 +345,104 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     free_c = jax.vmap(settle, in_axes=(phys_axes, 0, 0))(m_c, ball_c, free_c)
     alive_c = take(alive) & (rows < b)
     r_c = None if rackets is None else (jax.tree.map(take, rackets) if rackets_batched else rackets)
-    r_ax = 0 if rackets_batched else None
-    prop = jax.vmap(detect, in_axes=(phys_axes, 0, 0, r_ax, None))(m_c, ball_c, free_c, r_c, dt)
-    kind, tau = prop.kind, prop.tau
-    hit = None
-    if rackets is not None:
-        j = jnp.maximum(prop.racket, 0)
-        hit = (jax.tree.map(lambda a: a[jnp.arange(j.shape[0]), j], r_c) if rackets_batched
-               else jax.tree.map(lambda a: a[j], r_c))
-        hit = hit.replace(pos=hit.pos + (tau * dt)[:, None] * hit.vel)  # the racket at the contact time
-    post, x, rot = jax.vmap(respond, in_axes=(phys_axes, 0, 0, 0 if hit is not None else None))(
-        m_c, prop.pre, kind, hit)
-    sigma = jnp.zeros(kind.shape + (6,), x.dtype)
-    if model.residual is not None:
-        res_axes = axes.residual
-        # the network's rows: every row, or the few with a racket contact (a racket contact is rare,
-        # the network costs more than the rest of a row: evaluated on them only, scattered back)
-        sub = (jnp.arange(kind.shape[0]) if net_rows is None
-               else jnp.nonzero(kind == ev.RACKET, size=net_rows, fill_value=kind.shape[0])[0])
-        sub_safe = jnp.minimum(sub, kind.shape[0] - 1)
-        net = take_rows(model.residual, res_axes, safe[sub_safe])
-        eps = None
-        if sample:
-            ids = ball_id[safe[sub_safe]]
-            eps = jax.vmap(lambda i: jax.random.normal(jax.random.fold_in(key, i), (6,), x.dtype))(ids)
-        out = _residual_rows(net, res_axes, x[sub_safe, :model.residual.config.n_inputs], eps)
-        if net_rows is not None:
-            out = {k: jnp.zeros(kind.shape + v.shape[1:], v.dtype).at[sub].set(v, mode="drop") for k, v in out.items()}
-        is_r = (kind == ev.RACKET)[:, None]
-        dv, dw = jnp.where(is_r, out["dv"], 0.0), jnp.where(is_r, out["dw"], 0.0)
-        post = post.replace(vel=post.vel + jnp.einsum("cij,cj->ci", rot, dv.astype(x.dtype)),
-                            spin=post.spin + jnp.einsum("cij,cj->ci", rot, dw.astype(x.dtype)))
-        sigma = jnp.where(is_r, jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1), 0.0).astype(x.dtype)
     t_ax = None if jnp.ndim(t) == 0 else 0
     t_c = t if t_ax is None else take(t)
-    after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, t_ax, None))(m_c, post, tau, t_c, dt)
-    nxt, kind, time, log_post, stops = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, 0, t_ax, None))(
-        ball_c, alive_c, free_c, prop, post, after, t_c, dt)
-    is_r = kind == ev.RACKET
-    contact = jnp.where(is_r[:, None], x[:, 6:8], 0.0)
-    sigma = jnp.where(is_r[:, None], sigma, 0.0)
-    return nxt, kind, time, prop.racket, prop.pre, log_post, contact, sigma, stops
+    n = safe.shape[0]
+    n_slots = len(FIXED_SLOTS) + (0 if rackets is None else rackets.pos.shape[-2])
+    dtype = ball.pos.dtype
+    r_ax = 0 if rackets_batched else None
+
+    def stage(carry, i):
+        start, end, tau0, done, going = carry
+        seg = (1.0 - tau0) * dt
+        prop = jax.vmap(detect, in_axes=(phys_axes, 0, 0, r_ax, 0, 0, 0))(m_c, start, end, r_c, seg, done, tau0 * dt)
+        kind = jnp.where(going, prop.kind, ev.NONE)
+        tau = tau0 + (1.0 - tau0) * prop.tau  # of the whole step
+        hit = None
+        if rackets is not None:
+            j = jnp.maximum(prop.racket, 0)
+            hit = (jax.tree.map(lambda a: a[jnp.arange(n), j], r_c) if rackets_batched
+                   else jax.tree.map(lambda a: a[j], r_c))
+            hit = jax.vmap(racket_stage.advance)(hit, tau * dt)  # the racket at the contact time
+            hit = jax.vmap(racket_stage.facing)(hit, prop.pre.pos)  # turned onto the rim's normal there
+        post, x, rot = jax.vmap(respond, in_axes=(phys_axes, 0, 0, 0 if hit is not None else None))(
+            m_c, prop.pre, kind, hit)
+        is_r = kind == ev.RACKET
+        sigma = jnp.zeros(kind.shape + (6,), dtype)
+        if model.residual is not None:
+            res_axes = axes.residual
+            # the network's rows: every row, or the few with a racket contact (a racket contact is
+            # rare, the network costs more than the rest of a row: evaluated on them only, scattered back)
+            sub = jnp.arange(n) if net_rows is None else jnp.nonzero(is_r, size=net_rows, fill_value=n)[0]
+            sub_safe = jnp.minimum(sub, n - 1)
+            net = take_rows(model.residual, res_axes, safe[sub_safe])
+            eps = None
+            if sample:
+                def draw(ball_key):
+                    # the first stage's draws as they were before stages existed; later ones folded further
+                    first = jax.random.normal(ball_key, (6,), dtype)
+                    return jnp.where(i == 0, first, jax.random.normal(jax.random.fold_in(ball_key, i), (6,), dtype))
+
+                eps = jax.vmap(lambda j: draw(jax.random.fold_in(key, j)))(ball_id[safe[sub_safe]])
+            out = _residual_rows(net, res_axes, x[sub_safe, :model.residual.config.n_inputs], eps)
+            if net_rows is not None:
+                out = {k: jnp.zeros((n,) + v.shape[1:], v.dtype).at[sub].set(v, mode="drop") for k, v in out.items()}
+            dv, dw = jnp.where(is_r[:, None], out["dv"], 0.0), jnp.where(is_r[:, None], out["dw"], 0.0)
+            post = post.replace(vel=post.vel + jnp.einsum("cij,cj->ci", rot, dv.astype(dtype)),
+                                spin=post.spin + jnp.einsum("cij,cj->ci", rot, dw.astype(dtype)))
+            sigma = jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1).astype(dtype)
+        after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, t_ax, None))(m_c, post, tau, t_c, dt)
+        bounced = ((kind == ev.TABLE) | is_r)[:, None]
+        net_or_floor = ((kind == ev.NET) | (kind == ev.FLOOR))[:, None]
+        # after a bounce the rest of the step starts from the bounce; after a net crossing from the
+        # crossing, on the same path; a ball on the floor stops where it lands
+        nxt_start = jax.tree.map(lambda a, p, s: jnp.where(bounced, a, jnp.where(net_or_floor, p, s)),
+                                 post, prop.pre, start)
+        nxt_end = jax.tree.map(lambda a, p, e: jnp.where(bounced, a, jnp.where(kind[:, None] == ev.FLOOR, p, e)),
+                               after, prop.pre, end)
+        log_post = jax.tree.map(lambda a, p: jnp.where(bounced, a, p), post, prop.pre)
+        record = (kind, (t_c + tau * dt).astype(dtype), jnp.where(is_r, prop.racket, -1),
+                  prop.pre, log_post, jnp.where(is_r[:, None], x[:, 6:8], 0.0), jnp.where(is_r[:, None], sigma, 0.0))
+        slots = jnp.arange(n_slots)
+        done = done | (slots == prop.slot[:, None]) | (slots == FIXED_SLOTS.index(ev.REST))
+        # the next stage only for rows whose rest of the step may hold another event
+        fixed, near = jax.vmap(may_hit, in_axes=(phys_axes, 0, 0, r_ax, 0, 0))(
+            m_c, nxt_start, nxt_end, r_c, (1.0 - tau) * dt, tau * dt)
+        more = jnp.stack(fixed, axis=-1) if near is None else jnp.concatenate([jnp.stack(fixed, axis=-1), near], -1)
+        going = going & (bounced[:, 0] | (kind == ev.NET)) & jnp.any(more & ~done, axis=-1)
+        return (nxt_start, nxt_end, jnp.where(going, tau, tau0), done, going), record
+
+    def later(carry):
+        """The stages after the first, over the rows that may have another event."""
+        return jax.lax.scan(stage, carry, jnp.arange(1, EVENTS_PER_STEP))
+
+    def idle(carry):
+        zero3 = jnp.zeros((EVENTS_PER_STEP - 1, n, 3), dtype)
+        none = Ball(zero3, zero3, zero3)
+        shape = (EVENTS_PER_STEP - 1, n)
+        return carry, (jnp.zeros(shape, jnp.int32), jnp.zeros(shape, dtype), -jnp.ones(shape, jnp.int32), none, none,
+                       jnp.zeros(shape + (2,), dtype), jnp.zeros(shape + (6,), dtype))
+
+    carry = (ball_c, free_c, jnp.zeros(n, dtype), jnp.zeros((n, n_slots), bool), alive_c)
+    # a second event in a step is rare: the later stages run only where a row may have one (a branch)
+    if unrolled:
+        carry, first = stage(carry, 0)
+        carry, rest = jax.lax.cond(jnp.any(carry[4]), later, idle, carry)
+        record = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
+    else:
+        def one(carry, i):
+            def none(carry, i):
+                carry, rest = idle(carry)
+                return carry, jax.tree.map(lambda a: a[0], rest)
+
+            return jax.lax.cond((i == 0) | jnp.any(carry[4]), stage, none, carry, i)
+
+        carry, record = jax.lax.scan(one, carry, jnp.arange(EVENTS_PER_STEP))
+    nxt = carry[1]
+    kind, time, racket, pre, log_post, contact, sigma = jax.tree.map(lambda a: jnp.moveaxis(a, 0, 1), record)
+    nxt, kind, time, stopped = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, t_ax, None))(
+        ball_c, alive_c, nxt, kind, time, t_c, dt)
+    return nxt, kind, time, racket, pre, log_post, contact, sigma, stopped
 
 
 def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog | None, rackets: Racket | None,
@@ -361,9 +465,10 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         buffering: how the flagged balls reach the contact models (static; same results):
             ``"loop"`` runs buffers of ``capacity`` rows one after the other, each only when it
             holds a ball (a skipped branch is free on CPU); ``"single"`` runs one buffer at every
-            step, branch-free, and the whole batch in a step with more flagged balls than
-            ``capacity`` (on a GPU every branch costs a device-to-host copy of its predicate, which
-            made the loop ~1 ms a step). With a residual network and rackets, ``"single"`` also
+            step, and the whole batch in a step with more flagged balls than ``capacity`` (on a GPU
+            every branch costs a device-to-host copy of its predicate, which made the loop ~1 ms a
+            step; its branches are that choice and the rare second event of a step, :func:`_events`,
+            whose stages it runs unrolled). With a residual network and rackets, ``"single"`` also
             evaluates the network on ``capacity // NET_FRACTION`` rows only, those of the buffer
             with a racket contact, and runs the whole batch in a step where more balls may meet a
             racket (:func:`may_need_network`) than that.
@@ -381,17 +486,33 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     capacity = min(capacity, b)
 
     def events(rows):
-        return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key, sample)
+        return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key, sample,
+                       unrolled=buffering == "single")
 
     def write(rows, out):
         """The events ``out`` of the balls ``rows`` written into the batch (rows >= B are dropped)."""
-        nxt, kind, time, racket, pre, post, contact, sigma, stops = out
+        nxt, kind, time, racket, pre, post, contact, sigma, stopped = out
         safe = jnp.minimum(rows, b - 1)
         put = lambda full, part: full.at[rows].set(part, mode="drop")  # noqa: E731
-        new_log = None if log is None else log.write(rows, kind != ev.NONE, kind, time, racket, pre, post,
-                                                     contact, sigma)
+        def log_events(lg, stages):
+            for i in stages:  # in time order
+                at = lambda a: a[:, i]  # noqa: E731
+                lg = lg.write(rows, kind[:, i] != ev.NONE, kind[:, i], time[:, i], racket[:, i],
+                              jax.tree.map(at, pre), jax.tree.map(at, post), contact[:, i], sigma[:, i])
+            return lg
+
+        new_log = log
+        if log is not None:
+            new_log = log_events(log, [0])
+            later = partial(log_events, stages=range(1, kind.shape[1]))
+            if buffering == "single":
+                new_log = later(new_log)
+            else:  # a step's second event is rare: its writes (scatters over every row) skipped without one
+                new_log = jax.lax.cond(jnp.any(kind[:, 1:] != ev.NONE), later,
+                                       lambda lg: jax.tree.map(_in_place_identity, lg), new_log)
+        stops = stopped != 0
         return (jax.tree.map(put, base, nxt), put(alive, alive[safe] & ~stops),
-                put(status, jnp.where(stops, kind, status[safe])), new_log)
+                put(status, jnp.where(stops, stopped, status[safe])), new_log)
 
     if reference:
         rows = jnp.arange(b)
@@ -403,7 +524,7 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         def one_buffer():
             rows = jnp.nonzero(flag, size=capacity, fill_value=b)[0]
             return write(rows, _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t,
-                                       dt, key, sample, net_rows))
+                                       dt, key, sample, net_rows, unrolled=True))
 
         if capacity >= b:
             return one_buffer()

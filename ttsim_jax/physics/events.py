@@ -15,8 +15,14 @@ kept inside the bracket of the sign change (the gap has a kink where the nearest
 moves from an edge onto a face). A ball in sustained contact with the table (rolling, sliding) has
 no table contacts; it ends as REST once slow (``rest_candidate``).
 
-Everything is branch-free (``jnp.where``) so that vmap runs one path for every ball; the earliest
-contact of the step wins (at most one per ball per step).
+A racket face moves and turns over the step (its velocity and angular velocity). Besides the
+signed gap to its plane, the distance from the face as a whole, rim included, is sampled like the
+table's gap, so that a rim sweeping onto the ball (or a ball arriving over the rim) is a contact.
+
+Everything is branch-free (``jnp.where``) so that vmap runs one path for every ball. One detection
+gives the earliest contact of a stretch of path (:func:`earliest`); the rally kernel
+(``kernel.step``) handles it at its own time and detects again on the rest of the step, so a step
+holds its contacts in time order (a net crossing, then a bounce a fraction of a millisecond later).
 """
 
 from __future__ import annotations
@@ -25,8 +31,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import safe_divide, safe_norm
+from ttsim_jax.physics.numerics import component_norm, safe_divide, safe_norm
 
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
@@ -44,6 +51,11 @@ TABLE_ITERATIONS = 4
 # Margin [m] of the swept box in :func:`table_may_hit`: the Hermite path bows off its chord by
 # under |a| dt^2 / 8 (0.1 mm at 200 m/s^2 and 2 ms) and a tilted surface rises 1 mm in 0.1 m.
 SWEEP_MARGIN = 2e-3
+# Newton steps for the time at which a ball comes within a radius of a racket's face or rim.
+RIM_ITERATIONS = 1
+# A rim contact found this much earlier (fraction of the step) than a contact with the face itself
+# is taken instead; within it the two are the same contact, met where the face is.
+RIM_LEAD = 1e-3
 
 
 def hermite(p0, v0, p1, v1, dt, tau):
@@ -103,14 +115,15 @@ class Candidate:
     tau: jnp.ndarray
 
 
-def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
-    """Contact with the table box (playing surface, edges, ends, sides, underside).
+def _sampled_root(gap, frozen, p0, v0, p1, v1, dt, iterations):
+    """(g0, g_min, tau): a gap at the start of the step, its least value at mid-step and at the end,
+    and the time it first falls through zero.
 
-    The gap is also sampled at mid-step, so that a ball that clips an edge or a corner and is
-    clear of it again by the end of the step is still caught, in that step; the root is then
-    sought in the half of the step where the gap first turns negative.
+    The mid-step sample catches an obstacle met and left again within the step; the root is sought
+    in the half of the step where the gap first turns negative, by bracketed Newton steps on
+    ``frozen`` (the gap with its parameters out of the derivative), then given the implicit
+    derivative of ``gap``.
     """
-    gap = lambda p, s: table_stage.gap(table, effects, radius, p)  # noqa: E731
     half = 0.5 * jnp.ones_like(dt)
     g0, g1 = gap(p0, 0.0), gap(p1, 1.0)
     gh = gap(hermite(p0, v0, p1, v1, dt, half)[0], half)
@@ -119,12 +132,24 @@ def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
     ga, gb = jnp.where(first, g0, gh), jnp.where(first, gh, g1)
     tau = start + half * jnp.clip(safe_divide(ga, ga - gb, 0.0), 0.0, 1.0)
     sg = jax.lax.stop_gradient
-    tau = _bracketed_newton(sg(tau), sg(start), sg(start + half), lambda p, s: table_stage.gap(
-        sg(table), sg(effects), sg(radius), p), sg(p0), sg(v0), sg(p1), sg(v1), sg(dt), TABLE_ITERATIONS)
-    tau = _implicit(tau, gap, p0, v0, p1, v1, dt)
+    tau = _bracketed_newton(sg(tau), sg(start), sg(start + half), frozen, sg(p0), sg(v0), sg(p1), sg(v1), sg(dt),
+                            iterations)
+    return g0, jnp.minimum(gh, g1), _implicit(tau, gap, p0, v0, p1, v1, dt)
+
+
+def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
+    """Contact with the table box (playing surface, edges, ends, sides, underside).
+
+    The gap is also sampled at mid-step (:func:`_sampled_root`), so that a ball that clips an edge
+    or a corner and is clear of it again by the end of the step is still caught, in that step.
+    """
+    sg = jax.lax.stop_gradient
+    g0, g_min, tau = _sampled_root(
+        lambda p, s: table_stage.gap(table, effects, radius, p),
+        lambda p, s: table_stage.gap(sg(table), sg(effects), sg(radius), p), p0, v0, p1, v1, dt, TABLE_ITERATIONS)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
     _, normal = table_stage.box_distance(table, effects, pos)
-    hit = _crossing(g0, jnp.minimum(gh, g1), radius) & (jnp.dot(vel, normal) < 0.0)
+    hit = _crossing(g0, g_min, radius) & (jnp.dot(vel, normal) < 0.0)
     return Candidate(hit=hit, tau=tau)
 
 
@@ -148,43 +173,88 @@ def rest_candidate(table, effects, radius, p0, v0, p1, v1, w1):
     return Candidate(hit=hit, tau=jnp.ones_like(p0[0]))
 
 
-def racket_candidate(racket, radius, p0, v0, p1, v1, dt):
-    """Contact with one racket face moving at constant velocity over the step (either face)."""
-    n = racket.rot[:, 0]
-    h = lambda p, s: jnp.dot(n, p - racket.pos - s * dt * racket.vel)  # noqa: E731
-    h0, h1 = h(p0, 0.0), h(p1, 1.0)
-    side = jnp.where(h0 >= 0.0, 1.0, -1.0)
-    gap = lambda p, s: side * h(p, s) - radius  # noqa: E731
-    g0, g1 = side * h0 - radius, side * h1 - radius
-    tau = _root(g0, g1, gap, p0, v0, p1, v1, dt)
-    pos, vel = hermite(p0, v0, p1, v1, dt, tau)
-    local = racket.rot.T @ (pos - racket.pos - tau * dt * racket.vel)
-    inside = jnp.sum((local[1:3] / racket.face) ** 2) <= 1.0
-    approaching = side * jnp.dot(n, vel - racket.vel) < 0.0
-    hit = _crossing(g0, g1, radius) & approaching & inside
-    return Candidate(hit=hit, tau=tau)
+def racket_candidate(racket, radius, p0, v0, p1, v1, dt, elapsed=0.0):
+    """Contact with one racket face (either side, or its rim), moving and turning at constant rates
+    over the step (``physics.racket.advance``).
+
+    The search runs in the face's own frame, where the face is at rest: the path there is the
+    Hermite path of the ball's relative motion at both ends (``physics.racket.relative_motion``;
+    exact for a face that does not turn, within O(dt^4) for one that does). Two tests, the earlier
+    hit wins: the gap to the face's plane closes (signed on the ball's side at the start, so that a
+    ball that crosses the face within one step is caught) with the contact point inside the
+    outline; and the distance from the face, its rim beyond the outline, falls below a radius at
+    mid-step or at the end of the step (:func:`_sampled_root`): the rim of a moving, turning face
+    sweeping onto the ball, or a ball arriving over the rim. Either needs the ball to approach the
+    face there.
+
+    Arguments:
+        racket: the racket ``elapsed`` seconds before this stretch of path starts (at the start of
+            the step); p0, v0, p1, v1, dt: the path, ``dt`` long.
+    """
+    q0, u0 = racket_stage.relative_motion(racket, p0, v0, elapsed)
+    q1, u1 = racket_stage.relative_motion(racket, p1, v1, elapsed + dt)
+    side = jnp.where(q0[0] >= 0.0, 1.0, -1.0)
+    g0, g1 = side * q0[0] - radius, side * q1[0] - radius
+    tau_face = _root(g0, g1, lambda q, s: side * q[0] - radius, q0, u0, q1, u1, dt)
+    at, vel = hermite(q0, u0, q1, u1, dt, tau_face)
+    inside = (at[1] / racket.face[0]) ** 2 + (at[2] / racket.face[1]) ** 2 <= 1.0
+    hit_face = _crossing(g0, g1, radius) & inside & (side * vel[0] < 0.0)
+
+    def clearance(face):
+        return lambda q, s: component_norm(*racket_stage.face_offset(q, face)) - radius
+
+    c0, c_min, tau_rim = _sampled_root(clearance(racket.face), clearance(jax.lax.stop_gradient(racket.face)),
+                                       q0, u0, q1, u1, dt, RIM_ITERATIONS)
+    at, vel = hermite(q0, u0, q1, u1, dt, tau_rim)
+    normal = racket_stage.face_offset(at, racket.face)  # from the face to the ball, not normalised
+    hit_rim = _crossing(c0, c_min, radius) & (vel[0] * normal[0] + vel[1] * normal[1] + vel[2] * normal[2] < 0.0)
+    rim_first = hit_rim & ~(hit_face & (tau_face <= tau_rim + RIM_LEAD))
+    return Candidate(hit=hit_face | hit_rim, tau=jnp.where(rim_first, tau_rim, tau_face))
 
 
 def racket_may_hit(racket, radius, p0, v0, p1, v1, dt):
-    """Cheap superset of :func:`racket_candidate`'s hits: the gap to the face's plane closes, and
-    the ball passes within the face's reach.
+    """Cheap superset of :func:`racket_candidate`'s hits: the ball comes within a radius of the
+    face's plane in the step, within the face's reach (:func:`racket_within_reach`).
 
-    A hit's contact point lies on the step's Hermite path, which stays in the hull of its Bezier
-    control points (p0, p0 + v0 dt / 3, p1 - v1 dt / 3, p1), so within D = |p1 - p0| + dt (|v0| +
-    |v1|) / 3 of p0; and inside the face's ellipse, so across the face normal within its larger
-    semi-axis of the face centre, which moves dt |v_racket| in the step. At the start of the step the
-    ball is therefore within that semi-axis + D + dt |v_racket| (+ 1 mm for rounding) of the centre
-    across the normal. Without this test a tracking racket's plane, which sweeps through the whole
-    court, flagged every ball it crossed.
+    The plane: the ball's heights h0, h1 above it at the start and the end of the step (the end's
+    normal turned to first order) bound its height along the step within a margin: the Hermite
+    path's bow (``SWEEP_MARGIN``), the product of the turning normal and the moving ball (theta D / 4
+    for a turn theta = dt |w| and a relative displacement D) and the turn's curvature and first-order
+    error (theta^2 times the distance from the face centre). The margin takes the reach for D and
+    for the distance (a ball beyond it is not flagged anyway) and |w|'s L1 norm for |w|.
     """
-    n = racket.rot[:, 0]
-    rel = p0 - racket.pos
-    h0, h1 = jnp.dot(n, rel), jnp.dot(n, p1 - racket.pos - dt * racket.vel)
-    side = jnp.where(h0 >= 0.0, 1.0, -1.0)
-    across = rel - h0 * n
-    reach = (jnp.max(racket.face) + safe_norm(p1 - p0) + dt * (safe_norm(v0) + safe_norm(v1)) / 3.0
-             + dt * safe_norm(racket.vel) + 1e-3)
-    return _crossing(side * h0 - radius, side * h1 - radius, radius) & (jnp.sum(across * across) <= reach * reach)
+    n0 = racket.rot[:, 0]
+    turn = dt * racket.ang_vel
+    rel0 = p0 - racket.pos
+    h0, h1 = jnp.dot(n0, rel0), jnp.dot(n0 + jnp.cross(turn, n0), p1 - racket.pos - dt * racket.vel)
+    reach, moved = _racket_reach(racket, radius, p0, v0, p1, v1, dt, dt)
+    theta = jnp.abs(turn[0]) + jnp.abs(turn[1]) + jnp.abs(turn[2])
+    margin = SWEEP_MARGIN + theta * (0.25 * moved + theta * (reach + moved + SWEEP_MARGIN))
+    band = (jnp.minimum(h0, h1) - margin <= radius) & (jnp.maximum(h0, h1) + margin >= -radius)
+    return band & (jnp.sum(rel0 * rel0) <= reach * reach)
+
+
+def _racket_reach(racket, radius, p0, v0, p1, v1, dt, span):
+    """(reach, moved): :func:`racket_within_reach`'s bound on the distance from the face centre, and
+    the part of it that bounds the ball's displacement relative to the centre."""
+    moved = safe_norm(p1 - p0) + dt * (safe_norm(v0) + safe_norm(v1)) / 3.0 + span * safe_norm(racket.vel)
+    return jnp.max(racket.face) + radius + moved + 1e-3, moved
+
+
+def racket_within_reach(racket, radius, p0, v0, p1, v1, dt, span):
+    """Whether the ball, on a path from p0 to p1 ``dt`` long, may come within a radius of the face
+    while the racket moves for ``span`` seconds from where it is.
+
+    A contact point lies on the Hermite path, which stays in the hull of its Bezier control points
+    (p0, p0 + v0 dt / 3, p1 - v1 dt / 3, p1), so within D = |p1 - p0| + dt (|v0| + |v1|) / 3 of
+    p0; and within a radius of the face, whose points stay within its larger semi-axis of its centre,
+    which moves span |v_racket|. The ball therefore starts within that semi-axis + radius + D + span
+    |v_racket| (+ 1 mm for rounding) of the centre. Without this test a tracking racket's plane,
+    which sweeps through the whole court, flagged every ball it crossed.
+    """
+    reach, _ = _racket_reach(racket, radius, p0, v0, p1, v1, dt, span)
+    rel0 = p0 - racket.pos
+    return jnp.sum(rel0 * rel0) <= reach * reach
 
 
 def net_candidate(table, radius, p0, v0, p1, v1, dt):

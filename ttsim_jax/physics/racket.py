@@ -15,7 +15,10 @@ Models (``RacketParams.kind``, static):
     updated:   the paper's: e_n = e0 + e1 |v_n|, alpha = (1 + e_t) / (1 + kappa) with
                e_t = et0 + et1 |u_T|, normal spin damping e_s; racket angular velocity included.
 
-The contact point is the point of the face under the ball centre (p_ball - r n).
+The contact point is the point of the face under the ball centre (p_ball - r n). The face is a flat
+ellipse: a ball that meets its rim (its centre beyond the outline) has the contact normal from the
+rim to its centre, and the contact is solved in the racket frame turned onto that normal
+(:func:`facing`).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from flax import struct
 
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics.contact import ContactCoefficients, apply_matrices, contact_matrices, surface_velocity
-from ttsim_jax.physics.numerics import safe_norm
+from ttsim_jax.physics.numerics import component_norm, rotate, safe_divide, safe_norm
 
 RACKET_KINDS = ("nakashima", "refined", "updated")
 
@@ -64,6 +67,72 @@ class RacketParams:
 
 def uses_racket_spin(params: RacketParams) -> bool:
     return params.kind != "nakashima"
+
+
+def advance(racket, elapsed):
+    """The racket ``elapsed`` seconds on, its face centre moving at ``vel`` and its frame turning at
+    ``ang_vel`` about the face centre (``elapsed`` 0 gives the racket exactly)."""
+    axes = rotate(elapsed * racket.ang_vel[..., None, :], jnp.swapaxes(racket.rot, -1, -2))  # turned columns
+    return racket.replace(pos=racket.pos + elapsed * racket.vel, rot=jnp.swapaxes(axes, -1, -2))
+
+
+def to_face(racket, vec, elapsed=0.0):
+    """A world-frame vector in the racket frame of the racket ``elapsed`` seconds on
+    (:func:`advance`; no turn for a Python 0), without forming its rotation matrix (elementwise
+    arithmetic only)."""
+    no_turn = isinstance(elapsed, (int, float)) and elapsed == 0
+    turned, rot = (vec if no_turn else rotate(-elapsed * racket.ang_vel, vec)), racket.rot
+    return rot[0] * turned[0] + rot[1] * turned[1] + rot[2] * turned[2]  # rot.T @ turned
+
+
+def relative_motion(racket, pos, vel, elapsed=0.0):
+    """A ball centre's position and velocity in the frame of the face of the racket ``elapsed``
+    seconds on (racket frame, relative to the face centre; the frame moves and turns with the face,
+    so the velocity is relative to the point of the face frame the ball passes)."""
+    rel = pos - racket.pos - elapsed * racket.vel
+    v_rel = vel - racket.vel - jnp.cross(racket.ang_vel, rel)
+    return to_face(racket, rel, elapsed), to_face(racket, v_rel, elapsed)
+
+
+def face_offset(local, face):
+    """(3,) racket-frame vector from the nearest point of the face to the point ``local`` (racket
+    frame, relative to the face centre); its length is the point's distance from the face.
+
+    The face is a flat ellipse of semi-axes ``face`` (along racket y, z). Beyond the outline the
+    in-plane distance is Sampson's first-order estimate (f - 1) / |grad f| of the ellipse norm f:
+    exact for a circular face and near the rim of an elliptic one, where contacts are. Written in
+    components (no reductions), since it runs many times in each contact search.
+    """
+    sy, sz = local[1] / face[0], local[2] / face[1]
+    gy, gz = sy / face[0], sz / face[1]  # f grad f
+    f, g = component_norm(sy, sz), component_norm(gy, gz)
+    scale = jnp.maximum(safe_divide((f - 1.0) * f, g * g, 0.0), 0.0)  # beyond / |f grad f|
+    return jnp.stack([local[0], scale * gy, scale * gz])
+
+
+def facing(racket, pos):
+    """The racket with its frame turned so that its normal (on ``pos``'s side) points from the
+    nearest point of the face to ``pos``: unchanged over the face; beyond the outline tilted by the
+    angle t = atan(beyond / height) towards the rim, about the rim's tangent, so that a ball meeting
+    the rim gets a face contact along the rim's normal.
+
+    The turn T (racket frame), for the outward unit direction (g_y, g_z) and s = +-1 the side:
+    T x = (cos t, s g_y sin t, s g_z sin t), T y = (-s g_y sin t, cos t + g_z^2 (1 - cos t),
+    -g_y g_z (1 - cos t)), T z = (-s g_z sin t, -g_y g_z (1 - cos t), cos t + g_y^2 (1 - cos t)):
+    the identity exactly over the face.
+    """
+    h, ry, rz = face_offset(to_face(racket, pos - racket.pos), racket.face)
+    s = jnp.where(h >= 0.0, 1.0, -1.0).astype(pos.dtype)
+    beyond = component_norm(ry, rz)
+    dist = component_norm(h, beyond)
+    cos, sin = safe_divide(jnp.abs(h), dist, 1.0), safe_divide(beyond, dist, 0.0)
+    gy, gz = safe_divide(ry, beyond, 0.0), safe_divide(rz, beyond, 0.0)
+    ver = 1.0 - cos
+    turn = jnp.stack([jnp.stack([cos, -s * gy * sin, -s * gz * sin]),
+                      jnp.stack([s * gy * sin, cos + gz * gz * ver, -gy * gz * ver]),
+                      jnp.stack([s * gz * sin, -gy * gz * ver, cos + gy * gy * ver])])
+    rot = racket.rot
+    return racket.replace(rot=rot[:, :1] * turn[0] + rot[:, 1:2] * turn[1] + rot[:, 2:] * turn[2])  # rot @ turn
 
 
 def contact_frame(racket, pos):

@@ -81,20 +81,6 @@ def face_frame(normal):
     return jnp.stack([n, y, z], axis=-1)
 
 
-def rotation(rotvec):
-    """(..., 3, 3) rotation matrix of a rotation vector (Rodrigues), smooth (and differentiable) at 0."""
-    th2 = jnp.sum(rotvec * rotvec, -1)[..., None, None]
-    small = th2 < 1e-8
-    th = jnp.sqrt(jnp.where(small, 1.0, th2))
-    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
-    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
-    x, y, z = rotvec[..., 0], rotvec[..., 1], rotvec[..., 2]
-    zero = jnp.zeros_like(x)
-    k = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1), jnp.stack([-y, x, zero], -1)], -2)
-    eye = jnp.eye(3, dtype=rotvec.dtype)
-    return eye + a * k + b * (k @ k)
-
-
 def contact_racket(normal, vel, ang_vel, ball_pos, d, radius):
     """The racket (single, (…) fields) whose face touches the ball at ``ball_pos`` at position ``d``."""
     rot = face_frame(normal)

@@ -32,7 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.sensitivity.cases import WINDOW, ShotSet, rotation
+from ttsim_jax.physics.numerics import rotation_matrix
+from ttsim_jax.sensitivity.cases import WINDOW, ShotSet
 from ttsim_jax.sensitivity.targets import (COLUMNS, TARGETS, Outcome, check_target, columns_of, for_target,
                                           program_outcome)
 from ttsim_jax.state import Ball, Racket
@@ -169,7 +170,7 @@ def flatten_inputs(model, shots: ShotSet, layout: Layout) -> np.ndarray:
 
 def _outcome(flat, rot0, face, dt, layout: Layout, n_steps: int, buffering: str | None = None) -> Outcome:
     model, ball, rpos, rvec, rvel, rang = layout.unflatten(flat)
-    racket = Racket(pos=rpos, rot=rotation(rvec) @ rot0, vel=rvel, ang_vel=rang, face=face)
+    racket = Racket(pos=rpos, rot=rotation_matrix(rvec) @ rot0, vel=rvel, ang_vel=rang, face=face)
     return program_outcome(model, ball, racket, dt, n_steps=n_steps, buffering=buffering)
 
 
