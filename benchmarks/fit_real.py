@@ -61,15 +61,16 @@ def main(argv=None) -> int:
                    help="JSON to write (default: %(default)s)")
     args = p.parse_args(argv)
 
-    from ttsim_jax.cache import enable_compilation_cache
+    from ttsim_jax.files.cache import enable_compilation_cache
 
     enable_compilation_cache()  # as the ttsim command does
     from ttsim_jax import load_model
+    from ttsim_jax.data.flightfit import fit_segments
     from ttsim_jax.data.importers import import_source
+    from ttsim_jax.data.segment_batches import dataset_segments
     from ttsim_jax.evaluate.report import reduction, reduction_ci
     from ttsim_jax.evaluate.stages import EvaluateSettings, flight_stage
-    from ttsim_jax.evaluate.flight import flight_rmse
-    from ttsim_jax.fit import aero as A
+    from ttsim_jax.fit.flight import flight_rmse
     from ttsim_jax.fit.identify import split_sessions
     from ttsim_jax.fit.pipeline import FitSettings, fit_dataset
 
@@ -117,12 +118,12 @@ def main(argv=None) -> int:
         # the floor of any coefficient form on SpinDOE's held-out segments: a constant C_D, C_M per segment
         ds = datasets["spindoe"]
         test = split_sessions(ds.segments["session_id"], args.test_fraction, seed)
-        ids, times, positions, spins, conf = A.dataset_segments(ds, 5)
+        ids, times, positions, spins, conf = dataset_segments(ds, 5)
         session_of = dict(zip(ds.segments["segment_id"].tolist(), ds.segments["session_id"].tolist()))
         keep = (conf >= 0.5) & np.isin([session_of[int(i)] for i in ids], test)
         times = [t for t, k in zip(times, keep) if k]
         positions = [q for q, k in zip(positions, keep) if k]
-        floor = dict(per_segment_constant_coefficients=_stats(A.fit_segments(times, positions, spins[keep]).rmse))
+        floor = dict(per_segment_constant_coefficients=_stats(fit_segments(times, positions, spins[keep]).rmse))
         for name, model in models:
             if name in ("conti2026", "nakashima2011") or name in (v[0] for v in wanted[:2]):
                 floor[name] = _stats(flight_rmse(model, times, positions, spins[keep], fit_position=True))

@@ -3,14 +3,14 @@
 Fits 200 SpinDOE flight segments (those with a measured spin; initial position, initial velocity,
 C_D and C_M per segment) twice in one process:
 
-* batched: :func:`ttsim_jax.fit.aero.fit_segments`, the vmapped Levenberg-Marquardt solver, one
+* batched: :func:`ttsim_jax.data.flightfit.fit_segments`, the vmapped Levenberg-Marquardt solver, one
   compiled call per group of up to 16 segments of similar length; timed from cold (tracing and
   compilation included: the first call of the process) and warm;
 * scipy: ``scipy.optimize.least_squares(method="lm")`` per segment over the same residual function
-  (:func:`ttsim_jax.fit.aero.residual`, jitted, the segment padded to the same capacity) from the
+  (:func:`ttsim_jax.data.flightfit.residual`, jitted, the segment padded to the same capacity) from the
   same start, with the Jacobian either by scipy's finite differences (``jac="2-point"``, the plain
   use; the residual runs in float64 so that the differences mean something) or by the jitted
-  forward-mode Jacobian :func:`ttsim_jax.fit.aero.jacobian` (``jac="jax"``, float32 like the
+  forward-mode Jacobian :func:`ttsim_jax.data.flightfit.jacobian` (``jac="jax"``, float32 like the
   batched fit); timed with and without the compilation of those functions, which are compiled with
   the batched fit's XLA options (``aero.COMPILER_OPTIONS``) so that the cold times compare alike;
 * jaxopt (for the choice of solver): ``jaxopt.LevenbergMarquardt`` over the same residual,
@@ -60,10 +60,11 @@ def main(argv=None) -> int:
     from scipy.optimize import least_squares
 
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.fit import aero as A
+    from ttsim_jax.data import flightfit as A
+    from ttsim_jax.data import segment_batches as B
 
     ds = import_source(args.data, "spindoe")
-    ids, times, positions, spins, conf = A.dataset_segments(ds)
+    ids, times, positions, spins, conf = B.dataset_segments(ds)
     keep = np.flatnonzero(conf >= 0.5)[: args.segments]
     if len(keep) < args.segments:
         print(f"only {len(keep)} segments with a measured spin", file=sys.stderr)
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
     # ---- scipy over the same residual
     from ttsim_jax.params import load_model
 
-    size = max(A.capacity(len(t)) for t in times)
+    size = max(B.capacity(len(t)) for t in times)
     opts = dict(compiler_options=A.COMPILER_OPTIONS)
     res_jit = jax.jit(A.residual, **opts)
     jac_jit = jax.jit(lambda *a: A.jacobian(*a)[0], **opts)
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
         t0, c0 = time.perf_counter(), time.process_time()
         theta, nfev = [], 0
         for i in range(len(times)):
-            tau, pos, mask, spin = (jnp.asarray(a[0]) for a in A.pack(times, positions, spins, [i], size, 1, dtype))
+            tau, pos, mask, spin = (jnp.asarray(a[0]) for a in B.pack(times, positions, spins, [i], size, 1, dtype))
             args_ = (tau, pos, mask, spin, jnp.asarray(len(times[i])), air)
             x0 = np.asarray(guess_jit(tau, pos, mask), np.float64)
             fun = lambda th: np.asarray(res_jit(jnp.asarray(th, dtype), *args_), np.float64)  # noqa: E731
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
     def run_jaxopt():
         t0, c0 = time.perf_counter(), time.process_time()
         pending = [(idx, jaxopt_jit(*(jnp.asarray(a) for a in arrays), jnp.asarray(n_max), air32))
-                   for idx, arrays, n_max in A.batches(times, positions, spins, A.GROUP)]
+                   for idx, arrays, n_max in B.batches(times, positions, spins, B.GROUP)]
         theta, iters = np.full((len(times), 8), np.nan), np.zeros(len(times), int)
         for idx, (th, it) in pending:
             theta[idx], iters[idx] = np.asarray(th)[: len(idx)], np.asarray(it)[: len(idx)]
@@ -169,7 +170,7 @@ def main(argv=None) -> int:
         "samples": int(sum(len(t) for t in times)),
         "longest_segment": int(max(len(t) for t in times)),
         "batched": {"cold_s": t_cold, "warm_s": t_warm, "cold_cpu_s": c_cold, "warm_cpu_s": c_warm,
-                    "iterations": A.ITERATIONS, "warm_repeats_median_of": args.repeats, "batch": A.BATCH, "group": A.GROUP, "tol": A.TOL,
+                    "iterations": A.ITERATIONS, "warm_repeats_median_of": args.repeats, "batch": B.BATCH, "group": B.GROUP, "tol": A.TOL,
                     "compiler_options": A.COMPILER_OPTIONS,
                     "median_rmse_mm": float(np.nanmedian(warm.rmse) * 1e3),
                     "cold_equals_warm": bool(np.allclose(cold.theta, warm.theta, equal_nan=True))},

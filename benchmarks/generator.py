@@ -22,7 +22,7 @@ from pathlib import Path
 
 import jax
 
-from ttsim_jax.data.generator import generate, make_config, write
+from ttsim_jax.reality import generate, make_config, write
 
 PAPER = {"games": 277, "segments": 58000, "table_contacts": 25000, "robot_racket_contacts": 11000}
 

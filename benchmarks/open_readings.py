@@ -61,7 +61,7 @@ def main(argv=None) -> int:
 
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.evaluate.flight import flight_rmse
+    from ttsim_jax.fit.flight import flight_rmse
     from ttsim_jax.evaluate.report import reduction_ci
 
     t_start = time.perf_counter()

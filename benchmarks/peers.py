@@ -58,7 +58,7 @@ REPO = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make ``benchmarks`` importable
     sys.path.insert(0, str(REPO))
 
-from ttsim_jax import init_state, load_model, rollout  # noqa: E402
+from ttsim_jax import Execution, init_state, load_model, rollout  # noqa: E402
 from ttsim_jax.physics import aero as aero_stage  # noqa: E402
 from ttsim_jax.physics import events as ev  # noqa: E402
 from ttsim_jax.physics import racket as racket_stage  # noqa: E402
@@ -85,7 +85,7 @@ def kernel_rollout(model, balls: Ball, n_steps: int, dt: float, policy, fused: b
     Returns:
         (final positions (B, 3), first table bounce (B, 3), NaN where none) as JAX arrays.
     """
-    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8, fused=fused)
+    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8, execution=Execution(fused=fused))
     ev_log = out.events
     is_table = ev_log.kind == ev.TABLE
     first = jnp.argmax(is_table, axis=1)
@@ -172,7 +172,8 @@ class Peers:
     def __init__(self, model, config: str, mujoco_chunk: int, try_mjx: bool, log=print):
         self.skipped: dict[str, str] = {}
         if config == "network":
-            from ttsim_jax.physics.residual import init_model, load_residual_config
+            from ttsim_jax.fit.network_config import load_residual_config
+            from ttsim_jax.physics.network import init_model
 
             net = init_model(load_residual_config(REPO / "configs" / "residual" / f"{MODEL}.toml"), jax.random.PRNGKey(0))
             model = load_model(MODEL, dtype=jnp.float32, residual=net)

@@ -38,9 +38,10 @@ def real_root() -> Path:
 
 def kept_segments(ds, sessions=None, need_spin=True):
     """Segments of ``ds`` the paper would keep, optionally only from ``sessions``."""
-    from ttsim_jax.fit import aero as A
+    from ttsim_jax.data.flightfit import fit_segments
+    from ttsim_jax.data.segment_batches import dataset_segments
 
-    ids, times, positions, spins, conf = A.dataset_segments(ds, min_samples=5)
+    ids, times, positions, spins, conf = dataset_segments(ds, min_samples=5)
     session_of = dict(zip(ds.segments["segment_id"], ds.segments["session_id"]))
     keep = np.ones(len(ids), bool)
     if need_spin:
@@ -50,7 +51,7 @@ def kept_segments(ds, sessions=None, need_spin=True):
     times = [t for t, k in zip(times, keep) if k]
     positions = [p for p, k in zip(positions, keep) if k]
     spins = spins[keep] if need_spin else np.zeros((int(keep.sum()), 3))
-    fit = A.fit_segments(times, positions, spins, batch=64)
+    fit = fit_segments(times, positions, spins, batch=64)
     ok = fit.rmse <= 0.02
     return ([t for t, k in zip(times, ok) if k], [p for p, k in zip(positions, ok) if k], spins[ok],
             dict(candidates=len(times), kept=int(ok.sum())))
@@ -67,7 +68,7 @@ def main(argv=None) -> int:
 
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.evaluate.flight import flight_rmse
+    from ttsim_jax.fit.flight import flight_rmse
     from ttsim_jax.fit.identify import identify_aero, write_model
 
     t_start = time.perf_counter()

@@ -194,7 +194,7 @@ def main(argv=None) -> int:
         p.error(f"--games {args.games}: must be >= 0")
 
     from ttsim_jax import load_model
-    from ttsim_jax.data.generator import generate, load_truth, make_config
+    from ttsim_jax.reality import generate, load_truth, make_config
 
     t_start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)

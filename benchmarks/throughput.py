@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 
 from ttsim_jax import load_model, simulate
-from ttsim_jax.physics.residual import init_model, load_residual_config
+from ttsim_jax.fit.network_config import load_residual_config
+from ttsim_jax.physics.network import init_model
 from ttsim_jax.policies import tracking_rackets
 from ttsim_jax.shots import sample_shots
 from ttsim_jax.state import Ball

@@ -68,7 +68,7 @@ def test_installed_wheel_finds_bundled_configs_outside_the_checkout(wheel, tmp_p
     with zipfile.ZipFile(wheel) as z:
         z.extractall(site)
     code = ("from ttsim_jax import load_model; from ttsim_jax.params import config_dir; "
-            "from ttsim_jax.fit.commands import bundled_config; "
+            "from ttsim_jax.fit.pipeline import bundled_config; "
             "m = load_model('conti2026'); print(config_dir()); print(bundled_config('durr2026').is_file())")
     env = dict(os.environ, PYTHONPATH=str(site), JAX_PLATFORMS="cpu")
     run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)

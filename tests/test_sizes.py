@@ -51,21 +51,21 @@ def test_the_budget_comes_from_the_argument_then_the_variable_then_the_free_memo
 def test_the_generator_estimate_follows_the_rows_it_writes():
     """The bundled sample's games (3 games of 6 rallies) wrote 18,820 observation rows; the estimate
     must be within a factor of 2 of what the rows take at the measured bytes per row."""
-    from ttsim_jax.data import generator
+    from ttsim_jax import reality
     from ttsim_jax.data.io import read_table
 
     truth = json.loads((SAMPLE / "truth.json").read_text())
     keys = ("games", "rallies_per_game", "rally_hits_mean", "dt", "obs_every")
-    cfg = generator.GeneratorConfig(**{k: truth["config"][k] for k in keys})
+    cfg = reality.GeneratorConfig(**{k: truth["config"][k] for k in keys})
     rows = len(read_table(SAMPLE / "observations.parquet", "observations")["t"])
-    ratio = generator.memory_bytes(cfg) / (rows * generator.BYTES_PER_ROW)
+    ratio = reality.memory_bytes(cfg) / (rows * reality.BYTES_PER_ROW)
     assert 0.5 < ratio < 2.0, ratio
     with pytest.raises(SizeError, match="1000000000 games"):
-        generator.generate(generator.GeneratorConfig(games=10**9), progress=False)
+        reality.generate(reality.GeneratorConfig(games=10**9), progress=False)
 
 
 def test_the_simulate_estimate_is_the_kernels_per_shot_memory():
-    from ttsim_jax.cli import simulate_bytes
+    from ttsim_jax.cli.simulate import simulate_bytes
     from ttsim_jax.kernel.rollout import memory_bytes
 
     one = memory_bytes(1, 1500, 5, 8, np.float32)["total"]

@@ -18,7 +18,6 @@ key and the value.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,8 @@ import numpy as np
 from flax import struct
 
 from ttsim_jax.bundled import config_dir  # noqa: F401 (the public name stays here)
+from ttsim_jax.errors import ConfigError
+from ttsim_jax.files.toml import read_toml
 from ttsim_jax.physics.aero import (
     AeroParams,
     BlendedDragTable,
@@ -38,14 +39,11 @@ from ttsim_jax.physics.aero import (
     MagnusTable,
     MagnusValueTable,
 )
+from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, NET_OVERHANG, TABLE_LENGTH, TABLE_WIDTH
 from ttsim_jax.physics.racket import RACKET_KINDS, RacketParams
 from ttsim_jax.physics.table import TableParams
 
 SCHEMA_VERSION = 1
-
-
-class ConfigError(ValueError):
-    """A model file that cannot be loaded; the message names the file, the key and the value."""
 
 
 @struct.dataclass
@@ -122,9 +120,9 @@ SCHEMA: dict[str, dict[str, Entry]] = {
         "dA_wv": Entry("1/m", (3, 3), default=0.0), "dA_ww": Entry("1", (3, 3), default=0.0),
     },
     "table.geometry": {
-        "length": Entry("m", **_POS, default=2.74), "width": Entry("m", **_POS, default=1.525),
-        "net_height": Entry("m", **_POS, default=0.1525), "net_overhang": Entry("m", **_POS, default=0.1525),
-        "floor_z": Entry("m", hi=0.0, default=-0.76),
+        "length": Entry("m", **_POS, default=TABLE_LENGTH), "width": Entry("m", **_POS, default=TABLE_WIDTH),
+        "net_height": Entry("m", **_POS, default=NET_HEIGHT), "net_overhang": Entry("m", **_POS, default=NET_OVERHANG),
+        "floor_z": Entry("m", hi=0.0, default=FLOOR_Z),
     },
     "racket": {
         "kind": Entry("str"),
@@ -393,20 +391,6 @@ def resolve_model_path(name_or_path: str | Path) -> Path:
     return path
 
 
-def _read_toml(path: Path) -> dict:
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[: exc.start].count(b"\n") + 1
-        raise ConfigError(f"{path}: line {line}: byte {raw[exc.start:exc.start + 1]!r} at offset {exc.start} is not "
-                          "UTF-8 text; a model file is a UTF-8 TOML text file") from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-
-
 def _overlay(base: dict, over: dict) -> dict:
     """``base`` with ``over`` laid on it: tables merge key by key; a value, or an entry
     (a table with ``value``), replaces the base's whole."""
@@ -426,7 +410,7 @@ def read_model_file(path: Path, _chain: tuple = ()) -> dict:
     and gives only what differs; the base's ``name`` is not inherited (a variant is named after
     its file unless it says otherwise).
     """
-    data = _read_toml(path)
+    data = read_toml(path, "model file")
     base = data.pop("extends", None)
     if base is None:
         return data
@@ -460,13 +444,13 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
     Returns:
         A validated :class:`Model`.
     """
-    from ttsim_jax.cache import enable_compilation_cache
+    from ttsim_jax.files.cache import enable_compilation_cache
 
     enable_compilation_cache()  # a library user's first step: later processes load what this one compiles
     path = resolve_model_path(name_or_path)
     model = model_from_dict(read_model_file(path), str(path), dtype)
     if isinstance(residual, (str, Path)):
-        from ttsim_jax.physics.residual import load_residual
+        from ttsim_jax.physics.network_checkpoint import load_residual
         residual = load_residual(residual)
     return model.replace(residual=residual, effects=tuple(effects))
 

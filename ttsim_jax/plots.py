@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, TABLE_LENGTH, TABLE_WIDTH
 
-def draw_table(ax_top, ax_side, table_length=2.74, table_width=1.525, net_height=0.1525):
+
+def draw_table(ax_top, ax_side, table_length=TABLE_LENGTH, table_width=TABLE_WIDTH, net_height=NET_HEIGHT):
     """The table, its centre line and the net in a top (x, y) and a side (x, z) view [m]."""
     from matplotlib.patches import Rectangle
 
@@ -35,7 +37,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
     Returns:
         The path written.
     """
-    plt = _pyplot()
+    plt = pyplot()
     total = len(positions)
     positions = np.asarray(positions)[:max_balls]
     fig, (ax_top, ax_side) = plt.subplots(2, 1, figsize=(10, 8), gridspec_kw={"height_ratios": [1.1, 1]})
@@ -44,7 +46,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
     colours = {}
     cmap = plt.get_cmap("tab10")
     for i, p in enumerate(positions):
-        keep = np.isfinite(p).all(-1) & (p[:, 2] > -0.76)
+        keep = np.isfinite(p).all(-1) & (p[:, 2] > FLOOR_Z)
         name = None if names is None else str(names[i])
         if name not in colours:
             colours[name] = cmap(len(colours) % 10)
@@ -70,7 +72,7 @@ def plot_trajectories(positions, path, labels=None, events=None, title="", max_b
         ax_top.legend(loc="upper left", fontsize=7, ncol=4, title="shot type" if len(colours) > 1 else None,
                       title_fontsize=7)
     ax_side.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 #: Colours of the paper's figures per model family (others: the tab10 cycle).
@@ -86,7 +88,12 @@ def model_colours(names) -> dict:
     return {n: MODEL_COLOURS.get(n) or cmap((2 + others.index(n)) % 10) for n in names}
 
 
-def _pyplot():
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (figures are only written to files).
+
+    Returns:
+        The ``matplotlib.pyplot`` module.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -95,12 +102,21 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path) -> Path:
+def save_figure(fig, path) -> Path:
+    """Writes a figure as PNG (its folder made if missing) and closes it.
+
+    Arguments:
+        fig: the matplotlib figure.
+        path: the PNG file to write.
+
+    Returns:
+        The path written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    _pyplot().close(fig)
+    pyplot().close(fig)
     return path
 
 
@@ -117,7 +133,7 @@ def plot_violins(groups: dict, path, ylabel: str = "", title: str = "", panels=N
     Returns:
         The path written.
     """
-    plt = _pyplot()
+    plt = pyplot()
     cats = list(groups)
     panels = [cats] if panels is None else [list(p) for p in panels]
     names = list(dict.fromkeys(n for g in groups.values() for n in g))
@@ -145,7 +161,7 @@ def plot_violins(groups: dict, path, ylabel: str = "", title: str = "", panels=N
         axes[0, 0].plot([], [], color=colours[name], lw=6, alpha=0.6, label=name)
     axes[0, 0].legend(fontsize=8, ncol=min(len(names), 4))
     axes[0, 0].set_title(title + " (dots: medians)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_points: int = 2000) -> tuple:
@@ -161,7 +177,7 @@ def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_
     Returns:
         (histogram path, XY path).
     """
-    plt = _pyplot()
+    plt = pyplot()
     names = list(errors)
     colours = model_colours(names)
     finite = [np.asarray(e)[np.isfinite(e)] for e in errors.values()]
@@ -174,7 +190,7 @@ def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_
     ax.set(xlabel="landing-position error [m]", ylabel="contacts", title="landing-position error (last bin: and above)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    hist_path = _save(fig, hist_path)
+    hist_path = save_figure(fig, hist_path)
 
     measured = np.asarray(measured)[:max_points]
     fig, axes = plt.subplots(1, len(names), figsize=(5.2 * len(names), 4.2), squeeze=False)
@@ -188,4 +204,4 @@ def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_
         ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal", xlim=(-2.0, 2.0), ylim=(-1.2, 1.2))
         ax.set_title(f"landing points: {name}")
         ax.legend(fontsize=7, loc="upper left")
-    return hist_path, _save(fig, xy_path)
+    return hist_path, save_figure(fig, xy_path)

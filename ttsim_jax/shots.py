@@ -32,7 +32,7 @@ class ShotType:
 
     Attributes:
         start_x, start_y, start_z: where the ball leaves the racket [m] (x behind the end line at
-            -1.37 for shots from the -x end).
+            -:data:`~ttsim_jax.physics.dimensions.TABLE_HALF_LENGTH` for shots from the -x end).
         speed: horizontal speed [m/s].
         target_x, target_y: aimed first bounce [m].
         topspin: spin about the horizontal axis perpendicular to the path [rad/s]; negative is

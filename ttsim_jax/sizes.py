@@ -15,6 +15,8 @@ from __future__ import annotations
 import os
 import re
 
+from ttsim_jax.errors import UserError
+
 ENV = "TTSIM_MEMORY_BUDGET"
 #: Share of the available memory a job may plan to use by default: the rest stays to the operating
 #: system, XLA's temporaries (which the estimates leave out) and whoever shares the machine.
@@ -24,7 +26,7 @@ _UNITS = {"": 1, "B": 1, "K": 2**10, "KB": 10**3, "KIB": 2**10, "M": 2**20, "MB"
           "G": 2**30, "GB": 10**9, "GIB": 2**30, "T": 2**40, "TB": 10**12, "TIB": 2**40}
 
 
-class SizeError(ValueError):
+class SizeError(UserError, ValueError):
     """A job whose estimated memory exceeds the budget (the message gives both and the remedy)."""
 
 

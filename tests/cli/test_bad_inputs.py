@@ -1,4 +1,4 @@
-"""Bad inputs over every subcommand (``tests/cli_bad_inputs.toml``): each ends in exit status 2
+"""Bad inputs over every subcommand (``tests/cli/cli_bad_inputs.toml``): each ends in exit status 2
 with exactly one ``error:`` line naming the option, file, line or value, and no traceback."""
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import pytest
 from ttsim_jax.cli import main
 
 HERE = Path(__file__).resolve().parent
-SAMPLE = str(HERE.parent / "ttsim_jax" / "data" / "sample" / "games")
+REPO = HERE.parents[1]
+SAMPLE = str(REPO / "ttsim_jax" / "data" / "sample" / "games")
 SPEC = tomllib.loads((HERE / "cli_bad_inputs.toml").read_text())
 CSV_HEADER = ["session_id", "t", "x", "y", "z", "spin_x", "spin_y", "spin_z", "spin_conf"]
 
@@ -40,20 +41,22 @@ def write_csv(path: Path, spec: dict) -> None:
 def folder(tmp_path_factory):
     """The files the cases name: a directory, a binary file, a text file that is not TOML, a
     conti2026 residual checkpoint, and the configs and logs of the spec."""
+    from ttsim_jax.fit.network_config import load_residual_config
     from ttsim_jax.params import config_dir
-    from ttsim_jax.physics import residual as R
+    from ttsim_jax.physics.network import init_model
+    from ttsim_jax.physics.network_checkpoint import save_residual
 
     root = tmp_path_factory.mktemp("bad")
     (root / "dir").mkdir()
     (root / "bin").write_bytes(bytes(range(256)) * 4)
     (root / "text.txt").write_text("hello\n")
-    config = R.load_residual_config(config_dir() / "residual" / "conti2026.toml")
-    R.save_residual(root / "conti.ttres", R.init_model(config, jax.random.key(0)), metadata={"model": "conti2026"})
+    config = load_residual_config(config_dir() / "residual" / "conti2026.toml")
+    save_residual(root / "conti.ttres", init_model(config, jax.random.key(0)), metadata={"model": "conti2026"})
     for name, text in SPEC["files"].items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).write_text(text)
     for name, spec in SPEC["derived"].items():
-        text = (HERE.parent / spec["from"]).read_text()
+        text = (REPO / spec["from"]).read_text()
         for old, new in spec["replace"]:
             assert old in text, (name, old)
             text = text.replace(old, new)

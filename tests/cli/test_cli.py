@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import ttsim_jax
-from ttsim_jax import Ball, Racket, cli, load_model, simulate
+from ttsim_jax import Ball, Racket, load_model, simulate
 from ttsim_jax.cli import main
+from ttsim_jax.cli import simulate as simulate_command
 
 from padding import simulate_shared
 
@@ -52,17 +53,32 @@ def test_balls_are_cast_to_the_models_dtype():
     assert r.final.pos.dtype == jnp.float64
 
 
-# ------------------------------------------------------------------ user errors: tests/test_bad_inputs.py
-SAMPLE = str(Path(__file__).resolve().parents[1] / "ttsim_jax" / "data" / "sample" / "games")
+# ------------------------------------------------------------------ user errors: tests/cli/test_bad_inputs.py
+SAMPLE = str(Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games")
 
 
 def test_internal_errors_keep_their_traceback(monkeypatch):
     def broken(args):
         raise ValueError("an internal bug")  # a ValueError that is no user-error type
 
-    monkeypatch.setattr(cli, "cmd_simulate", broken)
+    monkeypatch.setattr(simulate_command, "cmd_simulate", broken)
     with pytest.raises(ValueError, match="an internal bug"):
         main(["simulate"])
+
+
+def test_a_user_error_from_any_layer_is_one_error_line(monkeypatch, capsys):
+    """Whatever raises it, a :class:`ttsim_jax.errors.UserError` ends in one ``error:`` line and status 2."""
+    from ttsim_jax.errors import UserError
+
+    class Refused(UserError, ValueError):
+        pass
+
+    def refused(args):
+        raise Refused("--shots 3: refused")
+
+    monkeypatch.setattr(simulate_command, "cmd_simulate", refused)
+    assert main(["simulate"]) == 2
+    assert capsys.readouterr().err.strip() == "error: --shots 3: refused"
 
 
 def test_version_and_help(capsys):

@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from ttsim_jax.data import DataError, load, save
-from ttsim_jax.data.generator import Generated, load_truth, write
+from ttsim_jax.reality import Generated, load_truth, write
 from ttsim_jax.data.io import METADATA_FILE, dataset_id, table_path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -145,7 +145,7 @@ def test_overwrite_refuses_a_directory_that_is_not_a_dataset(small_dataset, tmp_
 
 
 def test_overwrite_without_an_exchange_call_still_replaces_whole(small_dataset, tmp_path, monkeypatch):
-    import ttsim_jax.io_atomic as A
+    import ttsim_jax.files.atomic as A
 
     monkeypatch.setattr(A, "_exchange", lambda a, b: False)  # a system without renameat2
     target = tmp_path / "ds"

@@ -1,4 +1,4 @@
-"""``data import`` and ``data info`` through argparse, as ttsim_jax/cli.py will call them."""
+"""``data import`` and ``data info`` through argparse, as ``ttsim`` calls them (ttsim_jax/cli/data.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import json
 import numpy as np
 import pytest
 
+from ttsim_jax.cli import data as commands
 from ttsim_jax.cli import main
-from ttsim_jax.data import commands, load
+from ttsim_jax.data import load
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ttsim_jax.diagnose.ambiguity import COLLINEAR, indistinguishable, similarity
-from ttsim_jax.diagnose.diagnosis import verdict
+from ttsim_jax.diagnose.verdict import verdict
 
 
 def problem(n=40, seed=0):

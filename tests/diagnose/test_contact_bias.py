@@ -1,9 +1,9 @@
 """The contact-state estimates the diagnosis compares against are unbiased on effect-free data.
 
-Racket contacts with known states (:func:`ttsim_jax.fit.contacts.synthetic_contact_dataset`:
+Racket contacts with known states (:func:`ttsim_jax.reality.synthetic_contact_dataset`:
 flights with gravity, drag and Magnus force into known racket states, the post-contact state the
 model's own response, no effect), estimated as the diagnosis does (a polynomial per side,
-:class:`~ttsim_jax.fit.contacts.ContactFit`'s defaults):
+:class:`~ttsim_jax.data.contact_states.ContactFit`'s defaults):
 
 * noise-free: the velocity estimates' bias (the polynomial's neglect of the drag and Magnus jerk)
   stays below :data:`TOLERANCE`, half the racket phase's resolution
@@ -15,8 +15,10 @@ model's own response, no effect), estimated as the diagnosis does (a polynomial 
 
 import numpy as np
 
+from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose.candidates import MIN_GAIN
-from ttsim_jax.fit.contacts import ContactFit, contact_arrays, synthetic_contact_dataset
+from ttsim_jax.fit.racket_arrays import contact_arrays
+from ttsim_jax.reality import synthetic_contact_dataset
 
 N = 400
 TOLERANCE = 0.5 * MIN_GAIN["racket"]

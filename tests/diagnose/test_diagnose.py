@@ -162,7 +162,8 @@ def test_forward_selection_reports_interchangeable_effects(withheld, monkeypatch
     the second is not accepted, and each adding nothing on top of the other, they are reported as
     interchangeable (in the verdict's text too)."""
     from ttsim_jax.diagnose import candidates as C
-    from ttsim_jax.diagnose.diagnosis import _candidate_json, select, verdict
+    from ttsim_jax.diagnose.diagnosis import _candidate_json, select
+    from ttsim_jax.diagnose.verdict import verdict
 
     pb, model = withheld["problem"], withheld["model"]
     mask = np.asarray(pb.data["flight"]["mask"])[..., None]

@@ -21,11 +21,11 @@ import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.data import load
+from ttsim_jax.data.contact_states import ContactFit, fit_contact_state
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import floor as F
 from ttsim_jax.diagnose.phases import collect
 from ttsim_jax.effects.record import PositionNoise
-from ttsim_jax.fit.contacts import ContactFit, fit_contact_state
 
 CLEAN = Path(__file__).resolve().parents[1] / "evaluate" / "data" / "clean"  # durr2026, no effect, no noise
 STD = np.array([0.0015, 0.0015, 0.001])  # the generator's typical position noise [m]

@@ -2,7 +2,7 @@
 
 from types import SimpleNamespace
 
-from ttsim_jax.diagnose.diagnosis import implausible, verdict
+from ttsim_jax.diagnose.verdict import implausible, verdict
 
 
 def cand(name, pct, params):
@@ -63,7 +63,7 @@ def diagnosed(before, after, pct, ci, floors):
 
 
 def test_explained_only_when_most_of_the_removable_gap_is_closed():
-    from ttsim_jax.diagnose.diagnosis import gap_shares
+    from ttsim_jax.diagnose.verdict import gap_shares
 
     worn = cand("worn_ball", 40.0, {"worn_ball": {"loss": 0.02}})
     # error 0.5 m/s over a floor of 0.3: removable^2 = 0.16; after 0.32: closes (0.25 - 0.1024) / 0.16 = 92 %

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, init_state, load_model, rollout, simulate
+from ttsim_jax import Ball, Execution, Racket, init_state, load_model, rollout, simulate
 from ttsim_jax import effects as fx
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import racket as racket_stage
@@ -313,7 +313,7 @@ def test_rally_kernel_neutral_and_gradients():
     def run(model):
         # Euler and no rematerialisation keep the compiled gradient small (the hooks are the same
         # with any integrator; 300 steps of 4 balls need no checkpoints)
-        state, r = rollout(model, init_state(balls), n, 1e-3, sched, integrator="euler", remat=False)
+        state, r = rollout(model, init_state(balls), n, 1e-3, sched, integrator="euler", execution=Execution(remat=False))
         out = jnp.concatenate([state.ball.as_array().ravel(), r.events.post.vel.ravel(), r.events.time.ravel()])
         return jnp.sum(state.ball.vel**2) + jnp.sum(state.ball.spin**2) * 1e-4, (out, r.events.kind)
 

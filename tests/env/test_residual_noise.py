@@ -11,21 +11,22 @@ import pytest
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import ReturnBall, jit_reset, jit_step_env
 from ttsim_jax.params import ConfigError
-from ttsim_jax.physics import residual as R
+from ttsim_jax.physics.network import ResidualConfig, init_model
+from ttsim_jax.physics.network_checkpoint import save_residual
 
 N = 8
-TINY = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
+TINY = ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
 QUIET = {"shots.bank": 64, "shots.aim": True, "observation.noise_pos": 0.0, "observation.noise_vel": 0.0}
 
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     path = tmp_path_factory.mktemp("net") / "tiny.ttres"
-    net = R.init_model(TINY, jax.random.key(0))
+    net = init_model(TINY, jax.random.key(0))
     # inputs scaled into the untrained network's range, no attenuation: a correction at every contact
     n = TINY.n_inputs
-    R.save_residual(path, net.replace(x_min=jnp.full(n, -1e3, jnp.float32), x_max=jnp.full(n, 1e3, jnp.float32),
-                                      beta_coef=jnp.array([1.0, 0.0, 0.0], jnp.float32)))
+    save_residual(path, net.replace(x_min=jnp.full(n, -1e3, jnp.float32), x_max=jnp.full(n, 1e3, jnp.float32),
+                                    beta_coef=jnp.array([1.0, 0.0, 0.0], jnp.float32)))
     env = ReturnBall(load_task_config("return_ball", {**QUIET, "residual.checkpoint": str(path),
                                                                 "residual.sample": True}), N)
     return env, env.default_params()

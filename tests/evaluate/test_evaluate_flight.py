@@ -1,11 +1,11 @@
-"""Flight-segment RMSE of a model (ttsim_jax.evaluate.flight) on segments flown by a known model."""
+"""Flight-segment RMSE of a model (ttsim_jax.fit.flight) on segments flown by a known model."""
 
 import numpy as np
 import pytest
 
 from ttsim_jax import load_model
-from ttsim_jax.evaluate.flight import flight_rmse
-from ttsim_jax.fit import aero as A
+from ttsim_jax.data.synthetic_segments import synthetic_segments
+from ttsim_jax.fit.flight import flight_rmse
 
 
 @pytest.fixture(scope="module")
@@ -14,7 +14,7 @@ def nakashima():
 
 
 def _segments(model, noise):
-    return A.synthetic_segments(model.aero, model.ball.radius, model.ball.mass, 16, seed=2, noise=noise)
+    return synthetic_segments(model.aero, model.ball.radius, model.ball.mass, 16, seed=2, noise=noise)
 
 
 def test_the_true_model_reproduces_noise_free_flights(nakashima):

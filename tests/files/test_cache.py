@@ -13,7 +13,7 @@ from pathlib import Path
 CASES = textwrap.dedent("""
     import json, os, sys
     import jax
-    from ttsim_jax.cache import enable_compilation_cache
+    from ttsim_jax.files.cache import enable_compilation_cache
     root = sys.argv[1]
     out = {}
     for name, env, given in [("default", {}, None), ("off", {"TTSIM_COMPILE_CACHE": "off"}, None),
@@ -44,7 +44,7 @@ def test_compile_notice_prints_one_line_only_for_a_slow_call(capsys):
     """The line comes while a slow first call is still running, and a quick call prints nothing."""
     import time
 
-    from ttsim_jax.cache import compile_notice
+    from ttsim_jax.files.cache import compile_notice
 
     with compile_notice("the quick program", 5.0, after_s=0.5):
         pass

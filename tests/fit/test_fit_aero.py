@@ -1,4 +1,4 @@
-"""Aerodynamic identification (ttsim_jax.fit.aero, ttsim_jax.fit.aero_forms) on synthetic segments
+"""Aerodynamic identification (ttsim_jax.data.flightfit, ttsim_jax.fit.aero_forms) on synthetic segments
 from known parameters: the per-segment fit, the regression into the paper's forms, the config."""
 
 import jax
@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from ttsim_jax import load_model
-from ttsim_jax.fit import aero as A
+from ttsim_jax.data import flightfit as A
+from ttsim_jax.data import segment_batches as B
+from ttsim_jax.data.synthetic_segments import synthetic_segments
 from ttsim_jax.fit import aero_forms as F
 from ttsim_jax.physics import aero as P
 
@@ -26,7 +28,7 @@ def constant(model):
     n = 48
     coef = np.stack([rng.uniform(0.4, 0.6, n), rng.uniform(0.05, 0.3, n)], 1)
     coef[-6:, 1] = 0.0  # no Magnus force: these fly as if without spin
-    times, pos, spins, states = A.synthetic_segments(model.aero, model.ball.radius, model.ball.mass, n, seed=3,
+    times, pos, spins, states = synthetic_segments(model.aero, model.ball.radius, model.ball.mass, n, seed=3,
                                                      coefficients=coef, noise=NOISE)
     spins[-6:] = 0.0
     return coef, times, pos, spins, states, A.fit_segments(times, pos, spins)
@@ -35,7 +37,7 @@ def constant(model):
 @pytest.fixture(scope="module")
 def tabulated(model):
     """256 segments flown with the paper's C_D and C_M tables, fitted per segment."""
-    times, pos, spins, _ = A.synthetic_segments(model.aero, model.ball.radius, model.ball.mass, 256, seed=5,
+    times, pos, spins, _ = synthetic_segments(model.aero, model.ball.radius, model.ball.mass, 256, seed=5,
                                                 speed=(3.0, 18.0), spin_rate=(20.0, 700.0), noise=NOISE)
     return spins, A.fit_segments(times, pos, spins)  # 16 groups of 16: the compiled shape of `constant`
 
@@ -85,7 +87,7 @@ def test_groups_hold_similar_lengths_and_every_segment_once():
     lengths = np.r_[rng.integers(3, 250, 200), 300, 700, 2]  # two longer capacities; one too short
     times = [np.arange(n) / 100.0 for n in lengths]
     positions = [np.zeros((n, 3)) for n in lengths]
-    calls = list(A.grouped_batches(times, positions, np.zeros((len(lengths), 3)), batch=64, group=16))
+    calls = list(B.grouped_batches(times, positions, np.zeros((len(lengths), 3)), batch=64, group=16))
     seen = [i for idx, *_ in calls for i in idx]
     assert sorted(seen) == sorted(np.flatnonzero(lengths >= 3).tolist())
     shapes = {}
@@ -117,7 +119,7 @@ def test_fit_agrees_with_scipy_least_squares(model, constant):
     air = A.Air.from_model(model, jnp.float64)
     residual = jax.jit(A.residual)
     for i in range(0, 42, 3):  # spun segments (the last six fly without spin)
-        args = [jnp.asarray(a[0], jnp.float64) for a in A.pack(times, pos, spins, [i], 256, 1, np.float64)]
+        args = [jnp.asarray(a[0], jnp.float64) for a in B.pack(times, pos, spins, [i], 256, 1, np.float64)]
         fun = lambda th: np.asarray(residual(jnp.asarray(th), *args, len(times[i]), air))  # noqa: E731
         sol = least_squares(fun, fit.theta[i], method="lm", xtol=1e-12, ftol=1e-12)
         # Within 2 % of a standard error (float32 itself leaves about 1 %): stopping on the
@@ -129,7 +131,7 @@ def test_fit_agrees_with_scipy_least_squares(model, constant):
 def test_normal_equations_match_the_residuals_jacobian(model, constant):
     _, times, pos, spins, _, fit = constant
     air = A.Air.from_model(model)
-    tau, p, m, s = (jnp.asarray(a[0]) for a in A.pack(times, pos, spins, [0], A.capacity(len(times[0])), 1))
+    tau, p, m, s = (jnp.asarray(a[0]) for a in B.pack(times, pos, spins, [0], B.capacity(len(times[0])), 1))
     n = len(times[0])
     theta = jnp.asarray(fit.theta[0], jnp.float32) + jnp.array([0.01, 0, 0, 0.1, 0, 0, 0.05, 0.02], jnp.float32)
     residual = jax.jit(A.residual)

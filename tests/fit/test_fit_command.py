@@ -129,7 +129,7 @@ def test_fit_residual_stage_trains_a_network_on_what_the_fitted_base_leaves(tmp_
     assert 1 <= res["epochs"] <= 3 and np.isfinite(res["best_val_loss"])
     # trained on the training sessions' contacts only, the fitted racket parameters as its base
     assert 3 <= res["contacts"]["used"] < info["racket"]["counts"]["total"]
-    from ttsim_jax.physics.residual import checkpoint_metadata
+    from ttsim_jax.physics.network_checkpoint import checkpoint_metadata
 
     model = load_model(out.with_suffix(".toml"), residual=network)
     assert model.residual is not None and float(model.racket.e0) == pytest.approx(info["racket"]["fit"]["values"]["e0"], rel=1e-5)

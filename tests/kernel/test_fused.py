@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, RacketPolicy, init_state, load_model, rollout
+from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, rollout
 from ttsim_jax.kernel import fused
 from ttsim_jax.kernel.step import flight, may_have_event
 from ttsim_jax.physics.events import NET, RACKET, TABLE
@@ -30,7 +30,7 @@ def runs(model):
     out = []
     for seed in SEEDS:
         state = init_state(shots(B, seed))
-        out.append((rollout(model, state, N, 1e-3, sched), rollout(model, state, N, 1e-3, sched, fused=True)))
+        out.append((rollout(model, state, N, 1e-3, sched), rollout(model, state, N, 1e-3, sched, execution=Execution(fused=True))))
     return out
 
 
@@ -117,11 +117,11 @@ def test_fused_refuses_what_it_does_not_cover(model):
     state = init_state(shots(4))
     policy = RacketPolicy(params=None, fn=lambda p, ball, t: None)
     with pytest.raises(ValueError, match="racket policy"):
-        rollout(model, state, 10, racket=policy, fused=True)
+        rollout(model, state, 10, racket=policy, execution=Execution(fused=True))
     with pytest.raises(ValueError, match="integrator 'rk2'"):
-        rollout(model, state, 10, integrator="rk2", fused=True)
+        rollout(model, state, 10, integrator="rk2", execution=Execution(fused=True))
     with pytest.raises(ValueError, match="fused must be"):
-        rollout(model, state, 10, fused="yes")
+        rollout(model, state, 10, execution=Execution(fused="yes"))
 
 
 @pytest.mark.slow
@@ -132,7 +132,7 @@ def test_fused_equals_reference_in_float32_with_recording():
     balls = jax.tree.map(lambda a: a.astype(jnp.float32), shots(4 * B, seed=7))
     state = init_state(balls)
     ref = rollout(model, state, N, 1e-3, sched, record_every=100)
-    fus = rollout(model, state, N, 1e-3, sched, record_every=100, fused=True)
+    fus = rollout(model, state, N, 1e-3, sched, record_every=100, execution=Execution(fused=True))
     # 1e-4: float32 rounding grown over 400 steps and a few contacts (measured: 6e-5 on spins of
     # hundreds of rad/s, about 1e-7 relative; event times within 5e-8 s)
     _assert_same_rollout(ref, fus, atol=1e-4)
@@ -148,7 +148,7 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
     def landing(v0, fused_path):
         state = init_state(balls.replace(vel=balls.vel.at[:, 0].set(v0)))
-        s, _ = rollout(model, state, 120, 1e-3, fused=fused_path, max_events=0)
+        s, _ = rollout(model, state, 120, 1e-3, execution=Execution(fused=fused_path), max_events=0)
         return jnp.sum(s.ball.pos[:, 0])
 
     v0 = balls.vel[:, 0]
@@ -173,5 +173,5 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
     monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
     runs = ((n - 1, "auto"), (n, "auto"), (n, False))
     for batch, choice in runs:
-        rollout(model, init_state(shots(batch)), 10, fused=choice)
+        rollout(model, init_state(shots(batch)), 10, execution=Execution(fused=choice))
     assert taken == [fused.SUBSTEPS if c == "auto" and R.fused_pays(b) else 0 for b, c in runs], taken

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, RacketPolicy, init_state, load_model, rollout, simulate, stack_models
+from ttsim_jax import Ball, Execution, Racket, RacketPolicy, init_state, load_model, rollout, simulate, stack_models
 from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout, memory_bytes
 
@@ -169,7 +169,7 @@ def test_recording_above_memory_budget_is_refused_with_size():
     m = load_model("conti2026")
     b = serve_batch(2)
     with pytest.raises(ValueError, match=r"needs .* GiB.*budget"):
-        simulate(m, b, 1000, record_every=1, memory_budget_bytes=1000)
+        simulate(m, b, 1000, record_every=1, execution=Execution(memory_budget_bytes=1000))
     # the shapes of what the rollout returns (traced, not compiled)
     r = jax.eval_shape(lambda b: simulate(m, b, 1000, record_every=100), b)
     assert r.trajectory.pos.shape == (2, 10, 3)
@@ -181,7 +181,7 @@ def test_recording_above_memory_budget_is_refused_with_size():
     assert need["recording"] == size(r.trajectory)
     # an event log too large for the budget is refused too, before anything compiles
     with pytest.raises(ValueError, match=r"event log 0\.\d\d GiB.*budget"):
-        simulate(m, b, 1000, max_events=10**6, memory_budget_bytes=2**20)
+        simulate(m, b, 1000, max_events=10**6, execution=Execution(memory_budget_bytes=2**20))
 
 
 def test_floor_stops_the_ball():

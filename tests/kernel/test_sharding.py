@@ -15,7 +15,6 @@ SCRIPT = textwrap.dedent("""
     assert jax.device_count() == 4, jax.devices()
     from ttsim_jax import Ball, init_state, load_model, per_ball_axes, rollout
     from ttsim_jax.kernel.sharding import sharded_rollout
-    from ttsim_jax.physics import residual as R
 
     rng = np.random.default_rng(0)
     n = 32

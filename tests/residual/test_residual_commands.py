@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from ttsim_jax.cli import main
+from ttsim_jax.cli import residual as commands
 from ttsim_jax.data import save
-from ttsim_jax.fit import commands
-from ttsim_jax.fit import contacts as C
-from ttsim_jax.fit import residual as F
-from ttsim_jax.physics import residual as R
+from ttsim_jax.fit.network_config import load_train_config
+from ttsim_jax.fit.synthetic_contacts import true_residual
+from ttsim_jax.physics.network_checkpoint import checkpoint_metadata, load_residual
+from ttsim_jax.reality import synthetic_contact_dataset
 
 TINY_TOML = """
 [model]
@@ -51,7 +52,7 @@ def run(argv):
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     root = tmp_path_factory.mktemp("cli")
-    ds, _ = C.synthetic_contact_dataset(100, seed=5, residual_fn=F.true_residual, noise=0.0005)
+    ds, _ = synthetic_contact_dataset(100, seed=5, residual_fn=true_residual, noise=0.0005)
     save(ds, root / "data")
     (root / "tiny.toml").write_text(TINY_TOML)
     return root
@@ -88,8 +89,8 @@ def test_train_then_evaluate(workdir, capsys):
     assert "100 of 100 racket contacts usable" in text
     for label in ("0-5 cm", "5-8 cm", "> 8 cm", "all (n=10)", "|v|", "|w|", "inside 1 sigma", "sigma calibration"):
         assert label in text, label
-    model = R.load_residual(out)
-    meta = R.checkpoint_metadata(out)
+    model = load_residual(out)
+    meta = checkpoint_metadata(out)
     assert meta["model"] == "conti2026" and meta["epochs"] == 3 and meta["train_config"]["seed"] == 2
     assert meta["contacts"]["used"] == 100 and model.config.trunk == (16, 16)
     assert np.all(np.asarray(model.sigma_scale) > 0)
@@ -106,7 +107,7 @@ def test_train_then_evaluate(workdir, capsys):
     out.rename(workdir / "kept.ttres")
     assert run(argv) == 0
     assert "all (n=10)" in capsys.readouterr().out and not state.exists()
-    again = R.load_residual(out)  # same data, settings and seed: the same network
+    again = load_residual(out)  # same data, settings and seed: the same network
     np.testing.assert_array_equal(np.asarray(again.sigma_scale), np.asarray(model.sigma_scale))
 
     assert run(["evaluate", "residual", "--data", str(workdir / "data"), "--checkpoint", str(out), "--split", "test",
@@ -144,16 +145,16 @@ def test_default_config_trains_on_the_bundled_sample(tmp_path, capsys):
     out = tmp_path / "sample.ttres"
     assert main(["train", "residual", "--data", str(SAMPLE), "--out", str(out), "--epochs", "2", "--quiet"]) == 0
     text = capsys.readouterr().out
-    n_train = R.checkpoint_metadata(out)["n_train"]
+    n_train = checkpoint_metadata(out)["n_train"]
     assert f"lowered from 1000 to {n_train}" in text
-    assert R.load_residual(out).config.n_clusters == n_train < 1000
+    assert load_residual(out).config.n_clusters == n_train < 1000
 
 
 def test_help_states_the_defaults_of_clusters_epochs_and_seed(capsys):
     assert main(["train", "residual", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
     for model in commands.MODELS:
-        config, tcfg = F.load_train_config(commands.bundled_config(model))
+        config, tcfg = load_train_config(commands.bundled_config(model))
         for value in (config.n_clusters, tcfg.max_epochs, tcfg.seed):
             assert f"{value} for {model}" in text
     for option, key in (("--clusters", "n_clusters"), ("--epochs", "max_epochs"), ("--seed", "seed")):

@@ -1,4 +1,4 @@
-"""Dataset -> racket-frame training arrays (ttsim_jax.fit.contacts)."""
+"""Dataset -> racket-frame training arrays (ttsim_jax.fit.racket_arrays)."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -6,15 +6,18 @@ import pytest
 
 from ttsim_jax import Racket, load_model
 from ttsim_jax.data import Dataset
-from ttsim_jax.fit import contacts as C
-from ttsim_jax.fit import residual as F
+from ttsim_jax.data.contact_states import ContactFit
+from ttsim_jax.fit.racket_arrays import contact_arrays
+from ttsim_jax.fit.synthetic_contacts import racket_base_fn, true_residual
 from ttsim_jax.physics import racket as racket_stage
+from ttsim_jax.physics.rotations import matrix_to_quat, quat_to_matrix
+from ttsim_jax.reality import synthetic_contact_dataset
 from ttsim_jax.kernel.step import ball_properties
 
 
 @pytest.fixture(scope="module")
 def synthetic():
-    return C.synthetic_contact_dataset(12, seed=4, residual_fn=F.true_residual)
+    return synthetic_contact_dataset(12, seed=4, residual_fn=true_residual)
 
 
 def test_quaternion_round_trip():
@@ -22,18 +25,18 @@ def test_quaternion_round_trip():
     q = rng.normal(size=(50, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q *= np.sign(q[:, :1])
-    m = C.quat_to_matrix(q)
+    m = quat_to_matrix(q)
     np.testing.assert_allclose(m @ np.swapaxes(m, 1, 2), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(m), 1.0, atol=1e-12)
-    np.testing.assert_allclose(C.matrix_to_quat(m), q, atol=1e-12)
+    np.testing.assert_allclose(matrix_to_quat(m), q, atol=1e-12)
     # 90 degrees about z: racket x-axis -> world y
-    quarter = C.quat_to_matrix([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])
+    quarter = quat_to_matrix([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])
     np.testing.assert_allclose(quarter @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
 
 
 def test_round_trip_of_known_contacts(synthetic):
     ds, truth = synthetic
-    arrays = C.contact_arrays(ds, "conti2026")
+    arrays = contact_arrays(ds, "conti2026")
     assert len(arrays) == 12 and arrays.counts() == {} and arrays.n_contacts == 12
     np.testing.assert_array_equal(arrays.event_id, truth["event_id"])
     x, y_obs = truth["x"], truth["y_obs"]
@@ -47,11 +50,11 @@ def test_round_trip_of_known_contacts(synthetic):
     np.testing.assert_allclose(arrays.distance, truth["distance"], atol=1e-6)
     # y_base is the base model at the recovered inputs
     m = load_model("conti2026")
-    np.testing.assert_allclose(arrays.y_base, np.asarray(F.racket_base_fn(m.racket, *ball_properties(m))(arrays.x)),
+    np.testing.assert_allclose(arrays.y_base, np.asarray(racket_base_fn(m.racket, *ball_properties(m))(arrays.x)),
                                rtol=1e-4, atol=1e-3)
     # ... and the observed residual is the known one, up to the velocity-fit error
     res = arrays.y_obs - arrays.y_base
-    np.testing.assert_allclose(res[:, :3], np.asarray(F.true_residual(x))[:, :3], atol=0.12)
+    np.testing.assert_allclose(res[:, :3], np.asarray(true_residual(x))[:, :3], atol=0.12)
     assert arrays.fit_rmse.max() < 1e-3
 
 
@@ -71,7 +74,7 @@ def test_hand_built_contact_with_racket_spin():
     spin = np.r_[np.tile(w_in, (8, 1)), np.tile(w_out, (8, 1))]
     angle = np.pi + 0.3  # the face normal points back along -x, turned 0.3 rad about z
     quat = [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
-    rot = C.quat_to_matrix(quat)
+    rot = quat_to_matrix(quat)
     r_pos = p_c - rot @ [0.02, 0.01, -0.02]  # ball centre one radius in front of d = (0.01, -0.02)
     r_vel, r_ang = np.array([-2.0, 0.3, 1.0]), np.array([3.0, -8.0, 15.0])
     ds = Dataset.from_arrays(np.zeros(16, int), t, pos, spin=spin,
@@ -80,7 +83,7 @@ def test_hand_built_contact_with_racket_spin():
                                           contact=[[0.01, -0.02]]))
     for name in ("conti2026", "durr2026"):
         m = load_model(name)
-        arrays = C.contact_arrays(ds, name)
+        arrays = contact_arrays(ds, name)
         assert len(arrays) == 1, arrays.summary()
         racket = Racket.create(r_pos, rot=rot, vel=r_vel, ang_vel=r_ang)
         radius = float(m.ball.radius)
@@ -116,12 +119,12 @@ def test_skipped_contacts_are_counted_with_reasons(synthetic):
     keep[drop] = False
     obs = {k: v[keep] for k, v in obs.items()}
     bad = ds.replace(segments=dict(seg, spin_conf=conf), observations=obs)
-    arrays = C.contact_arrays(bad, "conti2026")
+    arrays = contact_arrays(bad, "conti2026")
     assert arrays.counts() == {"low_spin_conf_in": 1, "low_spin_conf_out": 1, "few_incoming_samples": 1}
     assert arrays.skipped["low_spin_conf_in"] == [0] and arrays.skipped["few_incoming_samples"] == [2]
     assert len(arrays) == 9 and 2 not in arrays.event_id
     assert "few_incoming_samples" in arrays.summary()
-    loose = C.contact_arrays(bad, "conti2026", fit=C.ContactFit(min_spin_conf=0.0, min_samples=3, degree=1))
+    loose = contact_arrays(bad, "conti2026", fit=ContactFit(min_spin_conf=0.0, min_samples=3, degree=1))
     assert loose.counts() == {} and len(loose) == 12
     with pytest.raises(ValueError, match="min_samples"):
-        C.ContactFit(degree=2, min_samples=3)
+        ContactFit(degree=2, min_samples=3)

@@ -6,10 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Racket, init_state, load_model, rollout, simulate
-from ttsim_jax.fit import residual as F
+from ttsim_jax import Ball, Execution, Racket, init_state, load_model, rollout, simulate
+from ttsim_jax.fit.network_config import TrainConfig
+from ttsim_jax.fit.network_training import train_residual
+from ttsim_jax.fit.synthetic_contacts import make_synthetic_contacts, racket_base_fn
+from ttsim_jax.physics.network import ResidualConfig, residual_outputs
 from ttsim_jax.physics import racket as racket_stage
-from ttsim_jax.physics import residual as R
 from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout
 from ttsim_jax.kernel.step import ball_properties
@@ -17,7 +19,7 @@ from ttsim_jax.kernel.step import ball_properties
 import padding as shared
 from padding import simulate_shared
 
-TINY = R.ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
+TINY = ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=20, dropout=0.1)
 N_STEPS = 600
 RACKET0 = dict(pos=[1.6, 0.0, 0.2], vel=[-0.5, 0.0, 0.1], ang_vel=[0.0, 5.0, 3.0])
 
@@ -45,9 +47,9 @@ def setup():
     """conti2026 with a small residual network trained on synthetic contacts of its own base model."""
     base = load_model("conti2026")
     radius, mass = (float(v) for v in ball_properties(base))
-    data = F.make_synthetic_contacts(1500, seed=0, base_fn=F.racket_base_fn(base.racket, radius, mass))
-    tc = F.TrainConfig(batch_size=64, max_epochs=8, patience=50, learning_rate=3e-3, kmeans_iters=10)
-    net, _ = F.train_residual(data["x"], data["y_base"], data["y_obs"], TINY, tc, progress=False)
+    data = make_synthetic_contacts(1500, seed=0, base_fn=racket_base_fn(base.racket, radius, mass))
+    tc = TrainConfig(batch_size=64, max_epochs=8, patience=50, learning_rate=3e-3, kmeans_iters=10)
+    net, _ = train_residual(data["x"], data["y_base"], data["y_obs"], TINY, tc, progress=False)
     model = base.replace(residual=net)
     result = simulate(model, balls(), N_STEPS, racket=schedule())
     return base, net, model, result
@@ -72,7 +74,7 @@ def test_kernel_matches_network_applied_by_hand(setup):
         st = racket_stage.racket_frame_state(base.racket, racket, radius, pre.pos, pre.vel, pre.spin)
         v_b, w_b = racket_stage.base_response(base.racket, st["v"], st["w"], st["d"], radius, mass)
         x = jnp.concatenate([st["v"], st["w"], st["d"]])[None]
-        out = R.residual_outputs(net, x)
+        out = residual_outputs(net, x)
         assert float(out["beta"][0]) > 0.5  # the network really acts on this contact
         assert float(jnp.linalg.norm(out["dv"][0])) > 1e-3
         v_post = st["rot"] @ (v_b + out["dv"][0]) + st["v_surf"]
@@ -143,7 +145,7 @@ def test_sampled_correction_depends_on_the_ball_not_on_its_buffer_slot(setup):
     in another order."""
     _, _, model, _ = setup
     key = jax.random.key(5)
-    one = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key, contact_capacity=1)
+    one = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key, execution=Execution(contact_capacity=1))
     default = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key)
     np.testing.assert_array_equal(np.asarray(one.events.kind), np.asarray(default.events.kind))
     np.testing.assert_allclose(np.asarray(one.events.post.spin), np.asarray(default.events.post.spin), atol=1e-9)
@@ -173,9 +175,9 @@ def test_single_buffering_runs_the_network_on_the_racket_rows_only(setup):
     same = four.replace(pos=four.pos.at[:, 1].add(1e-4 * copy))
     assert 64 // kstep.NET_FRACTION < 32  # the copies of a shot do not fit the network's rows at once
     for shots, spread_out in ((spread, True), (same, False)):
-        kw = dict(sample_residual=True, key=key, contact_capacity=64)
-        s0, o0 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), buffering="loop", **kw)
-        s1, o1 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), buffering="single", **kw)
+        kw = dict(sample_residual=True, key=key)
+        s0, o0 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), execution=Execution(contact_capacity=64, buffering="loop"), **kw)
+        s1, o1 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), execution=Execution(contact_capacity=64, buffering="single"), **kw)
         kind = np.asarray(o0.events.kind)
         step = np.floor(np.asarray(o0.events.time)[kind == RACKET] / 1e-3 + 1e-9).astype(int)
         assert len(step) > 40  # many racket contacts, with their network corrections

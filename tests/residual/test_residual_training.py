@@ -7,20 +7,26 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax.fit import residual as F
-from ttsim_jax.physics import residual as R
+from ttsim_jax.errors import ConfigError
+from ttsim_jax.fit.network_config import TrainConfig, load_residual_config, load_train_config
+from ttsim_jax.fit.network_evaluation import calibrate_sigma, evaluate_residual
+from ttsim_jax.fit.network_stats import ONE_SIGMA_COVERAGE, calibration_scale, population_batch_stats
+from ttsim_jax.fit.network_training import split_by_contact, train_residual
+from ttsim_jax.fit.synthetic_contacts import (make_synthetic_contacts, racket_base_fn, sample_racket_inputs,
+                                              standin_base_fn)
+from ttsim_jax.physics.network import PAPER_BETA, ResidualConfig, ResidualNet, init_variables, residual_outputs
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "residual"
 
-SMALL = R.ResidualConfig(trunk=(32, 32, 16), head_width=16, n_clusters=50, dropout=0.1)
+SMALL = ResidualConfig(trunk=(32, 32, 16), head_width=16, n_clusters=50, dropout=0.1)
 # Equal component weights are the default (the authors' velocity x100 was for raw-unit targets).
-FAST = F.TrainConfig(batch_size=64, max_epochs=40, patience=10, learning_rate=3e-3, kmeans_iters=20, seed=0)
+FAST = TrainConfig(batch_size=64, max_epochs=40, patience=10, learning_rate=3e-3, kmeans_iters=20, seed=0)
 
 
 @pytest.fixture(scope="module")
 def trained():
-    data = F.make_synthetic_contacts(4000, seed=0)
-    model, report = F.train_residual(data["x"], data["y_base"], data["y_obs"], SMALL, FAST, progress=False)
+    data = make_synthetic_contacts(4000, seed=0)
+    model, report = train_residual(data["x"], data["y_base"], data["y_obs"], SMALL, FAST, progress=False)
     return data, model, report
 
 
@@ -40,59 +46,59 @@ def test_training_recovers_known_residual(trained):
 
 def test_beta_on_training_inputs_and_far_away(trained):
     data, model, rep = trained
-    train_idx, _, _ = F.split_by_contact(len(data["x"]), FAST.split, FAST.seed)
-    out = R.residual_outputs(model, jnp.asarray(data["x"][train_idx]))
+    train_idx, _, _ = split_by_contact(len(data["x"]), FAST.split, FAST.seed)
+    out = residual_outputs(model, jnp.asarray(data["x"][train_idx]))
     assert float(jnp.mean(out["beta"])) > 0.97
     assert rep["beta_mean"] > 0.97
     x = data["x"]
     fast = (np.linalg.norm(x[:, :3], axis=1) > 25.0) & (np.linalg.norm(x[:, 3:6], axis=1) > 700.0)
     far = x[fast][:5] * 3.0  # speeds > 75 m/s and spins > 2100 rad/s: no training data there
-    assert float(jnp.max(R.residual_outputs(model, jnp.asarray(far))["beta"])) < 0.05
+    assert float(jnp.max(residual_outputs(model, jnp.asarray(far))["beta"])) < 0.05
     assert len(rep["attenuation"]["coefficients"]) == 3
 
 
 def test_six_input_training_runs():
-    data = F.make_synthetic_contacts(1200, seed=1, n_inputs=6)
-    cfg = R.ResidualConfig(n_inputs=6, trunk=(16, 16), head_width=8, n_clusters=20)
-    model, rep = F.train_residual(data["x"], data["y_base"], data["y_obs"], cfg,
-                                  F.TrainConfig(batch_size=64, max_epochs=3, kmeans_iters=5), progress=False)
+    data = make_synthetic_contacts(1200, seed=1, n_inputs=6)
+    cfg = ResidualConfig(n_inputs=6, trunk=(16, 16), head_width=8, n_clusters=20)
+    model, rep = train_residual(data["x"], data["y_base"], data["y_obs"], cfg,
+                                TrainConfig(batch_size=64, max_epochs=3, kmeans_iters=5), progress=False)
     assert model.config.n_inputs == 6 and model.x_min.shape == (6,)
     assert np.isfinite(rep["best_val_loss"])
 
 
 def test_training_rejects_bad_arrays():
-    data = F.make_synthetic_contacts(100, seed=2)
+    data = make_synthetic_contacts(100, seed=2)
     with pytest.raises(ValueError, match=r"x has shape \(100, 8\).*n_inputs = 6"):
-        F.train_residual(data["x"], data["y_base"], data["y_obs"], R.ResidualConfig(n_inputs=6), progress=False)
+        train_residual(data["x"], data["y_base"], data["y_obs"], ResidualConfig(n_inputs=6), progress=False)
     y = data["y_obs"].copy()
     y[7, 2] = np.nan
     with pytest.raises(ValueError, match="y_obs has non-finite values.*row 7"):
-        F.train_residual(data["x"], data["y_base"], y, SMALL, progress=False)
+        train_residual(data["x"], data["y_base"], y, SMALL, progress=False)
     with pytest.raises(ValueError, match="n_clusters = 1000 exceeds"):
-        F.train_residual(data["x"], data["y_base"], data["y_obs"], R.ResidualConfig(),
-                         F.TrainConfig(max_epochs=1), progress=False)
+        train_residual(data["x"], data["y_base"], data["y_obs"], ResidualConfig(),
+                       TrainConfig(max_epochs=1), progress=False)
 
 
 def test_split_by_contact_keeps_groups_together():
     groups = np.repeat(np.arange(50), 3)
-    tr, va, te = F.split_by_contact(150, (0.8, 0.1, 0.1), 0, groups)
+    tr, va, te = split_by_contact(150, (0.8, 0.1, 0.1), 0, groups)
     assert len(tr) + len(va) + len(te) == 150
     assert set(groups[tr]).isdisjoint(groups[va]) and set(groups[tr]).isdisjoint(groups[te])
     assert len(set(groups[va])) == 5 and len(set(groups[te])) == 5
 
 
 def test_repo_configs_load():
-    cfg, tc = F.load_train_config(CONFIGS / "conti2026.toml")
+    cfg, tc = load_train_config(CONFIGS / "conti2026.toml")
     assert cfg.n_inputs == 8 and cfg.trunk == (64, 64, 32) and cfg.head_width == 32 and cfg.n_clusters == 1000
     assert cfg.dropout == 0.2 and cfg.dropout_after == 2
-    assert (cfg.beta_a, cfg.beta_b, cfg.beta_c) == R.PAPER_BETA
+    assert (cfg.beta_a, cfg.beta_b, cfg.beta_c) == PAPER_BETA
     assert tc.learning_rate == 1.5e-3 and tc.weight_decay == 5e-4 and tc.patience == 50
-    assert tc.loss_weights == (1.0,) * 6 == F.TrainConfig().loss_weights
+    assert tc.loss_weights == (1.0,) * 6 == TrainConfig().loss_weights
     assert tc.population_stats and tc.calibration == "component"
-    durr, tc_durr = F.load_train_config(CONFIGS / "durr2026.toml")
+    durr, tc_durr = load_train_config(CONFIGS / "durr2026.toml")
     assert tc_durr.loss_weights == (1.0,) * 6
     assert durr.n_inputs == 6
-    assert R.load_residual_config(CONFIGS / "durr2026.toml") == durr
+    assert load_residual_config(CONFIGS / "durr2026.toml") == durr
 
 
 def test_config_errors_name_file_and_key(tmp_path):
@@ -113,8 +119,8 @@ def test_config_errors_name_file_and_key(tmp_path):
     for name, (body, pattern) in cases.items():
         path = tmp_path / f"{name}.toml"
         path.write_text(body)
-        with pytest.raises(R.ConfigError, match=pattern) as err:
-            F.load_train_config(path)
+        with pytest.raises(ConfigError, match=pattern) as err:
+            load_train_config(path)
         assert str(path) in str(err.value), name
 
 
@@ -122,30 +128,30 @@ def test_standin_base_matches_racket_stage_when_available():
     racket = pytest.importorskip("ttsim_jax.physics.racket")
     params = racket.RacketParams(e0=0.878, e1=-0.020, et0=0.819, et1=-0.010, e_s=0.805, k_p=0.0, kappa=1.5,
                                  e_max=1.0, kind="updated")
-    x = jnp.asarray(F.sample_racket_inputs(64, 3))
+    x = jnp.asarray(sample_racket_inputs(64, 3))
     try:
-        theirs = F.racket_base_fn(params)(x)
+        theirs = racket_base_fn(params)(x)
     except TypeError as e:  # the racket stage's signature moved on
         pytest.skip(f"racket.base_response signature differs: {e}")
-    np.testing.assert_allclose(np.asarray(theirs), np.asarray(F.standin_base_fn(x)), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(theirs), np.asarray(standin_base_fn(x)), rtol=1e-4, atol=1e-3)
 
 
 def test_calibration_holds_on_fresh_held_out_data(trained):
     """~68 % inside one calibrated sigma on a new synthetic set from the same distribution."""
     _, model, _ = trained
-    fresh = F.make_synthetic_contacts(3000, seed=77)
-    rep = F.evaluate_residual(model, fresh["x"], fresh["y_base"], fresh["y_obs"])
+    fresh = make_synthetic_contacts(3000, seed=77)
+    rep = evaluate_residual(model, fresh["x"], fresh["y_base"], fresh["y_obs"])
     assert abs(rep["within_one_sigma_overall"] - 0.683) < 0.04, rep["within_one_sigma"]
     assert all(0.58 < v < 0.78 for v in rep["within_one_sigma"].values()), rep["within_one_sigma"]
     # one factor for velocity and one for spin: also calibrated overall
-    val = F.make_synthetic_contacts(1000, seed=78)
-    grouped, info = F.calibrate_sigma(model, val["x"], val["y_base"], val["y_obs"], "group")
+    val = make_synthetic_contacts(1000, seed=78)
+    grouped, info = calibrate_sigma(model, val["x"], val["y_base"], val["y_obs"], "group")
     f = np.asarray(grouped.sigma_scale)
     assert np.all(f[:3] == f[0]) and np.all(f[3:] == f[3])
     assert abs(info["val_within_one_sigma_overall_after"] - 0.683) < 0.01
-    rep_g = F.evaluate_residual(grouped, fresh["x"], fresh["y_base"], fresh["y_obs"])
+    rep_g = evaluate_residual(grouped, fresh["x"], fresh["y_base"], fresh["y_obs"])
     assert abs(rep_g["within_one_sigma_overall"] - 0.683) < 0.04
-    none, _ = F.calibrate_sigma(model, val["x"], val["y_base"], val["y_obs"], "none")
+    none, _ = calibrate_sigma(model, val["x"], val["y_base"], val["y_obs"], "none")
     assert np.all(np.asarray(none.sigma_scale) == 1.0)
 
 
@@ -153,29 +159,29 @@ def test_calibration_scale_quantile():
     rng = np.random.default_rng(0)
     sigma = rng.uniform(0.5, 2.0, (20000, 6))
     err = np.abs(rng.normal(size=(20000, 6)) * sigma * np.array([1, 2, 3, 0.5, 1, 4]))
-    f = R.calibration_scale(err, sigma)
+    f = calibration_scale(err, sigma)
     np.testing.assert_allclose(f, [1, 2, 3, 0.5, 1, 4], rtol=0.03)
     inside = err <= sigma * f
-    np.testing.assert_allclose(inside.mean(0), R.ONE_SIGMA_COVERAGE, atol=1e-3)
-    g = R.calibration_scale(err, sigma, groups=(0, 0, 0, 1, 1, 1))
+    np.testing.assert_allclose(inside.mean(0), ONE_SIGMA_COVERAGE, atol=1e-3)
+    g = calibration_scale(err, sigma, groups=(0, 0, 0, 1, 1, 1))
     assert len(set(g[:3])) == 1 and len(set(g[3:])) == 1
 
 
 def test_population_batch_stats_reproduce_full_batch_training_mode():
     """Inference mode with the recomputed statistics equals training mode with the whole set as
     one batch (dropout off), and the statistics do not depend on the order of the rows."""
-    cfg = R.ResidualConfig(trunk=(16, 16, 8), head_width=8, n_clusters=5, dropout=0.0)
+    cfg = ResidualConfig(trunk=(16, 16, 8), head_width=8, n_clusters=5, dropout=0.0)
     rng = np.random.default_rng(1)
     variables = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a) + 0.3 * rng.normal(size=a.shape)),
-                                       R.init_variables(cfg, jax.random.key(0)))
+                                       init_variables(cfg, jax.random.key(0)))
     xs = jnp.asarray(rng.uniform(size=(500, 8)))
-    new = R.population_batch_stats(variables, cfg, xs)
-    net = R.ResidualNet(cfg)
+    new = population_batch_stats(variables, cfg, xs)
+    net = ResidualNet(cfg)
     train_out, _ = jax.jit(lambda v, x: net.apply(v, x, train=True, mutable=["batch_stats"]))(variables, xs)
     infer_out = jax.jit(lambda v, x: net.apply(v, x, train=False))(new, xs)
     for a, b in zip(train_out, infer_out):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-4)
     perm = np.random.default_rng(0).permutation(500)
-    shuffled = R.population_batch_stats(variables, cfg, xs[perm])
+    shuffled = population_batch_stats(variables, cfg, xs[perm])
     for a, b in zip(jax.tree_util.tree_leaves(new["batch_stats"]), jax.tree_util.tree_leaves(shuffled["batch_stats"])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-7)

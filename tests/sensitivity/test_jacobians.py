@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ttsim_jax.data.io import save
-from ttsim_jax.fit.contacts import synthetic_contact_dataset
+from ttsim_jax.reality import synthetic_contact_dataset
 from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.sensitivity import budgets
 from ttsim_jax.sensitivity.cases import contact_time, dataset_shots

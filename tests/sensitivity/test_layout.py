@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from ttsim_jax import load_model
+from ttsim_jax.fit.network_config import load_residual_config
 from ttsim_jax.params import config_dir
-from ttsim_jax.physics import residual as R
+from ttsim_jax.physics.network import init_model
 from ttsim_jax.sensitivity.cases import WINDOW
 from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, group_of, horizon_plan, horizons, layout_of
 from ttsim_jax.sensitivity.targets import COLUMNS, TARGETS, Outcome, columns_of, for_target
@@ -17,8 +18,8 @@ from ttsim_jax.sensitivity.targets import COLUMNS, TARGETS, Outcome, columns_of,
 def test_residual_network_weights_are_one_group():
     """Every float of the racket residual network (weights, normalisation statistics) is a column
     of the group ``residual.network``, and nothing else is."""
-    config = R.load_residual_config(config_dir() / "residual" / "conti2026.toml")
-    net = R.init_model(config, jax.random.key(0))
+    config = load_residual_config(config_dir() / "residual" / "conti2026.toml")
+    net = init_model(config, jax.random.key(0))
     base = layout_of(load_model("conti2026", dtype=jnp.float64))
     layout = layout_of(load_model("conti2026", dtype=jnp.float64, residual=net))
     groups, columns = layout.groups(), layout.columns()

@@ -290,7 +290,7 @@ def write_csv(ds: Dataset, folder, *, rows=None) -> Path:
     Returns:
         The path of the file written.
     """
-    from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.files.atomic import atomic_write
 
     obs = ds.observations
     keep = np.arange(len(obs["t"])) if rows is None else np.asarray(rows)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ttsim_jax.errors import UserError
+
 
 class _Located:
     """Message and attributes of a problem located in measured data (file, table, row, column,
@@ -41,7 +43,7 @@ class _Located:
         super().__init__((", ".join(where) + ": " if where else "") + problem)
 
 
-class DataError(_Located, ValueError):
+class DataError(_Located, UserError, ValueError):
     """Bad measured data, located as precisely as the input allows.
 
     The message names the file (or in-memory table), the row, the column and the offending value,

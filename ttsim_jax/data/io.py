@@ -23,7 +23,7 @@ value. :func:`load` says so (one :class:`~ttsim_jax.data.errors.DataWarning` per
 process), :func:`unprotected_files` lists such files and :func:`upgrade` rewrites a dataset with
 checksums, every value and every other file kept.
 
-A directory is written in a temporary sibling and swapped in whole (:mod:`ttsim_jax.io_atomic`),
+A directory is written in a temporary sibling and swapped in whole (:mod:`ttsim_jax.files.atomic`),
 so a crash leaves the old dataset or the new one, never a mix.
 """
 
@@ -40,7 +40,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ttsim_jax.io_atomic import atomic_directory
+from ttsim_jax.files.atomic import atomic_directory
 
 from . import schema
 from .dataset import Dataset, Metadata
@@ -48,7 +48,7 @@ from .errors import DataError, DataWarning
 from .pages import has_checksums
 
 METADATA_FILE = "metadata.json"
-#: Ground-truth files a generated dataset holds beside its tables (see ``generator.write``).
+#: Ground-truth files a generated dataset holds beside its tables (see :func:`ttsim_jax.reality.write`).
 TRUTH_FILES = ("truth.json", "truth_events.parquet", "truth_rackets.parquet", "truth_observations.parquet")
 #: Key of the dataset id in metadata.json and truth.json.
 ID_KEY = "dataset_id"
@@ -390,7 +390,7 @@ def upgrade(path, out=None, *, overwrite: bool = False) -> Path:
 
     Every file is read (and its id checked) before anything is written, and every file written is
     read back and compared with what was read; the new directory then replaces the target in one
-    step (:func:`ttsim_jax.io_atomic.atomic_directory`), so a failure at any point leaves the
+    step (:func:`ttsim_jax.files.atomic.atomic_directory`), so a failure at any point leaves the
     original untouched.
 
     Arguments:

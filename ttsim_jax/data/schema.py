@@ -19,6 +19,8 @@ import dataclasses
 
 import numpy as np
 
+from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, TABLE_LENGTH, TABLE_WIDTH  # noqa: F401 (public here too)
+
 #: Version of the on-disk layout, "MAJOR.MINOR". A reader accepts files with the same major version;
 #: a newer minor version may only add optional columns (which older readers ignore) or metadata keys.
 #: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity").
@@ -27,16 +29,12 @@ SCHEMA_VERSION = "1.1"
 #: Name written into every dataset's metadata; data in any other frame must be converted first.
 CANONICAL_FRAME = "ttsim-table-centre-v1"
 FRAME_DESCRIPTION = (
-    "origin at the centre of the table's playing surface; x along the table's length (2.74 m), "
-    "y across (1.525 m), z up; table surface at z = 0, floor at z = -0.76; net at x = 0, "
-    "0.1525 m high; right-handed"
+    f"origin at the centre of the table's playing surface; x along the table's length ({TABLE_LENGTH} m), "
+    f"y across ({TABLE_WIDTH} m), z up; table surface at z = 0, floor at z = {FLOOR_Z}; net at x = 0, "
+    f"{NET_HEIGHT} m high; right-handed"
 )
 
 BALL_RADIUS = 0.02
-TABLE_LENGTH = 2.74
-TABLE_WIDTH = 1.525
-NET_HEIGHT = 0.1525
-FLOOR_Z = -0.76
 
 #: Event kinds, in the order of their integer codes in JAX batches.
 EVENT_KINDS = ("table", "racket", "net", "out", "other")

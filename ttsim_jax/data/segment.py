@@ -11,7 +11,8 @@ A raw observation stream (a session) is split at contacts:
   measured racket state it cannot be called a racket contact).
 
 Contact times and positions come from intersecting the flight curves fitted just before and just
-after the contact, so they fall between samples.
+after the contact, so they fall between samples. The sessions are then split into flight segments
+at the events (:func:`segments_from_events`, from :mod:`ttsim_jax.data.event_segments`).
 
 :func:`filter_segments` then drops segments that are too short, whose spin is not known with enough
 confidence, or that a flight model cannot fit to within ``max_rmse``, and says how many and why.
@@ -25,8 +26,10 @@ from typing import Callable
 import numpy as np
 
 from . import schema
-from .dataset import Dataset, concat_tables, fill_defaults, select_rows
-from .tracks import MIN_SAMPLES, closest_approach, find_breaks, robust_lines, session_slices, track_slices
+from .dataset import Dataset
+from .event_segments import segments_from_events
+from .tables import concat_tables, fill_defaults, select_rows
+from .tracks import closest_approach, find_breaks, robust_lines, session_slices, track_slices
 
 GRAVITY = 9.81
 
@@ -282,80 +285,6 @@ def detect_events(ds: Dataset, *, bounce_kw: dict | None = None, kink_kw: dict |
     events = concat_tables([ds.events, new], "events")
     order = np.lexsort((events["t"], events["session_id"]))
     return segments_from_events(ds.replace(events=select_rows(events, order)))
-
-
-def segments_from_events(ds: Dataset, *, min_track: int = MIN_SAMPLES) -> Dataset:
-    """Splits every session at its events and at its breaks into flight segments.
-
-    Observations between consecutive boundaries (events, and the breaks of
-    :func:`ttsim_jax.data.tracks.find_breaks`: pauses and jumps where the tracker did not follow one
-    ball) form one segment each (empty spans make none). A segment opened (closed) by a break has
-    start (end) event -1, as one at the start (end) of the session. A segment's spin is the
-    confidence-weighted mean of its observations' spin, and its confidence the largest among them.
-
-    Arguments:
-        ds: dataset whose observations are grouped by session and in time order.
-        min_track: samples of a track (a span between breaks) below which it forms no segment: its
-            observations keep ``segment_id = -1`` (:func:`track_report` counts them).
-
-    Returns:
-        The dataset with a new ``segments`` table and ``observations.segment_id`` filled in.
-    """
-    obs = ds.observations
-    ev = ds.events
-    seg_id = np.full(len(obs["t"]), -1, np.int64)
-    cols = {c.name: [] for c in schema.SEGMENTS}
-    ev_by_session: dict[int, np.ndarray] = {}
-    if len(ev["t"]):
-        order = np.lexsort((ev["t"], ev["session_id"]))
-        for sid, a, b in session_slices(ev["session_id"][order]):
-            ev_by_session[sid] = order[a:b]
-    spin = ds.spins
-    conf = obs["spin_conf"]
-    pos = ds.positions
-    next_id = 0
-    for sid, a, b in session_slices(obs["session_id"]):
-        t = obs["t"][a:b]
-        rows = ev_by_session.get(sid, np.zeros(0, int))
-        et = ev["t"][rows]
-        breaks = find_breaks(t, pos[a:b])
-        bt = np.array([br.t for br in breaks])
-        short = np.zeros(b - a, bool)
-        for lo, hi in track_slices(b - a, breaks):
-            short[lo:hi] = hi - lo < min_track
-        n_ev = np.searchsorted(et, t, side="right")  # number of events at or before each sample
-        n_br = np.searchsorted(bt, t, side="right")
-        part = n_ev + n_br  # both only grow along the session: one value per span between boundaries
-        for k in np.unique(part[~short]):
-            members = np.flatnonzero((part == k) & ~short)
-            first, last = members[0], members[-1]
-            # The boundary just before (after) the span is an event unless a break lies between.
-            prev_ev, next_ev = n_ev[first] - 1, n_ev[last]
-            prev_br, next_br = n_br[first] - 1, n_br[last]
-            opened = prev_ev >= 0 and (prev_br < 0 or et[prev_ev] > bt[prev_br])
-            closed = next_ev < len(rows) and (next_br >= len(bt) or et[next_ev] < bt[next_br])
-            seg_id[a + members] = next_id
-            cols["segment_id"].append(next_id)
-            cols["session_id"].append(sid)
-            cols["start_event_id"].append(int(ev["event_id"][rows[prev_ev]]) if opened else -1)
-            cols["end_event_id"].append(int(ev["event_id"][rows[next_ev]]) if closed else -1)
-            cols["t_start"].append(et[prev_ev] if opened else t[first])
-            cols["t_end"].append(et[next_ev] if closed else t[last])
-            w = conf[a + members]
-            if np.any(w > 0):
-                s = np.sum(spin[a + members] * w[:, None], axis=0) / np.sum(w)
-                c = float(np.max(w))
-            else:
-                s, c = np.zeros(3), 0.0
-            cols["spin_x"].append(s[0])
-            cols["spin_y"].append(s[1])
-            cols["spin_z"].append(s[2])
-            cols["spin_conf"].append(c)
-            next_id += 1
-    segments = fill_defaults("segments", {k: np.asarray(v) for k, v in cols.items()}) if next_id else schema.empty_table("segments")
-    observations = dict(obs)
-    observations["segment_id"] = seg_id
-    return ds.replace(observations=observations, segments=segments)
 
 
 @dataclasses.dataclass

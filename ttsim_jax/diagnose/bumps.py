@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.diagnose import stages as S
-from ttsim_jax.effects.physical import _TABLE_HALF
+from ttsim_jax.diagnose.specs import spec
+from ttsim_jax.physics.dimensions import TABLE_HALF_LENGTH, TABLE_HALF_WIDTH
 
 #: Grid step of the scanned centres [m] and the scanned widths [m].
 STEP = 0.05
@@ -45,8 +46,6 @@ CHUNK = 512
 def tilt_candidate():
     """(spec, consts) of the ``table_tilt`` candidate with its slope in plain units (scale 1): the
     local slope that :func:`scan` differentiates in."""
-    from ttsim_jax.diagnose.candidates import spec
-
     sp, const = spec("table_tilt")
     return sp, dict(const, scale=dict(const["scale"], slope=np.float64(1.0)))
 
@@ -87,8 +86,8 @@ def scan(xy, jac, resid, n_bumps: int, keep: float = KEEP):
     xy, jac, r = (np.asarray(a, np.float64) for a in (xy, jac, resid))
     used = np.abs(jac).sum(axis=2) > 0  # error components a slope moves
     sigma2 = max(float(np.sum(r[used] ** 2) / max(used.sum(), 1)), 1e-30)
-    gx = np.arange(-_TABLE_HALF[0], _TABLE_HALF[0] + 1e-9, STEP)
-    gy = np.arange(-_TABLE_HALF[1], _TABLE_HALF[1] + 1e-9, STEP)
+    gx = np.arange(-TABLE_HALF_LENGTH, TABLE_HALF_LENGTH + 1e-9, STEP)
+    gy = np.arange(-TABLE_HALF_WIDTH, TABLE_HALF_WIDTH + 1e-9, STEP)
     grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
     centers = np.concatenate([grid] * len(WIDTHS))
     widths = np.repeat(np.asarray(WIDTHS, np.float64), len(grid))

@@ -14,7 +14,7 @@
    jointly with those accepted before it and kept when it adds significantly, at most :data:`TOP`),
    the accepted ones' held-out errors against the model's per phase and regime, and the landing
    error of the model with them (per-session parameters averaged over the sessions);
-6. the verdict: the accepted effects by rank (and those significant alone that add nothing on top
+6. the verdict (:mod:`ttsim_jax.diagnose.verdict`): the accepted effects by rank (and those significant alone that add nothing on top
    of them), or "unexplained" with where the gap is (flagged regimes and significant dependences)
    when no candidate reduces a held-out error significantly.
 
@@ -31,6 +31,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose import ambiguity as A
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import residuals as R
@@ -38,10 +39,12 @@ from ttsim_jax.diagnose import where as W
 from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.phases import collect
-from ttsim_jax.fit.contacts import ContactFit
+from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS, UNITS,  # noqa: F401 (public here too)
+                                        gap_shares, implausible, interchangeable, open_gaps, verdict)
+from ttsim_jax.errors import UserError
 
 
-class NoData(ValueError):
+class NoData(UserError, ValueError):
     """The dataset has no usable item in any phase; the message gives each phase's reason."""
 
 
@@ -254,45 +257,6 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     return out
 
 
-#: Share of the sessions beyond which a per-session effect's implausible fits reject it (a session
-#: of few items can take a wild value while the effect holds elsewhere: on the bundled games, one
-#: of three sessions fitted a single gust standing for several).
-IMPLAUSIBLE_SESSIONS = 0.5
-
-
-def implausible(params: dict) -> list[str]:
-    """What in a candidate's fitted parameters lies outside the catalogue's plausible ranges
-    (:meth:`~ttsim_jax.effects.base.Effect.implausible`), one line each; empty when all is plausible.
-
-    Arguments:
-        params: ``{effect: {param: value}}``, per-session effects ``{effect: {session: {param:
-            value}}}`` (a candidate's ``params``). A per-session effect counts as implausible when
-            more than :data:`IMPLAUSIBLE_SESSIONS` of its sessions are.
-
-    Returns:
-        Lines such as ``"table_tilt.slope[0] = 0.0164 (plausible -0.0131 to 0.0131)"``.
-    """
-    from ttsim_jax import effects as fx
-
-    def line(name, b, where=""):
-        idx = "".join(f"[{i}]" for i in b["index"])
-        unit = "" if b["unit"] == "1" else f" {b['unit']}"
-        return f"{name}.{b['param']}{idx} = {b['value']:.4g}{unit}{where} (plausible {b['low']:.4g} to {b['high']:.4g})"
-
-    out = []
-    for name, values in params.items():
-        cls = fx.effect_class(name)
-        if values and all(isinstance(k, int) for k in values):
-            found = [cls.implausible(v) for v in values.values()]
-            bad = [f for f in found if f]
-            if len(bad) > IMPLAUSIBLE_SESSIONS * len(found):
-                worst = max((b for f in bad for b in f), key=lambda b: max(b["low"] - b["value"], b["value"] - b["high"]))
-                out.append(line(name, worst, f" in {len(bad)} of {len(found)} sessions (the furthest)"))
-        else:
-            out += [line(name, b) for b in cls.implausible(values)]
-    return out
-
-
 def refuse_non_finite(pb, ph) -> None:
     """Raises :class:`NoData` when the model's error on any item of a phase is not finite: a NaN
     would make every score of that phase NaN and the verdict meaningless. The message names the
@@ -415,218 +379,6 @@ def _candidate_json(c: C.Candidate, rank: int) -> dict:
                 best_reduction_pct=c.best, heldout=c.heldout, params=c.params,
                 loss=dict(start=float(c.history[0]) if len(c.history) else math.nan,
                           end=float(c.history[-1]) if len(c.history) else math.nan))
-
-
-def _where_text(out: dict) -> list:
-    lines = []
-    for p in open_gaps(out):
-        f = out["floor"][p]
-        lines.append(f"{p}: error {f['error']:.3g} {UNITS[p]}, {f['error'] / f['floor']:.1f} x its noise floor "
-                     f"{f['floor']:.3g} {UNITS[p]}")
-    for p, w in out["where"].items():
-        for name, label in w["flagged"]:
-            row = next(r for r in w["regimes"][name] if r["label"] == label)
-            lines.append(f"{p}: {name} {label} ({row['ratio']:.2f} x the phase's mean error)")
-    for p, deps in out["dependence"].items():
-        for d in deps[:2]:
-            lines.append(f"{p}: {d['error']} depends on {d['quantity']} (Spearman rho {d['rho']:+.2f})")
-    return lines
-
-
-def interchangeable(candidates: list) -> dict:
-    """{accepted effect: [candidates reported interchangeable with it]} from the ranked candidates'
-    JSON (their ``adds``, :func:`select`)."""
-    same = {}
-    for c in candidates:
-        for n in c.get("adds", {}).get("interchangeable_with", []):
-            same.setdefault(n, []).append(c["name"])
-    return same
-
-
-#: Share of a phase's removable gap that the accepted effects must close on held-out data, in every
-#: phase they act in, for the verdict "explained" (below it: "partly explained").
-EXPLAINED_SHARE = 0.7
-#: Units of the phases' errors, for the verdict's text.
-UNITS = {"flight": "m", "table": "m/s", "racket": "m/s"}
-
-
-def gap_shares(out: dict) -> dict:
-    """How much of each phase's removable gap the accepted effects close on the held-out items.
-
-    The removable gap is the model's error above the noise floor (``out["floor"]``,
-    :mod:`ttsim_jax.diagnose.floor`), counted in the mean square, where independent parts add:
-    share = (before^2 - after^2) / (before^2 - floor^2), with before and after the held-out RMS
-    errors of the model without and with the accepted effects (``out["before_after"]``). The 95 %
-    interval maps that of the held-out reduction (the floor's own uncertainty is not in it).
-
-    Arguments:
-        out: the diagnosis's dict with ``before_after`` and ``floor``.
-
-    Returns:
-        {phase: {"share", "ci95", "before", "after", "floor", "removable"}}, the shares as
-        fractions; a phase with no removable gap on the held-out items (its error at the floor) gets
-        ``share`` None, as does one whose removable gap is below the phase's resolution
-        (:data:`~ttsim_jax.diagnose.candidates.MIN_GAIN`).
-    """
-    res = {}
-    for p, ba in out.get("before_after", {}).items():
-        h = ba.get("heldout", {})
-        b, a = h.get("before_rms"), h.get("after_rms")
-        if b is None or a is None or not (math.isfinite(b) and math.isfinite(a)) or b <= 0:
-            continue
-        fl = out.get("floor", {}).get(p)
-        f = fl["floor"] if isinstance(fl, dict) else 0.0
-        room = b * b - f * f
-        entry = dict(before=b, after=a, floor=f, removable=math.sqrt(max(room, 0.0)), share=None, ci95=None)
-        if entry["removable"] >= C.MIN_GAIN[p]:
-            def share(pct):
-                return (b * b - (b * (1.0 - pct / 100.0)) ** 2) / room
-
-            entry.update(share=share(h["pct"]), ci95=[share(h["ci95"][0]), share(h["ci95"][1])])
-        res[p] = entry
-    return res
-
-
-def open_gaps(out: dict) -> list:
-    """The phases whose error stands significantly above their noise floor (the error's 95 %
-    interval wholly above the floor's) by more than the phase's resolution (a removable gap of at
-    least :data:`~ttsim_jax.diagnose.candidates.MIN_GAIN`), in :data:`PHASES` order."""
-    fl = out.get("floor", {})
-    return [p for p in C.PHASES if isinstance(fl.get(p), dict) and fl[p]["error_ci95"][0] > fl[p]["floor_ci95"][1]
-            and fl[p]["removable"] >= C.MIN_GAIN[p]]
-
-
-def _bound_text(out: dict) -> tuple[list, str]:
-    """The verdict's sentences on the phases where a model-free correction (``out["bound"]``,
-    :mod:`ttsim_jax.diagnose.bound`) lowers the held-out error significantly more than the accepted
-    effects do (the lower end of its interval above their reduction): there the catalogue misses
-    something, and the correction's strongest terms name the variables that carry it. Returns (those
-    phases, the text)."""
-    lines, phases = [], []
-    for p, b in out.get("bound", {}).items():
-        h = b.get("heldout") if isinstance(b, dict) else None
-        if not h or not h.get("significant"):
-            continue
-        acc = out.get("before_after", {}).get(p, {}).get("heldout", {}).get("pct", 0.0)
-        if h["ci95"][0] > max(acc, 0.0):
-            phases.append(p)
-            lines.append(f"In the {p} phase the catalogue closes less than a model-free correction does "
-                         f"({max(acc, 0.0):.1f} % against {h['pct']:.1f} %, 95 % interval {h['ci95'][0]:.1f} to "
-                         f"{h['ci95'][1]:.1f} %): the gap there is carried by " +
-                         ", ".join(f"{t['name']} ({100 * t['share']:.0f} %)" for t in b.get("terms", [])) + ".")
-    return phases, (" " + " ".join(lines)) if lines else ""
-
-
-def _alike(out: dict, names: list) -> str:
-    """The verdict's sentences on the groups of indistinguishable candidates
-    (:func:`ttsim_jax.diagnose.ambiguity.indistinguishable`) that hold any of ``names``."""
-    text = ""
-    for g in out.get("indistinguishable", []):
-        if set(g["names"]) & set(names):
-            text += (f" {', '.join(g['names'][:-1])} and {g['names'][-1]} are indistinguishable on these data (their effects "
-                     f"on the errors alike, cosine {g['cosine']:.2f}): the data cannot name one over the other; "
-                     f"{g['separate']} would tell them apart.")
-    return text
-
-
-def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
-    """The verdict: how much of the gap the accepted effects explain, and what is left.
-
-    * *explained*: the accepted effects (:func:`select`) close at least :data:`EXPLAINED_SHARE` of
-      the removable gap (:func:`gap_shares`) on held-out data in every phase they act in whose error
-      stands above its floor (:func:`open_gaps`), and in no phase does a model-free correction
-      (``out["bound"]``) do significantly better;
-    * *partly explained*: they are significant but close less somewhere: the text says how much
-      each phase's gap shrinks and how much is left, and where the rest lies;
-    * *unexplained*: no candidate with plausible parameters is significant.
-
-    Phases with a gap above their floor that no accepted effect acts in are named in every case.
-
-    Arguments:
-        out: the diagnosis's dict so far (``where``, ``dependence``, ``candidates``, ``floor``,
-            ``before_after``).
-        significant: the accepted effects; ``redundant``: those significant alone that add nothing
-            on top of them; ``beyond``: those significant alone whose fit needs implausible
-            parameters (never accepted).
-
-    Returns:
-        {"level", "explained" (level == "explained"), "effects" [names by rank], "redundant",
-        "implausible", "shares" (:func:`gap_shares`), "gaps" (phases with a gap above the noise
-        floor, :func:`open_gaps`), "open" (those no accepted effect acts in), "text" (one
-        paragraph), "where" [lines]}.
-    """
-    where = _where_text(out)
-
-    def part(c):
-        p = max(c.heldout, key=lambda k: c.heldout[k]["pct"])
-        h = c.heldout[p]
-        return (f"{c.spec.name} ({p}: held-out RMS error {h['pct']:.1f} % lower, 95 % interval "
-                f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
-
-    def gap(p, g):
-        u = UNITS[p]
-        return (f"the {p} gap (error {g['before']:.3g} {u} on held-out data, noise floor {g['floor']:.3g} {u}, "
-                f"removable {g['removable']:.3g} {u})")
-
-    rejected = ""
-    if beyond:
-        rejected = (" Not accepted as causes, because their fits need parameters that no lab meets (they stand in for "
-                    "something the catalogue lacks): " + "; ".join(
-                        part(c) + ": " + ", ".join(implausible(c.params)) for c in beyond) + ".")
-    shares = gap_shares(out) if significant else {}
-    acted = {p for c in significant for p in c.heldout}
-    gaps = open_gaps(out)
-    untouched = [p for p in gaps if p not in acted]
-    rest = ""
-    if untouched:
-        fl = out["floor"]
-        rest = " Not addressed by any accepted effect: " + "; ".join(
-            f"the {p} gap (error {fl[p]['error']:.3g} {UNITS[p]}, noise floor {fl[p]['floor']:.3g} {UNITS[p]})"
-            for p in untouched) + "."
-    names = dict(effects=[c.spec.name for c in significant], redundant=[c.spec.name for c in redundant],
-                 implausible=[c.spec.name for c in beyond], shares=shares, gaps=gaps, open=untouched, where=where)
-    if significant:
-        who = " + ".join(c.spec.name for c in significant)
-        # a phase whose error does not stand above its floor has nothing to explain: no share is asked there
-        short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE
-                 and (p in gaps or not isinstance(out.get("floor", {}).get(p), dict))]
-        more, beyond_catalogue = _bound_text(out)
-        level = "partly explained" if short or untouched or more else "explained"
-        closes = []
-        for p, g in shares.items():
-            if g["share"] is None:
-                closes.append(f"{gap(p, g)}: no gap above the noise floor beyond the phase's resolution")
-                continue
-            pct, lo, hi = (100.0 * min(v, 1.0) for v in (g["share"], *g["ci95"]))
-            closes.append(f"{who} close{'s' if len(significant) == 1 else ''} {pct:.0f} % (95 % interval {lo:.0f} "
-                          f"to {hi:.0f} %) of {gap(p, g)}" + (f", {100.0 - pct:.0f} % is left" if p in short else ""))
-        text = ("Explained by: " if level == "explained" else "Partly explained by: ") + "; ".join(
-            part(c) for c in significant) + "."
-        if closes:
-            text += " On held-out data " + "; ".join(closes) + "."
-        if short:
-            located = [w for w in where if w.split(":")[0] in short]
-            text += (" What is left lies in: " + "; ".join(located) + "." if located else
-                     " What is left is not located in any regime.")
-        text += _alike(out, [c.spec.name for c in significant])
-        for n, others in interchangeable(out.get("candidates", [])).items():
-            text += (f" {n} and {', '.join(others)} are interchangeable on these data: each adds nothing significant "
-                     "on top of the other.")
-        if redundant:
-            text += (" Significant alone but adding nothing significant on top of those: " +
-                     "; ".join(part(c) for c in redundant) + ".")
-        return dict(names, level=level, explained=level == "explained", text=text + rest + rejected + beyond_catalogue)
-    lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
-            "no candidate effect reduces a held-out error significantly.")
-    rejected += _alike(out, [c.spec.name for c in beyond])
-    if where:
-        located = "The gap lies in: " + "; ".join(where) + "."
-    elif untouched:
-        located = "No regime of those phases stands out and no residual dependence is significant: the gap is spread over them."
-    else:
-        located = "No regime stands out and no residual dependence is significant: what remains looks like noise."
-    text = "Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1]
-    return dict(names, level="unexplained", explained=False, text=text)
 
 
 def jsonable(obj):

@@ -34,7 +34,7 @@ all items, every segment and contact, not only the held-out ones):
   not propagated into the flight floor.
 * *table* and *racket*: the contact-state estimates are linear in the positions: the velocity is
   the derivative at the contact time of a least-squares polynomial over the nearest samples
-  (:func:`ttsim_jax.fit.contacts.fit_contact_state`), so its variance per axis is
+  (:func:`ttsim_jax.data.contact_states.fit_contact_state`), so its variance per axis is
   sigma_a^2 [(A^T A)^-1]_11 / s^2 with A the fit's design matrix in tau / s (:func:`velocity_variance`).
   The contact's error e = f(x) - y_obs (6-vector of velocity and radius x spin errors, in the
   frame of the phase) is linearised in the incoming state x (through the model's contact map) and
@@ -210,7 +210,7 @@ def mean_spin_variance_factor(c) -> float:
 
 # ---------------------------------------------------------------------------------------------- contacts
 def velocity_variance(t, t_contact: float, degree: int) -> float:
-    """Variance of the velocity estimate of :func:`~ttsim_jax.fit.contacts.fit_contact_state` per
+    """Variance of the velocity estimate of :func:`~ttsim_jax.data.contact_states.fit_contact_state` per
     axis, in units of the position noise variance [1/s^2]: [(A^T A)^-1]_11 / s^2.
 
     Arguments:
@@ -225,9 +225,9 @@ def velocity_variance(t, t_contact: float, degree: int) -> float:
 def window_factors(ds, contacts, fit) -> np.ndarray:
     """(N, 4): per contact, the incoming and outgoing velocity estimates' variance factors
     (:func:`velocity_variance`, [1/s^2]) and the incoming and outgoing spins' (:func:`mean_spin_variance_factor`),
-    from the samples the estimation used (:meth:`~ttsim_jax.fit.contacts.ObservationIndex.near`)."""
+    from the samples the estimation used (:meth:`~ttsim_jax.data.contact_states.ObservationIndex.near`)."""
     from ttsim_jax.data.batch import segments_around
-    from ttsim_jax.fit.contacts import ObservationIndex
+    from ttsim_jax.data.contact_states import ObservationIndex
 
     index = ObservationIndex(ds)
     conf = np.asarray(ds.observations["spin_conf"], np.float64)
@@ -333,7 +333,7 @@ def floors(ds, ph, pb, model, fit, seed: int = 0, n_boot: int = DRAWS) -> dict:
     Arguments:
         ds: the dataset; ph: its :class:`~ttsim_jax.diagnose.phases.Phases`; pb: the
         :class:`~ttsim_jax.diagnose.candidates.Problem` (the model's errors ``pb.base``);
-        model: the model; fit: the contact-state estimation (:class:`~ttsim_jax.fit.contacts.ContactFit`);
+        model: the model; fit: the contact-state estimation (:class:`~ttsim_jax.data.contact_states.ContactFit`);
         seed, n_boot: bootstrap.
 
     Returns:

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.diagnose import stages as S
-from ttsim_jax.fit.aero import _spd_solve
+from ttsim_jax.physics.linalg import spd_solve
 
 #: Least fall of the per-segment offsets' chi-square for a gust component to be kept: its 6
 #: degrees of freedom (a sine and a cosine vector) at the best frequency of the grid reach a median
@@ -59,9 +59,9 @@ def _segment_wind(model, effects, x, spin, t0, tau, pos, mask, changes):
     r, jac = S.residual_jacobian(res, z)
     h = jac.T @ jac
     hr = h + 1e-9 * jnp.trace(h) * eye + 1e-30
-    step = -_spd_solve(hr, jac.T @ r)
+    step = -spd_solve(hr, jac.T @ r)
     # information of the offset with the state free: the Schur complement of the state block
-    info = h[6:, 6:] - h[6:, :6] @ _spd_solve(hr[:6, :6], h[:6, 6:])
+    info = h[6:, 6:] - h[6:, :6] @ spd_solve(hr[:6, :6], h[:6, 6:])
     sse = jnp.sum((r + jac @ step) ** 2)
     ok = jnp.all(jnp.isfinite(step)) & jnp.all(jnp.isfinite(info))
     return jnp.where(ok, step[6:], 0.0), jnp.where(ok, info, 0.0), jnp.where(ok, sse, 0.0)

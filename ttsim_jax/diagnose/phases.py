@@ -8,7 +8,7 @@
   and spin (the pre-bounce spin 0 where it is not measured: such a bounce is compared in its
   normal velocity only).
 * *racket*: every usable racket contact with a racket state, in the racket frame
-  (:func:`ttsim_jax.fit.contacts.contact_arrays`): inputs x = (v~, w~, d), the observation, the
+  (:func:`ttsim_jax.fit.racket_arrays.contact_arrays`): inputs x = (v~, w~, d), the observation, the
   racket's rotation (for racket-state error sizes).
 
 Nothing here reads the generator's truth files: any dataset in the format works.
@@ -26,8 +26,8 @@ import dataclasses
 
 import numpy as np
 
+from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose.defaults import MAX_SEGMENTS
-from ttsim_jax.fit.contacts import ContactFit
 
 #: Regime quantities: name -> (label, unit).
 REGIMES = {
@@ -138,9 +138,9 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
     Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
     than ``max_segments`` segments a seeded random subset is kept."""
-    from ttsim_jax.fit import aero as A
+    from ttsim_jax.data.segment_batches import dataset_segments
 
-    ids, times, positions, spins, conf = A.dataset_segments(ds, min_samples)
+    ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     times = [t[:max_samples] for t in times]
     positions = [p[:max_samples] for p in positions]
     if not len(ids):
@@ -221,8 +221,9 @@ def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Con
 def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
     """The usable racket contacts in the racket frame (see :class:`Contacts`), or (None, reason)."""
     from ttsim_jax.evaluate.stages import SKIP_REASONS, counts_text
-    from ttsim_jax.fit.contacts import contact_arrays, quat_to_matrix
-    from ttsim_jax.fit.residual import predict
+    from ttsim_jax.fit.network_evaluation import predict
+    from ttsim_jax.fit.racket_arrays import contact_arrays
+    from ttsim_jax.physics.rotations import quat_to_matrix
 
     if len(ds.rackets["event_id"]) == 0:
         return None, "no racket states (the dataset's rackets table is empty)"

@@ -32,9 +32,9 @@ def plot_where(where: dict, path, columns: int = 4) -> Path:
     panels (a grid wide enough for every regime was unreadable at any page width)."""
     from matplotlib.patches import Patch
 
-    from ttsim_jax.plots import _pyplot, _save
+    from ttsim_jax.plots import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     panels = [(p, r) for p in where for r in REGIMES if where[p]["regimes"].get(r)]
     rows_of = {p: -(-sum(1 for q, _ in panels if q == p) // columns) for p in where}
     n_rows = max(1, sum(rows_of.values()))
@@ -69,14 +69,14 @@ def plot_where(where: dict, path, columns: int = 4) -> Path:
                                    Patch(color="#d62728", alpha=0.8, label="flagged (vs mean or floor)"),
                                    plt.Line2D([], [], color="grey", ls="--", label="phase mean")],
                           loc="upper left", fontsize=7, framealpha=0.8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_effects(candidates: list, path) -> Path:
     """Held-out RMS reduction [%] of each candidate and phase with its 95 % interval."""
-    from ttsim_jax.plots import _pyplot, _save
+    from ttsim_jax.plots import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     rows = [(c["name"], p, c["heldout"][p]) for c in candidates for p in c["phases"]]
     fig, ax = plt.subplots(figsize=(7, 0.35 * max(len(rows), 3) + 1))
     colours = {"flight": "#1f77b4", "table": "#2ca02c", "racket": "#ff7f0e"}
@@ -91,14 +91,14 @@ def plot_effects(candidates: list, path) -> Path:
     ax.axvline(0, color="k", lw=0.8)
     ax.set_xlabel("held-out RMS error reduction [%] (95 % interval)")
     ax.set_title("candidate effects, ranked")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_before_after(arrays: dict, path) -> Path:
     """Histograms of the held-out errors per phase, before and after."""
-    from ttsim_jax.plots import _pyplot, _save
+    from ttsim_jax.plots import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     phases = [k[len("before_"):] for k in arrays if k.startswith("before_")]
     fig, axes = plt.subplots(1, max(1, len(phases)), figsize=(3.4 * max(1, len(phases)), 3), squeeze=False)
     for ax, p in zip(axes[0], phases):
@@ -112,7 +112,7 @@ def plot_before_after(arrays: dict, path) -> Path:
             ax.hist(np.clip(np.asarray(a) * f, 0, edges[-1]), edges, alpha=0.5, label="with the effects")
         ax.set_xlabel(f"{p} error [{unit}]")
         ax.legend(fontsize=7)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _pm(v, ci, f=1.0, fmt="{:.3g}") -> str:

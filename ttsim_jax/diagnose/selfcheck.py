@@ -56,6 +56,7 @@ from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import stages as S
 from ttsim_jax.diagnose.outside import (OUTSIDE_KINDS, OUTSIDE_PLAN, TERMS, as_tracker_log,  # noqa: F401 (the selfcheck's names)
                                         bound_score, effect_phases, outside_cases)
+from ttsim_jax.errors import UserError
 
 #: Paper-like triangulation noise: per-axis standard deviation [m] (the catalogue's typical value).
 NOISE = (0.0015, 0.0015, 0.001)
@@ -227,7 +228,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
     found = max([c["heldout"][best]["pct"] for c in sig if best in c["heldout"]], default=0.0)
     top = sig[0]["name"] if sig else None
     phase = located_phase(sig[0]) if sig else None
-    from ttsim_jax.diagnose.diagnosis import interchangeable
+    from ttsim_jax.diagnose.verdict import interchangeable
 
     same = interchangeable(candidates)
 
@@ -324,7 +325,7 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     ``present``: further effects switched on in the generator at their neutral values (exactly no
     effect): cases with the same effects present share the generator's compiled programs."""
     from ttsim_jax import load_model
-    from ttsim_jax.data import generator as G
+    from ttsim_jax import reality as G
     from ttsim_jax.data.errors import DataError
     from ttsim_jax.diagnose.diagnosis import diagnose
 
@@ -384,7 +385,7 @@ def candidate_digest(candidates: list) -> list:
     return out
 
 
-class ResumeError(ValueError):
+class ResumeError(UserError, ValueError):
     """A stored case of ``--resume`` that does not belong to the run asked for (message names it)."""
 
 
@@ -441,7 +442,7 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
         taken from ``store``)}; each row's ``wall_seconds`` is its case's own wall time.
     """
     from ttsim_jax.diagnose.diagnosis import Settings, jsonable
-    from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.files.atomic import atomic_write
 
     settings = settings or Settings.quick(max_segments=SEGMENTS["quick"])
     plan = plan if plan is not None else cases()
@@ -483,9 +484,9 @@ def _verdict(r: dict) -> str:
 def plot(result: dict, path):
     """Per case, the held-out reduction the diagnosis found against the oracle's, in the oracle's
     best phase (bars), coloured by the outcome; written to ``path`` (PNG)."""
-    from ttsim_jax.plots import _pyplot, _save
+    from ttsim_jax.plots import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     rows = [r for r in result["cases"] if "error" not in r]
     height = 0.38 * max(len(rows), 3) + 1.6
     fig, ax = plt.subplots(figsize=(8.5, height))
@@ -511,7 +512,7 @@ def plot(result: dict, path):
               bbox_to_anchor=(0.4, -0.75 / (height - 1.4)), frameon=False)
     ax.set_xlim(0, 1.6 * max([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0]))
     ax.set_title("withheld-effect selfcheck: what the diagnosis recovers of the oracle's shrink", fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def table(result: dict) -> str:

@@ -40,9 +40,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.fit.aero import _spd_solve
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics.aero import flight_step
+from ttsim_jax.physics.linalg import spd_solve
 
 #: Gauss-Newton iterations of the initial state at the start (later calls warm-start).
 GN_START = 6
@@ -118,7 +118,7 @@ def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, ite
         eye = jnp.eye(6, dtype=z.dtype)
         r, jac = residual_jacobian(res, z)
         h = jac.T @ jac
-        cand = z - _spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
+        cand = z - spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
         return jnp.where(jnp.all(jnp.isfinite(cand)), cand, z)
 
     return jax.lax.fori_loop(0, iterations, body, x)
@@ -128,7 +128,7 @@ def initial_state(tau, pos, mask):
     """(S, 6) start of the Gauss-Newton fit: position and velocity at tau[0] from a parabola."""
     def one(t, p, m):
         a = jnp.stack([jnp.ones_like(t), t, t**2], -1) * m[:, None]
-        coef = _spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (p * m[:, None]))
+        coef = spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (p * m[:, None]))
         return jnp.concatenate([coef[0], coef[1]])
 
     return jax.vmap(one)(tau, pos, mask)

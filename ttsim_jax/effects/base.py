@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 import jax.numpy as jnp
 import numpy as np
 
+from ttsim_jax.errors import UserError
 from ttsim_jax.physics.hooks import HOOK_POINTS
 
 #: Where effects that act outside the simulator are applied by the generator.
@@ -69,7 +70,7 @@ class Param:
     plausible: Any = None
 
 
-class EffectError(ValueError):
+class EffectError(UserError, ValueError):
     """A bad effect name or parameter; the message names the effect, the key and the value."""
 
 

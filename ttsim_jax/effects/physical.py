@@ -11,11 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttsim_jax.physics.dimensions import TABLE_HALF_LENGTH, TABLE_HALF_WIDTH
 from ttsim_jax.physics.numerics import safe_norm
 
 from .base import Effect, Param, onset, register, signed, smoothstep
 
-_TABLE_HALF = (1.37, 0.7625)
 #: Steepest plausible table slope: 0.75 deg, a 3.6 cm drop over the table's length, which anyone
 #: setting up a table sees; a fit steeper than this names the wrong cause.
 TILT_MAX = 0.0131
@@ -146,7 +146,8 @@ class TableUnevenness(Effect):
     N_BUMPS = 6
     PARAMS = {
         "center": Param("m", 0.0, ((0.9, 0.3), (-0.9, -0.3), (0.5, -0.5), (-0.5, 0.5), (1.2, 0.0), (-1.2, 0.0)),
-                        "(x, y) of each bump", (6, 2), plausible=((-_TABLE_HALF[0] - 0.1, -_TABLE_HALF[1] - 0.1), (_TABLE_HALF[0] + 0.1, _TABLE_HALF[1] + 0.1))),
+                        "(x, y) of each bump", (6, 2), plausible=((-TABLE_HALF_LENGTH - 0.1, -TABLE_HALF_WIDTH - 0.1),
+                                                                     (TABLE_HALF_LENGTH + 0.1, TABLE_HALF_WIDTH + 0.1))),
         "amplitude": Param("m", 0.0, (0.0015, -0.001, 0.001, -0.0015, 0.001, -0.001), "height of each bump", (6,), plausible=(-0.008, 0.008)),
         "width": Param("m", 0.25, 0.25, "standard deviation of each bump's Gaussian", (6,), plausible=(0.05, 1.0)),
     }
@@ -154,7 +155,7 @@ class TableUnevenness(Effect):
     @classmethod
     def _draw(cls, rng):
         k = cls.N_BUMPS
-        return {"center": rng.uniform(-1.0, 1.0, (k, 2)) * np.array(_TABLE_HALF),
+        return {"center": rng.uniform(-1.0, 1.0, (k, 2)) * np.array([TABLE_HALF_LENGTH, TABLE_HALF_WIDTH]),
                 "amplitude": rng.normal(0.0, 0.0012, k), "width": rng.uniform(0.12, 0.45, k)}
 
     def table_surface(self, value, *, pos=None, **_):

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ttsim_jax.files.toml import read_toml
 from ttsim_jax.params import ConfigError, config_dir
 
 
@@ -91,7 +91,7 @@ class ObservationConfig:
 
 
 @dataclass(frozen=True)
-class ResidualConfig:
+class TaskResidualConfig:
     """``[residual]``: a racket residual network on the task model, and its noise as domain
     randomisation.
 
@@ -104,6 +104,11 @@ class ResidualConfig:
 
     checkpoint: str = ""
     sample: bool = False
+
+
+# The former name, kept for one release; the network's own configuration is
+# ttsim_jax.physics.network.ResidualConfig.
+ResidualConfig = TaskResidualConfig
 
 
 @dataclass(frozen=True)
@@ -139,7 +144,7 @@ class TaskConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     intercept: InterceptConfig = field(default_factory=InterceptConfig)
-    residual: ResidualConfig = field(default_factory=ResidualConfig)
+    residual: TaskResidualConfig = field(default_factory=TaskResidualConfig)
     randomisation: tuple = ()
     source: str = ""
 
@@ -156,7 +161,7 @@ class TaskConfig:
 
 _SECTIONS = {"shots": ShotsConfig, "control": ControlConfig, "racket": RacketConfig,
              "observation": ObservationConfig, "reward": RewardConfig, "intercept": InterceptConfig,
-             "residual": ResidualConfig}
+             "residual": TaskResidualConfig}
 # keys that must be positive
 _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time", "max_accel", "max_angle_rate",
              "max_angle_accel", "target_scale",
@@ -277,11 +282,7 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
             raise ConfigError(f"{path}: no such task file (bundled tasks: {', '.join(bundled)}{hint})")
     if not path.is_file():
         raise ConfigError(f"{path}: no such task file")
-    try:
-        with open(path, "rb") as f:
-            raw = tomllib.load(f)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not a valid TOML file ({e})") from None
+    raw = read_toml(path, "task file", ConfigError)
     for key, value in (overrides or {}).items():
         section, _, name = key.partition(".")
         if name:
@@ -355,7 +356,7 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
         path = _beside(source, residual.checkpoint)
         if not path.is_file():
             raise ConfigError(f"{source}: [residual] checkpoint = {residual.checkpoint!r}: no such file ({path})")
-        out["residual"] = residual = ResidualConfig(checkpoint=str(path), sample=residual.sample)
+        out["residual"] = residual = TaskResidualConfig(checkpoint=str(path), sample=residual.sample)
     if residual.sample and not residual.checkpoint:
         raise ConfigError(f"{source}: [residual] sample = true needs a network: set [residual] checkpoint")
     ranges = []

@@ -30,6 +30,7 @@ import jax
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import RESET_INFO, ReturnBall, jit_reset, jit_select, jit_step, jit_step_env
 from ttsim_jax.env.spaces import action_space, observation_space
+from ttsim_jax.errors import UserError
 
 
 def _key(rng: np.random.Generator):
@@ -42,7 +43,7 @@ def _host(tree):
     return jax.tree.map(np.array, jax.device_get(tree))
 
 
-class ActionError(ValueError):
+class ActionError(UserError, ValueError):
     """An action the environment cannot take: of the wrong shape, or not finite."""
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from ttsim_jax.env.racket import rotation
 from ttsim_jax.env.return_ball import OUTCOME_NAMES, RUNNING
+from ttsim_jax.physics.dimensions import TABLE_LENGTH, TABLE_WIDTH
 from ttsim_jax.plots import draw_table
 
 #: Points of the racket face's outline.
@@ -50,7 +51,8 @@ class RallyFrames:
         size: (width, height) of a frame in pixels.
     """
 
-    def __init__(self, face, table_length: float = 2.74, table_width: float = 1.525, size=(640, 560)):
+    def __init__(self, face, table_length: float = TABLE_LENGTH, table_width: float = TABLE_WIDTH,
+                 size=(640, 560)):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 

@@ -37,12 +37,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ttsim_jax.cache import compile_notice, enable_compilation_cache
+from ttsim_jax.files.cache import compile_notice, enable_compilation_cache
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import TaskConfig, load_task_config
 from ttsim_jax.env.spaces import OBS_BOUND
-from ttsim_jax.kernel import RallyState, init_state, per_ball_axes, rollout
+from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
 from ttsim_jax.params import ConfigError, Model, load_model
 from ttsim_jax.physics import events as ev
 from ttsim_jax.state import Ball
@@ -154,7 +154,7 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     import inspect
 
     from ttsim_jax import shots as shots_module
-    from ttsim_jax.cache import cache_root
+    from ttsim_jax.files.cache import cache_root
 
     c = config.shots
     path = None
@@ -187,7 +187,7 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     if path is not None:
         import io
 
-        from ttsim_jax.io_atomic import atomic_write
+        from ttsim_jax.files.atomic import atomic_write
 
         buf = io.BytesIO()
         np.savez(buf, pos=bank.pos, vel=bank.vel, spin=bank.spin, types=types)
@@ -446,9 +446,9 @@ class ReturnBall:
         # the clock restarts each control step: the kernel's time stays small and exact
         rally = state.rally.replace(step=jnp.zeros_like(state.rally.step), t0=jnp.zeros_like(state.rally.t0))
         rally, out = rollout(model, rally, self.substeps, self.config.control.physics_dt, schedule,
-                             model_axes=axes, max_events=MAX_EVENTS, key=k_phys, remat=False,
+                             model_axes=axes, max_events=MAX_EVENTS, key=k_phys,
                              sample_residual=self.config.residual.sample,
-                             block_size=self.block_size, reference=self.reference)
+                             execution=Execution(remat=False, block_size=self.block_size, reference=self.reference))
         before = state.progress
         progress = before
         log = out.events

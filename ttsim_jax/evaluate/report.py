@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, STAGES, TABLE_SKIP_REASONS, counts_text
-from ttsim_jax.fit.contacts import SKIP_REASONS
-from ttsim_jax.fit.residual import COMPONENTS, DISTANCE_BANDS, ERROR_NAMES, distance_bands
+from ttsim_jax.data.contact_states import SKIP_REASONS
+from ttsim_jax.fit.network_evaluation import COMPONENTS, DISTANCE_BANDS, ERROR_NAMES, distance_bands
 
 
 def reduction(ref: float, value: float) -> float:

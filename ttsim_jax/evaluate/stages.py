@@ -6,7 +6,7 @@ and writes the figures (PNG), a Markdown report and every number.
 
 1. *flight*: per flight segment (those with a measured spin, when the data has any), the 3-D
    position RMSE of the model's flight with the initial velocity fitted
-   (:func:`ttsim_jax.evaluate.flight.flight_rmse`); median, 75th percentile and their reductions
+   (:func:`ttsim_jax.fit.flight.flight_rmse`); median, 75th percentile and their reductions
    in % against the reference model (nakashima2011 when compared, else the first model), with
    paired bootstrap intervals.
 2. *table*: per table bounce, the model's table contact (the rally kernel's
@@ -14,11 +14,11 @@ and writes the figures (PNG), a Markdown report and every number.
    measured post-bounce state, per component (v_x, v_y, v_z, w_x, w_y, w_z; spin components only
    where both segments have a measured spin; an unmeasured pre-bounce spin enters as 0). States
    are estimated as for the racket residual's training data
-   (:func:`ttsim_jax.fit.contacts.estimate_contact`: polynomial fits next to the contact, the
+   (:func:`ttsim_jax.data.contact_states.estimate_contact`: polynomial fits next to the contact, the
    segments' spins).
 3. *racket*: per racket contact with a racket state, the model's racket contact (base model plus
    its residual network, if it carries one) minus the observation, in the racket frame
-   (:func:`ttsim_jax.fit.contacts.contact_arrays`), grouped by contact distance (0-5, 5-8,
+   (:func:`ttsim_jax.fit.racket_arrays.contact_arrays`), grouped by contact distance (0-5, 5-8,
    > 8 cm); every model is scored on the same contacts (those usable for all).
 4. *landing*: from the state at the last observation before a racket contact (fitted on the
    incoming samples; the segment's spin) the model is rolled out (:func:`ttsim_jax.rollout`) with
@@ -41,9 +41,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.fit.contacts import (SKIP_REASONS, ContactFit, ObservationIndex, contact_arrays, estimate_contact,
-                                   fit_contact_state)
-from ttsim_jax.fit.residual import contact_errors
+from ttsim_jax.data.contact_states import (SKIP_REASONS, ContactFit, ObservationIndex, estimate_contact,
+                                          fit_contact_state)
+from ttsim_jax.fit.network_evaluation import contact_errors
+from ttsim_jax.fit.racket_arrays import contact_arrays
 
 STAGES = ("flight", "table", "racket", "landing")
 REFERENCE = "nakashima2011"
@@ -78,7 +79,7 @@ class EvaluateSettings:
     """How the evaluation selects and estimates.
 
     Attributes:
-        fit: state estimation next to contacts (:class:`~ttsim_jax.fit.contacts.ContactFit`).
+        fit: state estimation next to contacts (:class:`~ttsim_jax.data.contact_states.ContactFit`).
         min_samples: flight segments with fewer observations are left out.
         dt: integration step of the landing rollouts [s].
         horizon: longest landing rollout [s]; a ball not reaching the table plane by then has no
@@ -140,40 +141,18 @@ def reference_name(names: Sequence[str]) -> str:
 
 # ---------------------------------------------------------------------------------------------- flight
 def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
-    """Flight-segment 3-D position RMSE per model (see the module docstring).
-
-    Segments with a measured spin (confidence >= ``fit.min_spin_conf``) are used when the data has
-    any; otherwise every segment is, flown with spin 0.
+    """Flight-segment 3-D position RMSE per model (see the module docstring): the segments of
+    ``settings.sessions`` with at least ``settings.min_samples`` observations, those with a spin
+    confidence >= ``settings.fit.min_spin_conf`` when the data has any.
 
     Returns:
-        dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_measured`` (whether the
-        segments have a measured spin), ``n_without_spin`` (segments left out for want of one),
-        ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position) and
-        ``spin`` (S, 3) the spins flown [rad/s].
+        dict of :func:`ttsim_jax.fit.flight.segment_rmse`: ``skipped`` (a reason) or
+        ``segment_id``, ``spin_measured``, ``n_without_spin``, ``rmse`` {name: (S,) [m]}, ``spin``.
     """
-    from ttsim_jax.evaluate.flight import flight_rmse
-    from ttsim_jax.fit import aero as A
+    from ttsim_jax.fit.flight import segment_rmse
 
-    ids, times, positions, spins, conf = A.dataset_segments(ds, settings.min_samples)
-    session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
-    keep = settings.keep([session_of[i] for i in ids.tolist()]) if len(ids) else np.zeros(0, bool)
-    n_keep = int(keep.sum())
-    if not n_keep:
-        for _ in models:
-            tick()
-        return dict(skipped=f"no flight segment with at least {settings.min_samples} observations")
-    spin_known = conf >= settings.fit.min_spin_conf
-    with_spin = bool((keep & spin_known).any())
-    if with_spin:  # a flight flown with spin 0 for want of a measurement says little about a model
-        keep &= spin_known
-    times = [t for t, k in zip(times, keep) if k]
-    positions = [p for p, k in zip(positions, keep) if k]
-    rmse = {}
-    for name, model in models:
-        rmse[name] = flight_rmse(model, times, positions, spins[keep])
-        tick()
-    return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse,
-                spin=np.asarray(spins, np.float64).reshape(-1, 3)[keep])
+    return segment_rmse(ds, models, min_samples=settings.min_samples, min_spin_conf=settings.fit.min_spin_conf,
+                        sessions=settings.sessions, tick=tick)
 
 
 # ---------------------------------------------------------------------------------------------- table
@@ -259,10 +238,10 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     Returns:
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``distance`` (N,) [m], ``x`` (N, 8)
         the pre-contact racket-frame state (v~, w~, d) of the first model's frame, ``error``
-        {name: (N, 8) signed errors (:data:`~ttsim_jax.fit.residual.ERROR_NAMES`)},
+        {name: (N, 8) signed errors (:data:`~ttsim_jax.fit.network_evaluation.ERROR_NAMES`)},
         ``skip_counts`` {reason: n} (of the first model's conversion), ``n_contacts``.
     """
-    from ttsim_jax.fit.residual import predict
+    from ttsim_jax.fit.network_evaluation import predict
 
     n_states = len(ds.rackets["event_id"])
     if n_states == 0:
@@ -331,7 +310,7 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
         (N, 2) landing point, ``skip_counts``, ``n_contacts``.
     """
     from ttsim_jax.data.batch import segments_around
-    from ttsim_jax.fit.contacts import quat_to_matrix
+    from ttsim_jax.physics.rotations import quat_to_matrix
 
     fit = settings.fit
     rk, ev = ds.rackets, ds.events
@@ -422,7 +401,7 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
         (landing (N, 2) [m], NaN where the ball was not hit or did not reach the plane within the
         horizon; hit (N,) bool, whether the simulated ball met the racket).
     """
-    from ttsim_jax import init_state, rollout
+    from ttsim_jax import Execution, init_state, rollout
     from ttsim_jax.kernel.step import ball_properties
     from ttsim_jax.physics.events import RACKET, TABLE
     from ttsim_jax.state import Ball
@@ -443,7 +422,7 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
         ball = Ball(*(jnp.asarray(sub["ball"][:, k:k + 3], dtype) for k in (0, 3, 6)))
         state = init_state(ball, jnp.zeros((), dtype))
         _, out = rollout(model, state, n_steps, settings.dt, _schedule(rel, n_steps, settings.dt, dtype),
-                         max_events=4, record_every=1, remat=False)
+                         max_events=4, record_every=1, execution=Execution(remat=False))
         kind = np.asarray(out.events.kind)
         etime = np.asarray(out.events.time, np.float64)
         epos = np.asarray(out.events.pre.pos, np.float64)

@@ -1,6 +1,6 @@
 """Per-segment aerodynamic coefficients -> the paper's functional forms -> a model config.
 
-The per-segment fits of :mod:`ttsim_jax.fit.aero` give one constant (C_D, C_M) per segment, each
+The per-segment fits of :mod:`ttsim_jax.data.flightfit` give one constant (C_D, C_M) per segment, each
 associated with the segment's effective speed (drag: sum |v|^3 / sum |v|^2; Magnus: the
 sin-weighted one) and its spin rate. This module regresses them into the paper's forms:
 
@@ -362,7 +362,7 @@ def write_config(base_path, out_path, sections: dict, *, name: str, source: str)
     Returns:
         The written path (checked by loading it with :func:`ttsim_jax.params.load_model`).
     """
-    from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.files.atomic import atomic_write
     from ttsim_jax.params import load_model
 
     text = config_text(base_path, sections, name=name, source=source)

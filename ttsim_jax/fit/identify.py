@@ -2,14 +2,14 @@
 
 :func:`identify_aero` runs the stages on a :class:`~ttsim_jax.data.Dataset` and returns an
 :class:`AeroIdentification` holding every intermediate result; :func:`write_model` exports the
-fitted model config. ``ttsim fit`` (:mod:`ttsim_jax.fit.commands`) is the command line over them.
+fitted model config. ``ttsim fit`` (:mod:`ttsim_jax.cli.fit`) is the command line over them.
 
 Stages:
 
 1. *select*: segments with at least ``min_samples`` observations and a spin confidence of at least
    ``min_spin_conf`` (C_D depends on the spin ratio, so segments without a measured spin cannot be
    placed in the table); sessions of the held-out split (``test_fraction``) are set aside.
-2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.fit.aero.fit_segments`; segments
+2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.data.flightfit.fit_segments`; segments
    whose fit RMSE exceeds ``max_rmse`` are dropped (the paper's 20 mm filter).
 3. *regress*: C_D into the base model's breakpoint table, C_M into its piecewise form
    (:mod:`ttsim_jax.fit.aero_forms`), weighted by the fits' standard errors.
@@ -24,7 +24,8 @@ from typing import Callable
 
 import numpy as np
 
-from ttsim_jax.fit import aero as A
+from ttsim_jax.data.flightfit import Air, SegmentFits, fit_segments
+from ttsim_jax.data.segment_batches import dataset_segments
 from ttsim_jax.fit import aero_forms as F
 
 
@@ -35,7 +36,7 @@ class AeroIdentification:
     Attributes:
         base: path of the base model config.
         association: how segment coefficients are placed in the forms (``averaged`` or ``v_eff``).
-        segment_ids: (S,) ids of the fitted segments; fits: their :class:`~ttsim_jax.fit.aero.SegmentFits`.
+        segment_ids: (S,) ids of the fitted segments; fits: their :class:`~ttsim_jax.data.flightfit.SegmentFits`.
         used: (S,) bool, segments that entered the regression.
         counts: stage -> number of segments (``segments``, ``too_short``, ``low_spin_conf``,
             ``held_out``, ``fitted``, ``rmse``, ``used``).
@@ -49,7 +50,7 @@ class AeroIdentification:
     base: Path
     association: str
     segment_ids: np.ndarray
-    fits: A.SegmentFits
+    fits: SegmentFits
     used: np.ndarray
     counts: dict
     test_sessions: list
@@ -180,7 +181,7 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
             counts["low_spin_conf"] += 1
         elif seg["session_id"][k] in test_sessions:
             counts["held_out"] += 1
-    ids, times, positions, spins, conf = A.dataset_segments(ds, min_samples)
+    ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     session_of = dict(zip(seg["segment_id"], seg["session_id"]))
     keep = (conf >= min_spin_conf) & ~np.isin([session_of[i] for i in ids], test_sessions)
     ids, spins = ids[keep], spins[keep]
@@ -189,9 +190,9 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     seconds["select"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    air = A.Air.from_model(model)
+    air = Air.from_model(model)
     report = None if progress is None else (lambda done: progress(done, len(ids)))  # noqa: E731
-    fits = A.fit_segments(times, positions, spins, air=air, progress=report)
+    fits = fit_segments(times, positions, spins, air=air, progress=report)
     seconds["fit"] = time.perf_counter() - t0
     good = np.isfinite(fits.rmse) & np.all(np.isfinite(fits.stderr[:, 6:]), axis=1)
     used = good & (fits.rmse <= max_rmse)

@@ -9,7 +9,7 @@
     write_fit(result, "runs/public.toml")          # runs/public.toml + runs/public.fit.json
 
 Stages (:data:`STAGES`; :mod:`ttsim_jax.fit.identify`, :mod:`~ttsim_jax.fit.table`,
-:mod:`~ttsim_jax.fit.racket`, :mod:`~ttsim_jax.fit.residual` do the work):
+:mod:`~ttsim_jax.fit.racket`, :mod:`~ttsim_jax.fit.network_training` do the work):
 
 - ``aero``: C_D and C_M of each flight segment with a measured spin, regressed into the base
   model's forms (``settings.forms``).
@@ -51,6 +51,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ttsim_jax.fit.choices import DEFAULT_FORMS, DEFAULT_STAGES, FORMS, STAGES  # noqa: F401 (re-exported)
+from ttsim_jax.errors import UserError
 _TABLE_COMPONENTS = {"v_x": "m/s", "v_y": "m/s", "v_z": "m/s", "w_x": "rad/s", "w_y": "rad/s", "w_z": "rad/s"}
 
 
@@ -61,7 +62,7 @@ def bundled_config(model: str) -> Path:
     return config_dir() / "residual" / f"{model}.toml"
 
 
-class FitError(ValueError):
+class FitError(UserError, ValueError):
     """The data cannot support what was asked (a requested stage, or any stage at all).
 
     Attributes:
@@ -241,13 +242,11 @@ def comparison_text(stage: str, c: dict) -> str:
 
 
 def _flight_comparison(ds, base_model, fitted_model, test_sessions, min_spin_conf) -> dict | None:
-    from ttsim_jax.evaluate.stages import EvaluateSettings, flight_stage
-    from ttsim_jax.fit.contacts import ContactFit
+    from ttsim_jax.fit.flight import segment_rmse
 
     held = len(test_sessions) > 0
-    settings = EvaluateSettings(fit=ContactFit(min_spin_conf=min_spin_conf),
-                                sessions=tuple(int(s) for s in test_sessions) if held else None)
-    out = flight_stage(ds, [("base", base_model), ("fitted", fitted_model)], settings)
+    out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=min_spin_conf,
+                       sessions=tuple(int(s) for s in test_sessions) if held else None)
     if "skipped" in out:
         return None
     stats = {}
@@ -308,7 +307,7 @@ class _Run:
 
     def table(self):
         from ttsim_jax.fit import table as T
-        from ttsim_jax.fit.contacts import ContactFit
+        from ttsim_jax.data.contact_states import ContactFit
         from ttsim_jax.kernel.step import ball_properties
 
         s, ds = self.settings, self.ds
@@ -341,7 +340,8 @@ class _Run:
         self.model = self.model.replace(table=fitted)
 
     def _contacts(self):
-        from ttsim_jax.fit.contacts import ContactFit, contact_arrays
+        from ttsim_jax.data.contact_states import ContactFit
+        from ttsim_jax.fit.racket_arrays import contact_arrays
 
         arrays = contact_arrays(self.ds, self.model, n_inputs=8, fit=ContactFit(min_spin_conf=self.settings.min_spin_conf),
                                 validate=False)
@@ -379,18 +379,19 @@ class _Run:
         self.model = self.model.replace(racket=fitted)
 
     def residual(self):
-        from ttsim_jax.fit import residual as F
+        from ttsim_jax.fit.network_config import load_train_config
+        from ttsim_jax.fit.network_training import split_by_contact, train_residual
 
         arrays, rows = self._contacts()  # y_base of the fitted racket parameters
-        config, tcfg = F.load_train_config(bundled_config("conti2026"))
+        config, tcfg = load_train_config(bundled_config("conti2026"))
         if self.settings.epochs is not None:
             tcfg = dataclasses.replace(tcfg, max_epochs=self.settings.epochs)
         x, yb, yo = arrays.x[rows], arrays.y_base[rows], arrays.y_obs[rows]
         if len(x) < 3:
             raise _Skip(f"{len(x)} usable racket contacts; at least 3 are needed (train / validation / test)")
-        n_train = len(F.split_by_contact(len(x), tcfg.split, tcfg.seed)[0])
+        n_train = len(split_by_contact(len(x), tcfg.split, tcfg.seed)[0])
         config = dataclasses.replace(config, n_clusters=min(config.n_clusters, n_train))
-        net, report = F.train_residual(x, yb, yo, config, tcfg, progress=self.progress is not None)
+        net, report = train_residual(x, yb, yo, config, tcfg, progress=self.progress is not None)
         info = {k: v for k, v in report.items() if k != "history"}
         info.update(train_config=tcfg.to_dict(),
                     contacts=dict(used=len(x), total=arrays.n_contacts, skipped=arrays.counts()))
@@ -529,7 +530,7 @@ def write_fit(result: FitResult, out, *, force: bool = False) -> dict:
     Returns:
         :func:`output_paths` of the written files (``network`` only with a network).
     """
-    from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.files.atomic import atomic_write
     from ttsim_jax.params import load_model
 
     paths = output_paths(out)
@@ -542,7 +543,7 @@ def write_fit(result: FitResult, out, *, force: bool = False) -> dict:
     _model_of(text)  # refuses a config that does not load before anything is written
     report = dict(result.report, model=str(paths["toml"]), model_toml=text)
     if result.network is not None:
-        from ttsim_jax.physics.residual import save_residual
+        from ttsim_jax.physics.network_checkpoint import save_residual
 
         info = dict(result.network_info, model=str(paths["toml"]), data=result.report["data"])
         save_residual(paths["network"], result.network, metadata=info)

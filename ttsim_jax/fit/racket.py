@@ -1,6 +1,6 @@
 """Racket contact identification: the updated base model's five parameters by least squares.
 
-On the racket-frame arrays of :func:`ttsim_jax.fit.contacts.contact_arrays` (pre-contact
+On the racket-frame arrays of :func:`ttsim_jax.fit.racket_arrays.contact_arrays` (pre-contact
 x = (v~, w~, d), observed post-contact y_obs = (v~+, w~+)), the parameters theta = (e0, e1, et0,
 et1, e_s) of :func:`ttsim_jax.physics.racket.base_response` ("updated" kind: e_n = e0 + e1 |v_n|,
 e_t = et0 + et1 |u_T|, normal spin factor e_s) minimise
@@ -130,7 +130,7 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     """Fits (e0, e1, et0, et1, e_s) of the updated racket base model.
 
     Arguments:
-        x: (N, 8) racket-frame inputs (v~, w~, d) (:func:`ttsim_jax.fit.contacts.contact_arrays`
+        x: (N, 8) racket-frame inputs (v~, w~, d) (:func:`ttsim_jax.fit.racket_arrays.contact_arrays`
             with ``n_inputs=8``).
         y_obs: (N, 6) observed post-contact (v~+, w~+).
         model: bundled name, TOML path or Model: the ball (radius, mass), the racket's kappa and
@@ -140,7 +140,7 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
     Returns:
         :class:`RacketFit`.
     """
-    from ttsim_jax.fit.contacts import model_and_name
+    from ttsim_jax.fit.racket_arrays import model_and_name
     from ttsim_jax.kernel.step import ball_properties
 
     m, _ = model_and_name(model)
@@ -204,10 +204,10 @@ def synthetic_arrays(params: racket_stage.RacketParams, radius: float, mass: flo
                      max_spin: float = 600.0):
     """Racket-frame arrays (x (n, 8), y_obs (n, 6)) of contacts through the base model ``params``.
 
-    Pre-contact states from :func:`ttsim_jax.fit.contacts.draw_contact_states`;
+    Pre-contact states from :func:`ttsim_jax.fit.racket_arrays.draw_contact_states`;
     Gaussian noise ``noise_vel`` [m/s] / ``noise_spin`` [rad/s] on every component of both states.
     """
-    from ttsim_jax.fit.contacts import draw_contact_states
+    from ttsim_jax.fit.racket_arrays import draw_contact_states
 
     v, w, d = draw_contact_states(np.random.default_rng(seed), n, max_speed, max_spin)
     x = np.concatenate([v, w, d], 1)

@@ -21,6 +21,7 @@ from flax import struct
 
 from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.eventlog import EventLog
+from ttsim_jax.kernel.execution import Execution, with_options
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
@@ -67,6 +68,19 @@ class RallyResult:
     trajectory: Any = None
     times: Any = None
     state: Any = None
+
+
+@struct.dataclass
+class Carry:
+    """What the scan over steps carries, for one set of balls (B,): the balls, whether each is in
+    play, its status (an event kind that ended it, 0 while in play), the event log (None without
+    one) and the rollout's step counter (() int)."""
+
+    ball: Ball
+    alive: Any
+    status: Any
+    log: Any
+    step: Any
 
 
 def per_ball_axes(model: Model, *paths: str):
@@ -204,8 +218,8 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         """The whole rollout for a set of balls (the batch, or one block of it)."""
         log = EventLog.empty(alive.shape[0], max_events, dtype) if max_events else None
 
-        def body(carry, xs):
-            ball, alive, status, log, k = carry
+        def body(carry: Carry, xs):
+            ball, alive, status, log, k = carry.ball, carry.alive, carry.status, carry.log, carry.step
             t = t0 + k.astype(dtype) * dt
             rackets, batched = xs, rackets_batched
             if policy is not None:
@@ -226,7 +240,7 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
                 moving = alive & (log.count < until)
                 ball, alive, status, log = jax.lax.cond(jnp.any(moving), lambda: advance(moving),
                                                         lambda: (ball, alive, status, log))
-            return (ball, alive, status, log, k + 1), None
+            return Carry(ball, alive, status, log, k + 1), None
 
         if remat:
             body = jax.checkpoint(body, prevent_cse=False)
@@ -236,13 +250,13 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
 
         def chunk(carry, xs_chunk):
             carry = run(carry, xs_chunk, every)
-            return carry, ((carry[0], t0 + carry[4].astype(dtype) * dt) if record_every else None)
+            return carry, ((carry.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
 
         if remat:
             chunk = jax.checkpoint(chunk, prevent_cse=False)
         split = lambda a, lo, n, shape: None if a is None else jax.tree.map(  # noqa: E731
             lambda x: x[lo:lo + n].reshape(shape + x.shape[1:]), a)
-        carry = (ball, alive, status, log, step0)
+        carry = Carry(ball, alive, status, log, step0)
         if fused:
             return run_fused(model, carry, ball_id, schedule)
         carry, rec = jax.lax.scan(chunk, carry, split(schedule, 0, n_chunks * every, (n_chunks, every)),
@@ -255,15 +269,15 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         """The rollout on the fused path: the balls' clocks meet at every recorded step."""
         length = record_every or n_steps
 
-        def segment(carry, n):
-            ball, alive, status, log, k = carry
-            ball, alive, status, log = fused_path.advance(model, axes, ball, alive, status, ball_id, log, k, n,
-                                                          schedule, step0, t0, dt, stepper, substeps=fused)
-            return ball, alive, status, log, k + n
+        def segment(carry: Carry, n):
+            ball, alive, status, log = fused_path.advance(model, axes, carry.ball, carry.alive, carry.status,
+                                                          ball_id, carry.log, carry.step, n, schedule, step0, t0,
+                                                          dt, stepper, substeps=fused)
+            return Carry(ball, alive, status, log, carry.step + n)
 
         def chunk(carry, _):
             carry = segment(carry, length)
-            return carry, ((carry[0], t0 + carry[4].astype(dtype) * dt) if record_every else None)
+            return carry, ((carry.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
 
         return jax.lax.scan(chunk, carry, None, length=n_steps // length)
 
@@ -303,14 +317,13 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         carry, rec = jax.lax.map(one, xs)
         unblock = lambda a, axis=0: jnp.moveaxis(a, 0, axis).reshape(  # noqa: E731
             a.shape[1:axis + 1] + (n_blocks * block,) + a.shape[axis + 2:])[(slice(None),) * axis + (slice(0, b),)]
-        ball, alive, status, log, k = carry
-        carry = (jax.tree.map(unblock, ball), unblock(alive), unblock(status),
-                 None if log is None else jax.tree.map(unblock, log), k[0])
+        carry = Carry(jax.tree.map(unblock, carry.ball), unblock(carry.alive), unblock(carry.status),
+                      None if carry.log is None else jax.tree.map(unblock, carry.log), carry.step[0])
         if record_every:
             rec = (jax.tree.map(lambda a: unblock(a, 1), rec[0]), rec[1][0])
-    ball, alive, status, log, k = carry
-    new_state = state.replace(ball=ball, alive=alive, status=status, step=k, t0=t0, dt=dt)
-    out = RolloutOutput(events=log)
+    new_state = state.replace(ball=carry.ball, alive=carry.alive, status=carry.status, step=carry.step, t0=t0,
+                              dt=dt)
+    out = RolloutOutput(events=carry.log)
     if record_every:
         out = out.replace(trajectory=jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), rec[0]), times=rec[1])
     return new_state, out
@@ -365,10 +378,8 @@ def default_capacity(batch: int) -> int:
 
 def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *,
             integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
-            contact_capacity: int | None = None, sample_residual: bool = False, key=None, remat: bool = True,
-            reference: bool = False, block_size: int | None = None, buffering: str | None = None,
-            fused: bool | str = "auto", until_events: int = 0,
-            memory_budget_bytes: int = 2 << 30) -> tuple[RallyState, RolloutOutput]:
+            sample_residual: bool = False, key=None, until_events: int = 0, execution: Execution | None = None,
+            **options) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
     Arguments:
@@ -386,29 +397,9 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             (:func:`per_ball_axes`). Only the leaves a study varies need to be per ball.
         max_events: slots of each ball's event log (0: no log).
         record_every: record the ball every that many steps (0: no recording); must divide n_steps.
-        contact_capacity: balls per step handled in the gathered event buffer (default B/32, at
-            least 8); a step with more runs the buffer several times, with the same result.
         sample_residual: sample the residual network's correction from its predicted std; the draw
             depends on ``key``, the step and the ball's id only.
         key: PRNG key for sampling (default ``PRNGKey(0)``).
-        remat: rematerialise steps and chunks in reverse mode (saves memory; no cost forward).
-        reference: run the exact event detection for every ball at every step instead of only for
-            the balls whose gaps change sign (same results, slower; for testing).
-        block_size: run the batch in blocks of this many balls, one after the other, each through
-            the whole rollout (same results); default 1,024 on CPU (cache-sized), none on GPU; 0
-            for none.
-        buffering: how a step hands its flagged balls to the contact models (same results):
-            ``"loop"`` (default on CPU) or ``"single"`` (default on GPU and other accelerators);
-            see :func:`~ttsim_jax.kernel.step.step`.
-        fused: the fused flight path (:mod:`~ttsim_jax.kernel.fused`: a Pallas kernel flies the balls
-            many steps per launch up to their next possible event; same results within float32
-            rounding): ``"auto"`` (default: wherever it covers the rollout and pays,
-            :func:`fused_pays`: on a GPU, and on a CPU from 1,024 balls), True (refused with the
-            reason where it does not cover the rollout) or False (the reference path). Pallas runs
-            compiled (Triton) on a GPU and in interpret mode elsewhere, which on a CPU lowers to
-            ordinary XLA loops (2 cores, flight + table: 1.5-2.0x the reference path from 1,024 to
-            262,144 balls, 0.88-0.94x a hand-written numba loop; benchmarks/README.md).
-            ``jax.grad`` always differentiates the reference path.
         until_events: each ball stops advancing once this rollout's event log has counted that many
             of its events (after the step that reached it, whose further events, such as a bounce
             just after a net crossing, are logged too; its state is frozen there, still ``alive``; a
@@ -417,12 +408,18 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             shot's flight to its landing, through a horizon long enough for the slowest; forward or
             reverse mode) and costs a device-to-host copy per step on a GPU. 0 (default): balls run to the end. At most
             ``max_events``; not on the fused path.
-        memory_budget_bytes: a rollout whose state, event log and recording (:func:`memory_bytes`)
-            need more is refused before compiling, with the sizes.
+        execution: how it runs, same results (:class:`~ttsim_jax.kernel.execution.Execution`: event
+            buffer, rematerialisation, blocks, buffering, the fused path, the memory budget); default
+            ``Execution()``. Its fields given here directly (``fused=False``) still work for one
+            release, with a DeprecationWarning.
 
     Returns:
         (state, :class:`RolloutOutput`).
     """
+    execution = with_options(execution, options, "rollout")
+    contact_capacity, remat, reference = execution.contact_capacity, execution.remat, execution.reference
+    block_size, buffering, fused = execution.block_size, execution.buffering, execution.fused
+    memory_budget_bytes = execution.memory_budget_bytes
     ball = state.ball
     if ball.pos.ndim != 2 or ball.pos.shape[-1] != 3:
         raise ValueError(f"state.ball fields must be (B, 3); got pos {ball.pos.shape}")
@@ -450,8 +447,6 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
     if not isinstance(until_events, int) or not 0 <= until_events <= max_events:
         raise ValueError(f"until_events must be an int in [0, max_events={max_events}], got {until_events!r}")
-    if fused not in (True, False, "auto"):
-        raise ValueError(f"fused must be True, False or 'auto', got {fused!r}")
     if fused:
         why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched,
                                      sample=sample_residual)
@@ -464,8 +459,6 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
         buffering = default_buffering()
-    if buffering not in ("loop", "single"):
-        raise ValueError(f"buffering must be 'loop' or 'single', got {buffering!r}")
     key = jax.random.PRNGKey(0) if key is None else key
     return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
@@ -475,9 +468,9 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
-             record_every: int = 0, max_events: int = 8, contact_capacity: int | None = None,
-             sample_residual: bool = False, key=None, t0: float = 0.0, model_batched: bool = False,
-             model_axes=None, fused: bool | str = "auto", memory_budget_bytes: int = 2 << 30) -> RallyResult:
+             record_every: int = 0, max_events: int = 8, sample_residual: bool = False, key=None, t0: float = 0.0,
+             model_batched: bool = False, model_axes=None, execution: Execution | None = None,
+             **options) -> RallyResult:
     """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
     :func:`rollout`.
 
@@ -485,22 +478,23 @@ def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=No
         model: a :class:`~ttsim_jax.params.Model`.
         ball: :class:`Ball` with (B, 3) fields (or (3,) for one ball; outputs keep B = 1), cast to
             the model's float dtype.
-        n_steps, dt, racket, integrator, record_every, max_events, contact_capacity,
-        sample_residual, key, model_axes, fused, memory_budget_bytes: as for :func:`rollout`.
+        n_steps, dt, racket, integrator, record_every, max_events, sample_residual, key,
+        model_axes, execution: as for :func:`rollout` (and, as there, execution options given
+        directly, for one release).
         t0: start time [s].
         model_batched: shorthand for ``model_axes=0`` (every leaf per ball, e.g. ``stack_models``).
 
     Returns:
         A :class:`RallyResult` (its ``state`` resumes the rally).
     """
+    execution = with_options(execution, options, "simulate")
     ball = jax.tree.map(lambda a: jnp.asarray(a, model.ball.radius.dtype), ball)
     if ball.pos.ndim == 1:
         ball = jax.tree.map(lambda a: a[None], ball)
     state = init_state(ball, t0)
     state, out = rollout(model, state, n_steps, dt, racket, integrator=integrator,
                          model_axes=0 if model_batched else model_axes, max_events=max_events,
-                         record_every=record_every, contact_capacity=contact_capacity,
-                         sample_residual=sample_residual, key=key, fused=fused,
-                         memory_budget_bytes=memory_budget_bytes)
+                         record_every=record_every, sample_residual=sample_residual, key=key,
+                         execution=execution)
     return RallyResult(final=state.ball, alive=state.alive, status=state.status, events=out.events,
                        trajectory=out.trajectory, times=out.times, state=state)

@@ -20,6 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from ttsim_jax.kernel.rollout import (RolloutOutput, _check_per_ball, _resolve_axes, _Static, default_capacity,
                                       rollout)
+from ttsim_jax.kernel.execution import Execution, with_options
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState
 
@@ -66,21 +67,21 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
 
 
 def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *, mesh: Mesh | None = None,
-                    model_axes=None, contact_capacity: int | None = None, integrator: str = "rk4",
-                    max_events: int = 8, record_every: int = 0, sample_residual: bool = False, key=None,
-                    remat: bool = True, reference: bool = False):
+                    model_axes=None, integrator: str = "rk4", max_events: int = 8, record_every: int = 0,
+                    sample_residual: bool = False, key=None, execution: Execution | None = None, **options):
     """:func:`~ttsim_jax.kernel.rollout.rollout` with the ball axis split over the devices of ``mesh``.
 
     Arguments:
         model, state, n_steps, dt, racket, model_axes, integrator, max_events, record_every,
-        sample_residual, key, remat, reference: as for ``rollout``.
+        sample_residual, key, execution: as for ``rollout`` (its ``contact_capacity`` counts rows
+            per device; default: the default for the local batch).
         mesh: a 1-D mesh with axis ``"balls"`` (default :func:`ball_mesh`); the batch must divide
             evenly over it.
-        contact_capacity: event buffer rows per device (default: the default for the local batch).
 
     Returns:
         (state, outputs) as ``rollout``, sharded along the ball axis.
     """
+    execution = with_options(execution, options, "sharded_rollout")
     mesh = ball_mesh() if mesh is None else mesh
     n_dev = mesh.shape[AXIS]
     batch = state.batch
@@ -91,9 +92,9 @@ def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, ra
     per_ball_plan = False
     if racket is not None and not isinstance(racket, RacketPolicy):
         per_ball_plan = normalise_schedule(racket, n_steps, batch)[1]
-    static_kw = (("contact_capacity", contact_capacity or default_capacity(batch // n_dev)),
-                 ("integrator", integrator), ("max_events", max_events), ("record_every", record_every),
-                 ("remat", remat), ("reference", reference), ("sample_residual", sample_residual))
+    execution = execution.replace(contact_capacity=execution.contact_capacity or default_capacity(batch // n_dev))
+    static_kw = (("integrator", integrator), ("max_events", max_events), ("record_every", record_every),
+                 ("sample_residual", sample_residual), ("execution", execution))
     fn, specs = _compiled(mesh, _Static(axes), n_steps, racket is not None, per_ball_plan, static_kw)
     model_specs, state_specs, plan_specs = specs(model, state, racket)
     place = lambda tree, sp: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, sp)  # noqa: E731

@@ -304,7 +304,7 @@ def _residual_rows(residual, res_axes, x, eps):
     Each row is evaluated with its own weights when the network is per ball (``res_axes`` 0),
     with shared ones otherwise (vmap turns the shared case into one matrix product).
     """
-    from ttsim_jax.physics.residual import sampled_residual
+    from ttsim_jax.physics.network import sampled_residual
 
     def one(net, xi, ei):
         out = sampled_residual(net, xi[None], None if ei is None else ei[None])

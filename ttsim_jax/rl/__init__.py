@@ -6,7 +6,7 @@
 :mod:`.config` (the PPO TOML), :mod:`.networks` (actor-critic), :mod:`.normalise` (running
 observation statistics), :mod:`.ppo` (the jitted training updates and the evaluation),
 :mod:`.checkpoint` (atomic checkpoints), :mod:`.training` (the training run: progress, evaluation,
-checkpoints, learning curve), :mod:`.commands` (``ttsim train ppo``, ``ttsim play``),
+checkpoints, learning curve; ``ttsim train ppo`` and ``ttsim play`` are :mod:`ttsim_jax.cli.rl`),
 ``policies/`` (a small trained policy, ``ttsim play``'s default).
 """
 

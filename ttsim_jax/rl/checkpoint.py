@@ -15,16 +15,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from ttsim_jax.io_atomic import atomic_write
+from ttsim_jax.files.atomic import atomic_write
+from ttsim_jax.files.checkpoint import CheckpointError
 
 FORMAT = "ttsim-ppo/1"
 # A small policy trained on the default task (configs/ppo/return_ball_small.toml), shipped with the
 # package so that ``ttsim play`` works before any training.
 BUNDLED_POLICY = Path(__file__).resolve().parent / "policies" / "return_ball.msgpack"
-
-
-class CheckpointError(ValueError):
-    """A file that is not a readable PPO checkpoint; the message names it."""
 
 
 def save_checkpoint(path, runner, config, history: list, elapsed_s: float) -> Path:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import ReturnBall
-from ttsim_jax.io_atomic import atomic_write
+from ttsim_jax.files.atomic import atomic_write
 from ttsim_jax.rl import ppo
 from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner, save_checkpoint
 from ttsim_jax.rl.config import PPOConfig, load_ppo_config, parse_ppo_config

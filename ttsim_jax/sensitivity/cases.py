@@ -10,7 +10,7 @@ by a few centimetres along its normal still meets the ball inside the window. Sh
   the ball off as the shot type asks are solved for through the model's racket contact
   (Gauss-Newton), so the racket state is a real input of the shot.
 * :func:`dataset_shots`: a dataset's racket contacts with a racket state, with the ball state before
-  the contact fitted from the observations (``ttsim_jax.fit.contacts``).
+  the contact fitted from the observations (``ttsim_jax.data.contact_states``).
 """
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ def shots_from_states(model, pos, vel_in, spin_in, vel_out, spin_out, d, *, dt: 
 def dataset_shots(model, path, dt: float = 1e-3, limit: int | None = None) -> ShotSet:
     """The racket contacts of the dataset at ``path`` that have a racket state and fitted ball states.
 
-    The ball before the contact is the fitted incoming state (``ttsim_jax.fit.contacts``:
+    The ball before the contact is the fitted incoming state (``ttsim_jax.data.contact_states``:
     velocity from a polynomial fit, spin from the segment); the racket is the dataset's. Speed,
     spin and label are those of the fitted outgoing ball and the contact's session.
 
@@ -218,7 +218,8 @@ def dataset_shots(model, path, dt: float = 1e-3, limit: int | None = None) -> Sh
     from ttsim_jax.data import errors
     from ttsim_jax.data.batch import racket_contact_batch
     from ttsim_jax.data.io import load as load_dataset
-    from ttsim_jax.fit.contacts import contact_arrays, quat_to_matrix
+    from ttsim_jax.fit.racket_arrays import contact_arrays
+    from ttsim_jax.physics.rotations import quat_to_matrix
 
     ds = load_dataset(path)
     arrays = contact_arrays(ds, model=model)

@@ -240,7 +240,7 @@ def _finite(x):
 def write_json(path, *, meta: dict, jac: Jacobian, shots, flags: dict, summary: dict, scale: np.ndarray,
                budget: budgets.Budget | None = None, mc: dict | None = None) -> Path:
     """Every number of the study, one object per shot (with its full Jacobian row), atomically."""
-    from ttsim_jax.io_atomic import atomic_write
+    from ttsim_jax.files.atomic import atomic_write
 
     shot_rows = []
     for b in range(len(jac.values)):

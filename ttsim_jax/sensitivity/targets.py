@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ttsim_jax.kernel.execution import Execution
 from ttsim_jax.kernel.rollout import rollout
 from ttsim_jax.kernel.state import init_state
 from ttsim_jax.physics import events as ev
@@ -156,7 +157,7 @@ def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int, buff
     total = WINDOW + n_steps
     schedule = racket_schedule(racket, total, dt)
     _, out = rollout(model, init_state(ball), total, dt, schedule, model_axes=0, max_events=2, record_every=1,
-                     buffering=buffering, until_events=2)
+                     until_events=2, execution=Execution(buffering=buffering))
     log = out.events
     sequence = log.kind[:, :2]
     valid = (sequence[:, 0] == ev.RACKET) & (sequence[:, 1] == ev.TABLE)

@@ -1,18 +1,14 @@
 """The ``ttsim generate`` command: synthetic measured data with a known truth.
 
-Thin: parses options, calls :mod:`ttsim_jax.data.generator`, prints a summary. ``ttsim_jax/cli.py``
-calls :func:`register` with its subparsers object; user errors are raised and reported by
-:func:`ttsim_jax.cli.main` with status 2. The command also runs as
-``python -m ttsim_jax.data.generator_cli generate ...``.
+Thin: parses options, calls :mod:`ttsim_jax.reality`, prints a summary.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 
-from ttsim_jax.cli import UsageError, positive_int, seed, text_file, writable_dir
+from ttsim_jax.cli.options import UsageError, positive_int, seed, text_file, writable_dir
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -56,7 +52,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def cmd_generate(args) -> int:
     """``generate``: build the configuration, generate, write, print a summary."""
-    from .generator import generate, make_config, write
+    from ttsim_jax.reality import generate, make_config, write
 
     out = args.out
     if out.exists() and any(out.iterdir()) and not args.force:
@@ -117,14 +113,3 @@ def format_summary(s: dict) -> str:
         lines.append(f"  {name} ({e['scope']}): {body}")
     return "\n".join(lines)
 
-
-def main(argv=None) -> int:
-    """Stand-alone entry point (``python -m ttsim_jax.data.generator_cli generate ...``): the same
-    as ``ttsim generate ...``."""
-    from ttsim_jax.cli import main as cli_main
-
-    return cli_main(argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

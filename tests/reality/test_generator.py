@@ -12,22 +12,22 @@ import pytest
 
 from ttsim_jax import Racket, load_model
 from ttsim_jax import effects as fx
+from ttsim_jax.cli import main as generate_main
 from ttsim_jax.data import load, problems, validate
-from ttsim_jax.data.generator import (
+from ttsim_jax.physics import racket as racket_stage
+from ttsim_jax.physics.rotations import matrix_to_quat
+from ttsim_jax.reality import (
     GeneratorError,
     generate,
     invert_contact,
     load_truth,
     make_config,
-    matrix_to_quat,
     rerecord,
     sample_contact_points,
     write,
 )
-from ttsim_jax.data.generator_cli import main as generate_main
-from ttsim_jax.physics import racket as racket_stage
 
-SAMPLE = Path(__file__).resolve().parents[1] / "ttsim_jax" / "data" / "sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample"
 SIM = ",".join(fx.names("simulator"))
 TINY = dict(games=2, rallies_per_game=(1, 1), lanes=2)
 

@@ -5,15 +5,15 @@
                    [--horizon S] [--float64] [--quiet]
 
 The work is in :mod:`ttsim_jax.evaluate.stages` and :mod:`ttsim_jax.evaluate.report`. ``ttsim evaluate residual`` (the residual
-network on its own, :mod:`ttsim_jax.fit.commands`) stays a subcommand of the same group.
+network on its own, :mod:`ttsim_jax.cli.residual`) stays a subcommand of the same group.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from ttsim_jax.cli import UsageError, existing_dir, model_name_or_file, positive_float, seed, writable_dir
-from ttsim_jax.fit.commands import _fraction, _group
+from ttsim_jax.cli.options import (UsageError, command_group, existing_dir, fraction, model_name_or_file,
+                                   positive_float, seed, writable_dir)
 
 DEFAULT_MODELS = "nakashima2011,durr2026,conti2026"
 
@@ -52,7 +52,7 @@ def register(subparsers) -> None:
                    "landing-position error of rollouts from the last observation before each racket contact. "
                    "Writes PNG figures, report.md, metrics.json (every number) and samples.npz (per-item values) "
                    "to --out. Stages the dataset has no data for are skipped, with the reason in the report.")
-    sub = _group(subparsers, "evaluate", "evaluate models on measured data", description)
+    sub = command_group(subparsers, "evaluate", "evaluate models on measured data", description)
     parser = subparsers.choices["evaluate"]
     parser.description = description + " 'ttsim evaluate residual' evaluates a residual network alone."
     sub.required = False
@@ -64,7 +64,7 @@ def register(subparsers) -> None:
     parser.add_argument("--split", choices=("all", "test"), default="all",
                         help="evaluate every session (default) or only the held-out sessions of "
                         "'ttsim fit --test-fraction F --seed S' (same F and S)")
-    parser.add_argument("--test-fraction", type=_fraction, default=None, metavar="F",
+    parser.add_argument("--test-fraction", type=fraction, default=None, metavar="F",
                         help="with --split test (required there): the fraction of sessions held out, as given to "
                         "'ttsim fit'")
     parser.add_argument("--seed", type=seed, default=0, help="with --split test: seed of the draw (default: %(default)s)")

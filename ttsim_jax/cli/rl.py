@@ -5,14 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ttsim_jax.cli.options import (UsageError, command_group, existing_file, positive_float, positive_int, seed,
+                                   text_file, writable_dir, writable_file)
+
 
 def register(subparsers) -> None:
     """Adds ``train ppo`` (to the ``train`` group) and ``play`` to an argparse subparsers object."""
-    from ttsim_jax.cli import existing_file, positive_float, positive_int, seed, text_file, writable_dir, writable_file
-    from ttsim_jax.fit.commands import _group
-
-    train = _group(subparsers, "train", "fit model components to measured data", "Fit model components to "
-                   "measured data, or train a policy.")
+    train = command_group(subparsers, "train", "fit model components to measured data", "Fit model components to "
+                          "measured data, or train a policy.")
     p = train.add_parser(
         "ppo", help="train a racket policy with PPO on the ReturnBall environment",
         description="Trains a policy with PPO (JAX, jitted) on the batched ReturnBall environment "
@@ -57,9 +57,9 @@ def register(subparsers) -> None:
 
 
 def cmd_train_ppo(args) -> int:
+    """``train ppo``: train (or resume) a policy into the run folder, then print where it went."""
     import dataclasses
 
-    from ttsim_jax.cli import UsageError
     from ttsim_jax.rl.config import load_ppo_config
     from ttsim_jax.rl.training import CHECKPOINT, train
 
@@ -81,10 +81,10 @@ def cmd_train_ppo(args) -> int:
 
 
 def cmd_play(args) -> int:
+    """``play``: one episode per environment with the checkpoint's policy; print (and draw) the outcomes."""
     import jax
     import numpy as np
 
-    from ttsim_jax.cli import UsageError
     from ttsim_jax.env.config import load_task_config
     from ttsim_jax.rl import ppo
     from ttsim_jax.rl.checkpoint import BUNDLED_POLICY, read_checkpoint, restore_runner

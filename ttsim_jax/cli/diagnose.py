@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ttsim_jax.cli import UsageError, existing_dir, model_name_or_file, positive_int, seed, writable_dir
+from ttsim_jax.cli.options import (UsageError, existing_dir, model_name_or_file, open_fraction, positive_int, seed,
+                                   writable_dir)
 
 
 def effect_list(text: str) -> tuple:
@@ -31,17 +32,6 @@ def effect_list(text: str) -> tuple:
     if not names:
         raise argparse.ArgumentTypeError(f"{text!r}: no simulator effect chosen")
     return tuple(names)
-
-
-def fraction(text: str) -> float:
-    """A number strictly between 0 and 1."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: not a number") from None
-    if not 0.0 < v < 1.0:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be between 0 and 1 (exclusive)")
-    return v
 
 
 def register(subparsers) -> None:
@@ -88,7 +78,7 @@ def register(subparsers) -> None:
                    "no forward selection (every significant effect reported; none fitted together)")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
                    help=f"Adam steps per candidate (default: {d.steps}, with --quick {q.steps})")
-    p.add_argument("--test-fraction", type=fraction, default=d.test_fraction, metavar="F",
+    p.add_argument("--test-fraction", type=open_fraction, default=d.test_fraction, metavar="F",
                    help="share of the segments and contacts held out for scoring (default: %(default)s)")
     p.add_argument("--seed", type=seed, default=d.seed, help="seed of the split, the segment subset and the "
                    "bootstraps (default: %(default)s)")

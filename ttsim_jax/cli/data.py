@@ -1,9 +1,5 @@
-"""The ``ttsim data ...`` commands. Thin: parsing and printing only; the work is in the library.
-
-``ttsim_jax/cli.py`` calls :func:`register` with its subparsers object; every command sets
-``func`` on the parsed namespace to a callable ``func(args) -> int`` (the exit status); user errors
-are raised and reported by :func:`ttsim_jax.cli.main` with status 2.
-"""
+"""The ``ttsim data ...`` commands (``import``, ``info``, ``upgrade``). Thin: parsing and printing
+only; the work is in :mod:`ttsim_jax.data`."""
 
 from __future__ import annotations
 
@@ -11,7 +7,7 @@ import argparse
 import json
 import warnings
 
-from ttsim_jax.cli import UsageError, existing_dir, existing_path, finite_float, positive_float, writable_dir
+from ttsim_jax.cli.options import UsageError, existing_dir, existing_path, finite_float, positive_float, writable_dir
 
 
 def _dataset_to_rewrite(text: str):
@@ -28,8 +24,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     Returns:
         The ``data`` parser.
     """
-    from .csvlog import LENGTH_UNITS, TIME_UNITS
-    from .importers import SOURCES
+    from ttsim_jax.data.csvlog import LENGTH_UNITS, TIME_UNITS
+    from ttsim_jax.data.importers import SOURCES
 
     data = subparsers.add_parser("data", help="measured data: import public datasets, inspect datasets", description="Measured-data commands.")
     sub = data.add_subparsers(dest="data_command", metavar="COMMAND")
@@ -81,12 +77,12 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def cmd_import(args) -> int:
     """``data import``: import, optionally filter, save, and print a summary."""
-    from .errors import DataWarning
-    from .importers import import_source
-    from .io import parquet_files, save, unprotected_files
-    from .segment import filter_segments
-    from .summary import format_info, info
-    from .tracks import tracking_report
+    from ttsim_jax.data.errors import DataWarning
+    from ttsim_jax.data.importers import import_source
+    from ttsim_jax.data.io import parquet_files, save, unprotected_files
+    from ttsim_jax.data.segment import filter_segments
+    from ttsim_jax.data.summary import format_info, info
+    from ttsim_jax.data.tracks import tracking_report
 
     if args.out.exists() and not args.force and (not args.out.is_dir() or any(args.out.iterdir())):
         raise UsageError(f"--out {args.out}: exists and is not empty; pass --force to replace it")
@@ -118,11 +114,11 @@ def cmd_import(args) -> int:
 
 def cmd_info(args) -> int:
     """``data info``: load without stopping at problems, then summarise them."""
-    from .errors import DataWarning
-    from .io import METADATA_FILE, load, parquet_files, table_path, unprotected_files
-    from .schema import TABLES
-    from .summary import format_info, info
-    from .validate import borderline, problems
+    from ttsim_jax.data.errors import DataWarning
+    from ttsim_jax.data.io import METADATA_FILE, load, parquet_files, table_path, unprotected_files
+    from ttsim_jax.data.schema import TABLES
+    from ttsim_jax.data.summary import format_info, info
+    from ttsim_jax.data.validate import borderline, problems
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DataWarning)  # reported below, with the rest
@@ -138,8 +134,8 @@ def cmd_info(args) -> int:
 
 def cmd_upgrade(args) -> int:
     """``data upgrade``: rewrite a dataset with page checksums in the current schema version."""
-    from .io import parquet_files, read_metadata, unprotected_files, upgrade
-    from .schema import SCHEMA_VERSION
+    from ttsim_jax.data.io import parquet_files, read_metadata, unprotected_files, upgrade
+    from ttsim_jax.data.schema import SCHEMA_VERSION
 
     before = read_metadata(args.path).schema_version
     bare = unprotected_files(args.path)

@@ -1,0 +1,6 @@
+"""What the package reads and writes on disk: crash-safe writes (:mod:`~ttsim_jax.files.atomic`),
+the checkpoint container (:mod:`~ttsim_jax.files.checkpoint`), TOML reading
+(:mod:`~ttsim_jax.files.toml`) and the caches (:mod:`~ttsim_jax.files.cache`).
+
+The lowest layer: nothing here imports the physics, and nothing imports JAX when it is imported.
+"""
