@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose import stages
 from ttsim_jax.diagnose.specs import spec
 from ttsim_jax.physics.dimensions import TABLE_HALF_LENGTH, TABLE_HALF_WIDTH
 
@@ -56,7 +56,7 @@ def _slope_jacobian(model, c: dict):
     const = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), const)
 
     def errors(slope):
-        return S.table_errors(model, (sp,), (const,), ({"slope": slope[None]},), c)
+        return stages.table_errors(model, (sp,), (const,), ({"slope": slope[None]},), c)
 
     return jax.jacfwd(errors)(jnp.zeros(2, jnp.float32))
 
@@ -140,4 +140,4 @@ def bump_stage(pb, model, specs, consts, u, x, i):
              for k, p in sp.cls.PARAMS.items()}
     m = len(heights)  # the other bumps keep their neutral (flat) start
     start["center"][:m], start["width"][:m], start["amplitude"][:m] = centers, widths, heights
-    return S.second_descent(sp, start, SCALES)
+    return stages.second_descent(sp, start, SCALES)

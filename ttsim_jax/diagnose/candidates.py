@@ -54,8 +54,7 @@ import numpy as np
 import optax
 
 from ttsim_jax import effects as fx
-from ttsim_jax.diagnose import bumps, gusts, onsets
-from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose import bumps, gusts, onsets, stages
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.defaults import MIN_REDUCTION
 from ttsim_jax.diagnose.phases import Phases, pad_rows
@@ -94,9 +93,9 @@ def initial_u(specs, n_sessions: int) -> tuple:
 def parameters(sp: Spec, const: dict, u: dict, sessions) -> dict:
     """The fitted values {param: value} (per session {session id: {...}} for per-session effects)."""
     def values(i):
-        return {k: (np.asarray(S.start_of(sp, const, k, i), np.float64) + const["scale"][k] *
+        return {k: (np.asarray(stages.start_of(sp, const, k, i), np.float64) + const["scale"][k] *
                     np.asarray(u[k][i], np.float64)).tolist()
-                if k in u else np.asarray(S.start_of(sp, const, k, i)).tolist() for k in sp.cls.PARAMS}
+                if k in u else np.asarray(stages.start_of(sp, const, k, i)).tolist() for k in sp.cls.PARAMS}
 
     if sp.per_session:
         return {int(s): values(i) for i, s in enumerate(sessions)}
@@ -185,7 +184,7 @@ def problem(ph: Phases, model, test_fraction: float = 0.4, seed: int = 0) -> Pro
     if "flight" in data:
         d = data["flight"]
         pb.x0 = _initial(d["tau"], d["pos"], d["mask"])
-    pb.base, pb.x0 = evaluate(model, (), (), (), pb, S.GN_START)
+    pb.base, pb.x0 = evaluate(model, (), (), (), pb, stages.GN_START)
     for p in pb.phases:
         sse, n = item_sums(pb, p, pb.base[p])
         train, test = _split(sse / np.maximum(n, 1.0), real[p], len(sse), test_fraction, rng)
@@ -198,7 +197,7 @@ def problem(ph: Phases, model, test_fraction: float = 0.4, seed: int = 0) -> Pro
     return pb
 
 
-_initial = jax.jit(S.initial_state)
+_initial = jax.jit(stages.initial_state)
 
 
 def item_sums(pb: Problem, phase: str, errors) -> tuple[np.ndarray, np.ndarray]:
@@ -215,11 +214,11 @@ def _errors(model, specs, consts, u, data, x, phases, iterations):
     out = {}
     if "flight" in phases:
         if iterations:
-            x = S.flight_states(model, specs, consts, u, data["flight"], x, iterations)
-        out["flight"] = S.flight_errors(model, specs, consts, u, data["flight"], x)
+            x = stages.flight_states(model, specs, consts, u, data["flight"], x, iterations)
+        out["flight"] = stages.flight_errors(model, specs, consts, u, data["flight"], x)
     for p in ("table", "racket"):
         if p in phases:
-            out[p] = S.ERRORS[p](model, specs, consts, u, data[p])
+            out[p] = stages.ERRORS[p](model, specs, consts, u, data[p])
     return out, x
 
 
@@ -273,7 +272,7 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
     def body(carry, i):
         u, state, x, _ = carry
         if "flight" in phases:  # one Gauss-Newton step of the states per step keeps them at their optimum
-            x = S.flight_states(model, specs, consts, u, data["flight"], x, 1)
+            x = stages.flight_states(model, specs, consts, u, data["flight"], x, 1)
         (value, errs), g = jax.value_and_grad(loss, has_aux=True)(u, x)
         # effects not being fitted keep u = 0 (neutral); a non-finite gradient is skipped
         g = tuple({k: jnp.where(jnp.isfinite(a), a, 0.0) * f for k, a in gk.items()} for gk, f in zip(g, free))

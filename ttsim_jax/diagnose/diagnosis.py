@@ -32,10 +32,7 @@ import jax
 import numpy as np
 
 from ttsim_jax.data.contact_states import ContactFit
-from ttsim_jax.diagnose import ambiguity as A
-from ttsim_jax.diagnose import candidates as C
-from ttsim_jax.diagnose import residuals as R
-from ttsim_jax.diagnose import where as W
+from ttsim_jax.diagnose import ambiguity, candidates, residuals, where
 from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.phases import collect
@@ -51,7 +48,7 @@ class NoData(UserError, ValueError):
 #: Most effects accepted by the forward selection (fitted jointly for the before/after).
 TOP = 3
 #: Phases of the "where" analysis.
-PHASES = C.PHASES + ("landing",)
+PHASES = candidates.PHASES + ("landing",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,8 +91,8 @@ def _test_rows(pb, phase):
 
 def _items(ph, pb, phase, errors, radius, rows=None):
     if phase == "flight":
-        return W.flight_items(ph.flights, errors, pb.x0, radius, rows)
-    return W.contact_items(getattr(ph, phase), phase, errors, radius, rows)
+        return where.flight_items(ph.flights, errors, pb.x0, radius, rows)
+    return where.contact_items(getattr(ph, phase), phase, errors, radius, rows)
 
 
 def _components(ph, phase, errors):
@@ -155,12 +152,12 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     tick = progress or (lambda what, n=1: None)
     t_start = time.perf_counter()
     radius = float(ball_properties(model)[0])
-    names = C.candidate_names(settings.effects)
+    names = candidates.candidate_names(settings.effects)
     ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
     if ph.flights is None and ph.table is None and ph.racket is None:
         raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
     tick("model errors", 1)
-    pb = C.problem(ph, model, settings.test_fraction, settings.seed)
+    pb = candidates.problem(ph, model, settings.test_fraction, settings.seed)
     refuse_non_finite(pb, ph)
     if keep is not None:
         keep["problem"] = pb
@@ -175,36 +172,36 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     if settings.landing:
         landing, cases = _landing(ds, model, settings.fit, radius)
         if cases is not None:
-            items["landing"] = W.landing_items(cases, landing["error"]["model"], radius)
+            items["landing"] = where.landing_items(cases, landing["error"]["model"], radius)
         else:
             out["skipped"]["landing"] = landing["skipped"]
     tick("noise floor and bounds" if settings.landing else "noise floor and bounds (no landing)", 1)
     out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
     floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
-    out["where"] = {p: W.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
+    out["where"] = {p: where.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
     out["no_data"] = no_data(out["skipped"], settings.landing)
-    out["dependence"] = {p: R.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
+    out["dependence"] = {p: residuals.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
-    out["record"] = R.record_sizes(ds, ph, model)
+    out["record"] = residuals.record_sizes(ds, ph, model)
     from ttsim_jax.diagnose.bound import bounds
 
     out["bound"] = bounds(pb, radius, settings.seed, ph.skipped)  # how far any correction gets, per phase
 
     # which effect
     cands = []
-    available = [n for n in names if any(p in pb.phases for p in C.spec(n)[0].phases)]
-    group_of = {n: g for g in C.groups(available, pb.phases) for n in g}
+    available = [n for n in names if any(p in pb.phases for p in candidates.spec(n)[0].phases)]
+    group_of = {n: g for g in candidates.groups(available, pb.phases) for n in g}
     tick(f"fitting {names[0]}" if names else "ranking", 0)
     for i, name in enumerate(names):
         following = f"fitting {names[i + 1]}" if i + 1 < len(names) else "forward selection"
-        spec, _ = C.spec(name)
+        spec, _ = candidates.spec(name)
         if not any(p in pb.phases for p in spec.phases):
             out["skipped"][f"effect {name}"] = f"acts in {', '.join(spec.phases)}: no data there"
             tick(following, 1)
             continue
-        cands.append(C.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
+        cands.append(candidates.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
         tick(following, 1)
-    ranked = C.rank(cands)
+    ranked = candidates.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
     beyond = {c.spec.name: implausible(c.params) for c in ranked}
     for entry in out["candidates"]:
@@ -213,7 +210,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     # well it fits: it stands in for something the catalogue lacks.
     out["implausible"] = [c.spec.name for c in ranked if c.significant and beyond[c.spec.name]]
     significant = [c for c in ranked if c.significant and not beyond[c.spec.name]]
-    out["indistinguishable"] = A.indistinguishable(pb, [c for c in ranked if c.significant])
+    out["indistinguishable"] = ambiguity.indistinguishable(pb, [c for c in ranked if c.significant])
 
     # how far
     accepted, best = significant, None
@@ -233,7 +230,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         for p, e in best.errors.items():
             rows = _test_rows(pb, p)
             before, after = _items(ph, pb, p, pb.base[p], radius, rows), _items(ph, pb, p, e, radius, rows)
-            out["before_after"][p] = dict(W.compare(before, after, settings.seed), heldout=best.heldout[p])
+            out["before_after"][p] = dict(where.compare(before, after, settings.seed), heldout=best.heldout[p])
             arrays[f"after_{p}"] = after["error"]
     if landing is not None and cases is not None:
         before = landing["error"]["model"]
@@ -268,7 +265,7 @@ def refuse_non_finite(pb, ph) -> None:
     """
     bad = []
     for p in pb.phases:
-        sse, _ = C.item_sums(pb, p, pb.base[p])
+        sse, _ = candidates.item_sums(pb, p, pb.base[p])
         n = ph.flights.n if p == "flight" else len(getattr(ph, p))
         rows = np.flatnonzero(~np.isfinite(sse[:n]))
         if not len(rows):
@@ -286,7 +283,7 @@ def refuse_non_finite(pb, ph) -> None:
             "warns about segments that no flight fits) and add --filter to leave those segments out.")
 
 
-def select(pb, significant: list, model, group_of: dict, settings: Settings) -> tuple[list, C.Candidate, dict]:
+def select(pb, significant: list, model, group_of: dict, settings: Settings) -> tuple[list, candidates.Candidate, dict]:
     """Forward selection among the significant candidates (ranked): the first is accepted; each next
     one is fitted jointly with those accepted so far and accepted when, on top of them, it lowers a
     held-out error significantly (:func:`~ttsim_jax.diagnose.candidates.explains`, against the
@@ -322,21 +319,21 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
         block = c
         if near:
             names = neighbours + [c.spec.name]
-            block = C.fit(pb, names, model, group=_group(group_of, names), steps=settings.steps, lr=settings.lr,
-                          name="+".join(names))
+            block = candidates.fit(pb, names, model, group=_group(group_of, names), steps=settings.steps,
+                                   lr=settings.lr, name="+".join(names))
         current = {p: e for b in blocks for p, e in b.errors.items()}
-        on_top = C.score(pb, block.errors, base=current)
-        ok = C.explains(on_top)
+        on_top = candidates.score(pb, block.errors, base=current)
+        ok = candidates.explains(on_top)
         same = []
         if near and not ok:
             # redundant; a neighbour that adds nothing on top of it (and the other neighbours) either
             # is one the data cannot tell it apart from
             for n in neighbours:
                 names = [m for m in neighbours if m != n] + [c.spec.name]
-                swap = c if len(names) == 1 else C.fit(pb, names, model, group=_group(group_of, names),
-                                                       steps=settings.steps, lr=settings.lr,
-                                                       name="+".join(names))
-                if not C.explains(C.score(pb, block.errors, base=swap.errors)):
+                swap = c if len(names) == 1 else candidates.fit(pb, names, model, group=_group(group_of, names),
+                                                                steps=settings.steps, lr=settings.lr,
+                                                                name="+".join(names))
+                if not candidates.explains(candidates.score(pb, block.errors, base=swap.errors)):
                     same.append(n)
         adds[c.spec.name] = dict(accepted=ok, on_top_of=[a.spec.name for a in accepted], heldout=on_top,
                                  interchangeable_with=same)
@@ -351,15 +348,16 @@ def _group(group_of: dict, names: list):
     return next((g for g in set(group_of.values()) if set(names) <= set(g)), None)
 
 
-def _merged(blocks: list, accepted: list) -> C.Candidate:
+def _merged(blocks: list, accepted: list) -> candidates.Candidate:
     """One candidate of fits in disjoint phases (its loss history left empty)."""
     if len(blocks) == 1:
         return blocks[0]
     first = blocks[0].spec
-    return C.Candidate(spec=C.Spec("+".join(c.spec.name for c in accepted), first.cls, (), False), consts=(), u=(),
-                       history=np.zeros(0), errors={p: e for b in blocks for p, e in b.errors.items()},
-                       heldout={p: h for b in blocks for p, h in b.heldout.items()},
-                       params={n: v for b in blocks for n, v in b.params.items()})
+    return candidates.Candidate(spec=candidates.Spec("+".join(c.spec.name for c in accepted), first.cls, (), False),
+                                consts=(), u=(), history=np.zeros(0),
+                                errors={p: e for b in blocks for p, e in b.errors.items()},
+                                heldout={p: h for b in blocks for p, h in b.heldout.items()},
+                                params={n: v for b in blocks for n, v in b.params.items()})
 
 
 def no_data(skipped: dict, landing: bool = True) -> dict:
@@ -371,10 +369,10 @@ def no_data(skipped: dict, landing: bool = True) -> dict:
 
 def work_units(settings: Settings) -> int:
     """Progress units of :func:`diagnose` (for a progress bar)."""
-    return 5 + len(C.candidate_names(settings.effects))
+    return 5 + len(candidates.candidate_names(settings.effects))
 
 
-def _candidate_json(c: C.Candidate, rank: int) -> dict:
+def _candidate_json(c: candidates.Candidate, rank: int) -> dict:
     return dict(rank=rank, name=c.spec.name, phases=sorted(c.heldout), significant=c.significant,
                 best_reduction_pct=c.best, heldout=c.heldout, params=c.params,
                 loss=dict(start=float(c.history[0]) if len(c.history) else math.nan,

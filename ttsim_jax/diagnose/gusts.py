@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose import stages
 from ttsim_jax.physics.linalg import spd_solve
 
 #: Least fall of the per-segment offsets' chi-square for a gust component to be kept: its 6
@@ -52,11 +52,11 @@ class _Offset:
 def _segment_wind(model, effects, x, spin, t0, tau, pos, mask, changes):
     def res(z):
         fx = effects + (_Offset(z[6:]),)
-        return S._segment_residual(model, fx, z[:6], spin, t0, tau, pos, mask, changes).ravel()
+        return stages._segment_residual(model, fx, z[:6], spin, t0, tau, pos, mask, changes).ravel()
 
     z = jnp.concatenate([x, jnp.zeros(3, x.dtype)])
     eye = jnp.eye(9, dtype=x.dtype)
-    r, jac = S.residual_jacobian(res, z)
+    r, jac = stages.residual_jacobian(res, z)
     h = jac.T @ jac
     hr = h + 1e-9 * jnp.trace(h) * eye + 1e-30
     step = -spd_solve(hr, jac.T @ r)
@@ -68,10 +68,10 @@ def _segment_wind(model, effects, x, spin, t0, tau, pos, mask, changes):
 
 
 def _winds_impl(model, consts, u, fl, x, specs):
-    changes = S._spin_changes(model, specs)
+    changes = stages._spin_changes(model, specs)
 
     def one(xi, t0, tau, pos, mask, spin, s):
-        fx = model.effects + S.effects_of(specs, consts, u, s)
+        fx = model.effects + stages.effects_of(specs, consts, u, s)
         return _segment_wind(model, fx, xi, spin, t0, tau, pos, mask, changes)
 
     return jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
@@ -188,7 +188,7 @@ def gust_stage(pb, model, specs, consts, u, x, i):
     train &= reduced < OUTLIER**2 * sigma2
     t, session = mean_times(fl), np.asarray(fl["session"])
     n = pb.n_sessions
-    start = {k: np.broadcast_to(np.asarray(S.start_of(sp, const, k, 0), np.float64), (n,) + p.shape).copy()
+    start = {k: np.broadcast_to(np.asarray(stages.start_of(sp, const, k, 0), np.float64), (n,) + p.shape).copy()
              for k, p in sp.cls.PARAMS.items()}
     u_wind = np.asarray(u[i]["wind"], np.float64) if "wind" in u[i] else np.zeros((n, 3))
     start["wind"] = start["wind"] + const["scale"]["wind"] * u_wind
@@ -203,4 +203,4 @@ def gust_stage(pb, model, specs, consts, u, x, i):
         start["gust_phase"][s] = np.where(kept, phase, start["gust_phase"][s])
     if not found:
         return None
-    return S.second_descent(sp, start, SCALES)
+    return stages.second_descent(sp, start, SCALES)

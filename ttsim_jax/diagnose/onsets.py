@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose import stages
 
 #: Scanned (onsets, widths) [m/s] per contact kind: table impacts of rallies are about 1-8 m/s
 #: normal to the table, racket impacts about 2-25 m/s normal to the face.
@@ -49,7 +49,7 @@ def _grid_errors(model, sp, const, c, phase, values):
     """(G, N, 6) errors of the contacts ``c`` for each of G parameter sets ``values`` {param: (G,)}."""
     def one(v):
         cst = dict(start={**const["start"], **v}, scale=const["scale"])
-        return S.ERRORS[phase](model, (sp,), (cst,), ({},), c)
+        return stages.ERRORS[phase](model, (sp,), (cst,), ({},), c)
 
     return jax.vmap(one)(values)
 
@@ -100,4 +100,4 @@ def onset_stage(pb, model, specs, consts, u, x, i):
         scanned = True
     if not scanned:
         return None
-    return S.second_descent(sp, start, SCALES)
+    return stages.second_descent(sp, start, SCALES)

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from ttsim_jax import effects as fx
-from ttsim_jax.diagnose import candidates as C
+from ttsim_jax.diagnose import candidates as candidate_fit
 
 #: Kinds of the cases outside the catalogue: how the generated games reach the diagnosis.
 OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
@@ -40,8 +40,8 @@ def effect_phases(names) -> tuple:
     out = set()
     for n in names:
         cls = fx.effect_class(n)
-        out.update(C.phases_of(cls) if cls.WHERE == "simulator" else C.PHASES)
-    return tuple(p for p in C.PHASES if p in out)
+        out.update(candidate_fit.phases_of(cls) if cls.WHERE == "simulator" else candidate_fit.PHASES)
+    return tuple(p for p in candidate_fit.PHASES if p in out)
 
 
 #: Per effect, words of the model-free correction's terms (:mod:`ttsim_jax.diagnose.bound`) that name

@@ -52,8 +52,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax import effects as fx
-from ttsim_jax.diagnose import candidates as C
-from ttsim_jax.diagnose import stages as S
+from ttsim_jax.diagnose import candidates as candidate_fit
+from ttsim_jax.diagnose import stages
 from ttsim_jax.diagnose.outside import (OUTSIDE_KINDS, OUTSIDE_PLAN, TERMS, as_tracker_log,  # noqa: F401 (the selfcheck's names)
                                         bound_score, effect_phases, outside_cases)
 from ttsim_jax.errors import UserError
@@ -179,7 +179,7 @@ def oracle_scores(pb, model, names, truth: dict) -> dict:
     for name in names:
         cls = fx.effect_class(name)
         per_session = cls.SCOPE == "session"
-        specs.append(C.Spec(name, cls, tuple(cls.PARAMS), per_session))
+        specs.append(candidate_fit.Spec(name, cls, tuple(cls.PARAMS), per_session))
         consts.append(dict(start={k: np.zeros(p.shape) for k, p in cls.PARAMS.items()},
                            scale={k: np.float64(1.0) for k in cls.PARAMS}))
         if per_session:
@@ -189,14 +189,14 @@ def oracle_scores(pb, model, names, truth: dict) -> dict:
         us.append({k: jnp.asarray(np.stack([np.broadcast_to(np.asarray(v[k], np.float64), p.shape) for v in values]),
                                   jnp.float32) for k, p in cls.PARAMS.items()})
     phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
-    errors, _ = C.evaluate(model, tuple(specs), tuple(consts), tuple(us), pb, S.GN_START, phases)
-    return C.score(pb, errors)
+    errors, _ = candidate_fit.evaluate(model, tuple(specs), tuple(consts), tuple(us), pb, stages.GN_START, phases)
+    return candidate_fit.score(pb, errors)
 
 
 # ---------------------------------------------------------------------------------------------- scoring
 def located_phase(cand: dict) -> str | None:
     """The phase of a candidate's largest significant held-out reduction (None: not significant)."""
-    sig = [p for p, h in cand["heldout"].items() if C.significant(p, h)]
+    sig = [p for p, h in cand["heldout"].items() if candidate_fit.significant(p, h)]
     return max(sig, key=lambda p: cand["heldout"][p]["pct"]) if sig else None
 
 
@@ -222,7 +222,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
     # the diagnosis's accepted effects: significant, and not redundant on top of those before them
     sig = [c for c in candidates if c["significant"] and c.get("adds", {}).get("accepted", True)]
     oracle = {p: h for p, h in oracle.items() if p in true_phases}
-    detectable = any(C.significant(p, h) for p, h in oracle.items())
+    detectable = any(candidate_fit.significant(p, h) for p, h in oracle.items())
     best = max(oracle, key=lambda p: oracle[p]["pct"]) if oracle else None
     ref = oracle[best]["pct"] if best else math.nan
     found = max([c["heldout"][best]["pct"] for c in sig if best in c["heldout"]], default=0.0)
@@ -250,7 +250,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         # floor, or a regime flagged in it.
         gaps = (verdict or {}).get("gaps", [])
         level = verdict["level"] if verdict else ("explained" if sig else "unexplained")
-        located = [p for p in C.PHASES if p in gaps or where.get(p, {}).get("flagged")]
+        located = [p for p in candidate_fit.PHASES if p in gaps or where.get(p, {}).get("flagged")]
         out.update(located=located, phase=located[0] if located else None, level=level,
                    phase_right=bool(set(located) & set(true_phases)), rank1=False,
                    wrong_explained=level == "explained")
@@ -325,7 +325,7 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     ``present``: further effects switched on in the generator at their neutral values (exactly no
     effect): cases with the same effects present share the generator's compiled programs."""
     from ttsim_jax import load_model
-    from ttsim_jax import reality as G
+    from ttsim_jax import reality
     from ttsim_jax.data.errors import DataError
     from ttsim_jax.diagnose.diagnosis import diagnose
 
@@ -334,10 +334,10 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     on = [n for n in fx.names() if n in params]
     gen, error = None, ""
     for k in range(TRIES):
-        cfg = G.make_config(games=games, seed=seed + k, effects=on, effect_params=params, max_flight_time=1.5,
-                            truth_observations=False, **scene)
+        cfg = reality.make_config(games=games, seed=seed + k, effects=on, effect_params=params, max_flight_time=1.5,
+                                  truth_observations=False, **scene)
         try:
-            gen = G.generate(cfg, progress=False)
+            gen = reality.generate(cfg, progress=False)
             break
         except DataError as e:  # the generator refuses its own data for some seeds
             error = str(e)
@@ -346,7 +346,8 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
         return dict(row, error=f"generator refused {TRIES} seeds: {error}")
     ds = gen.dataset
     if kind in OUTSIDE_KINDS:
-        settings = dataclasses.replace(settings, effects=tuple(n for n in C.candidate_names() if n not in names))
+        kept = tuple(n for n in candidate_fit.candidate_names() if n not in names)
+        settings = dataclasses.replace(settings, effects=kept)
     if kind in ("outside_log", "outside_oneway"):
         ds = as_tracker_log(ds, one_way=kind == "outside_oneway")
         row["segments"] = dict(labelled=len(gen.dataset.segments["segment_id"]), log=len(ds.segments["segment_id"]))

@@ -26,7 +26,7 @@ import numpy as np
 
 from ttsim_jax.data.flightfit import Air, SegmentFits, fit_segments
 from ttsim_jax.data.segment_batches import dataset_segments
-from ttsim_jax.fit import aero_forms as F
+from ttsim_jax.fit import aero_forms
 
 
 @dataclasses.dataclass
@@ -54,8 +54,8 @@ class AeroIdentification:
     used: np.ndarray
     counts: dict
     test_sessions: list
-    drag: F.FormFit | None
-    magnus: F.FormFit | None
+    drag: aero_forms.FormFit | None
+    magnus: aero_forms.FormFit | None
     seconds: dict
     settings: dict
 
@@ -116,12 +116,12 @@ def _clean(a) -> list:
 FORMS = ("drag", "magnus")
 
 
-def _unfitted(form) -> F.FormFit:
+def _unfitted(form) -> aero_forms.FormFit:
     """The base model's values of a form that is not regressed."""
-    keys = ("cd",) if hasattr(form, "cd") else F.MAGNUS_FITTED
+    keys = ("cd",) if hasattr(form, "cd") else aero_forms.MAGNUS_FITTED
     values = {k: np.asarray(getattr(form, k), np.float64) for k in keys}
     support = np.zeros(np.shape(values[keys[0]]))
-    return F.FormFit(values=values, prior=values, support=support, n_used=0, rms_residual=float("nan"))
+    return aero_forms.FormFit(values=values, prior=values, support=support, n_used=0, rms_residual=float("nan"))
 
 
 def split_sessions(session_ids, test_fraction: float, seed: int) -> np.ndarray:
@@ -205,13 +205,14 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
         vel = [v for v, u in zip(fits.velocities, used) if u]
         drag, magnus = _unfitted(model.aero.drag), _unfitted(model.aero.magnus)
         if "drag" in forms:
-            drag = F.fit_drag_table(model.aero.drag, fits.cd[used], fits.stderr[used, 6],
-                                    F.force_weights(vel, spins[used], "drag"), w, float(model.ball.radius),
-                                    float(model.aero.nu), association=association, alpha=alpha)
+            drag = aero_forms.fit_drag_table(
+                model.aero.drag, fits.cd[used], fits.stderr[used, 6],
+                aero_forms.force_weights(vel, spins[used], "drag"), w, float(model.ball.radius), float(model.aero.nu),
+                association=association, alpha=alpha)
         if "magnus" in forms:
-            magnus = F.fit_magnus_table(model.aero.magnus, fits.cm[used], fits.stderr[used, 7],
-                                        F.force_weights(vel, spins[used], "magnus"), w, association=association,
-                                        alpha=alpha)
+            magnus = aero_forms.fit_magnus_table(
+                model.aero.magnus, fits.cm[used], fits.stderr[used, 7],
+                aero_forms.force_weights(vel, spins[used], "magnus"), w, association=association, alpha=alpha)
     seconds["regress"] = time.perf_counter() - t0
     settings = dict(min_spin_conf=min_spin_conf, max_rmse=max_rmse, min_samples=min_samples,
                     test_fraction=test_fraction, seed=seed, alpha=alpha, forms=list(forms))
@@ -235,6 +236,7 @@ def write_model(result: AeroIdentification, out, *, name: str | None = None, sou
     if result.drag is None:
         raise ValueError("no fitted forms to write: no segment passed the selection")
     out = Path(out)
-    return F.export_config(result.base, out, result.drag.values["cd"], result.magnus.values, name=name or out.stem,
-                           source=source or f"aerodynamics fitted by ttsim fit on {result.counts['used']} segments "
-                           f"({result.association} association) over {result.base.name}")
+    return aero_forms.export_config(
+        result.base, out, result.drag.values["cd"], result.magnus.values, name=name or out.stem,
+        source=source or f"aerodynamics fitted by ttsim fit on {result.counts['used']} segments "
+        f"({result.association} association) over {result.base.name}")

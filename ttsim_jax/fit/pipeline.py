@@ -306,13 +306,13 @@ class _Run:
             self.comparison["aero"] = c
 
     def table(self):
-        from ttsim_jax.fit import table as T
+        from ttsim_jax.fit import table as table_fit
         from ttsim_jax.data.contact_states import ContactFit
         from ttsim_jax.kernel.step import ball_properties
 
         s, ds = self.settings, self.ds
-        bounces = T.table_bounces(ds, self.model, fit=ContactFit(min_spin_conf=s.min_spin_conf), validate=False,
-                                  progress=self.tick("table"))
+        bounces = table_fit.table_bounces(ds, self.model, fit=ContactFit(min_spin_conf=s.min_spin_conf),
+                                          validate=False, progress=self.tick("table"))
         session = dict(zip(np.asarray(ds.events["event_id"]).tolist(), np.asarray(ds.events["session_id"]).tolist()))
         kept = ~np.isin([session[int(e)] for e in bounces.event_id], self.test)
         counts = _counts(bounces.n_bounces, int(kept.sum()), bounces.skipped, int((~kept).sum()))
@@ -320,20 +320,21 @@ class _Run:
             raise _Skip(f"{int(kept.sum())} usable table bounces ({bounces.n_bounces} table events; skipped: "
                         f"{counts['skipped'] or 'none'}; {counts['held_out']} held out); at least {2 * s.folds} are "
                         f"needed for {s.folds}-fold cross-validation")
-        fit = T.fit_table(bounces.vel_in[kept], bounces.spin_in[kept], bounces.vel_out[kept], bounces.spin_out[kept],
-                          self.model, T.LassoSettings(folds=s.folds, rule=s.lambda_rule, seed=s.seed))
+        fit = table_fit.fit_table(bounces.vel_in[kept], bounces.spin_in[kept], bounces.vel_out[kept],
+                                  bounces.spin_out[kept], self.model,
+                                  table_fit.LassoSettings(folds=s.folds, rule=s.lambda_rule, seed=s.seed))
         counts["bounded"] = fit.n_bounded
         self.log(f"table: {counts['used']} of {counts['total']} bounces used; skipped {counts['skipped']}, "
                  f"{counts['held_out']} held out\n" + fit.summary())
-        self.sections.update(T.table_sections(self.model.table, fit))
+        self.sections.update(table_fit.table_sections(self.model.table, fit))
         self.report["table"] = dict(counts=counts, fit=fit.to_dict())
         fitted = fit.params(self.model.table)
         if (~kept).any():
             radius = ball_properties(self.model)[0]
             rows = [a[~kept] for a in (bounces.vel_in, bounces.spin_in, bounces.vel_out, bounces.spin_out)]
-            self.comparison["table"] = _comparison("held_out", (~kept).sum(), T.bounce_errors(self.base.table, radius,
-                                                                                              *rows),
-                                                   T.bounce_errors(fitted, radius, *rows), _TABLE_COMPONENTS)
+            self.comparison["table"] = _comparison("held_out", (~kept).sum(),
+                                                   table_fit.bounce_errors(self.base.table, radius, *rows),
+                                                   table_fit.bounce_errors(fitted, radius, *rows), _TABLE_COMPONENTS)
         else:
             self.comparison["table"] = _comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
                                                    _TABLE_COMPONENTS)
@@ -348,31 +349,31 @@ class _Run:
         return arrays, ~np.isin(arrays.session_id, self.test)
 
     def racket(self):
-        from ttsim_jax.fit import racket as RF
+        from ttsim_jax.fit import racket as racket_fit
         from ttsim_jax.kernel.step import ball_properties
 
         arrays, kept = self._contacts()
         counts = _counts(arrays.n_contacts, int(kept.sum()), arrays.skipped, int((~kept).sum()))
-        if kept.sum() < 2 * len(RF.PARAMETERS):
+        if kept.sum() < 2 * len(racket_fit.PARAMETERS):
             raise _Skip(f"{int(kept.sum())} usable racket contacts ({arrays.n_contacts} racket events; skipped: "
                         f"{counts['skipped'] or 'none'}; {counts['held_out']} held out); at least "
                         f"{2 * len(RF.PARAMETERS)} are needed")
-        fit = RF.fit_racket(arrays.x[kept], arrays.y_obs[kept], self.model)
+        fit = racket_fit.fit_racket(arrays.x[kept], arrays.y_obs[kept], self.model)
         tick = self.tick("racket")
         if tick is not None:
             tick(1, 1)
         self.log(f"racket: {counts['used']} of {counts['total']} contacts used; skipped {counts['skipped']}, "
                  f"{counts['held_out']} held out\n" + fit.summary())
-        self.sections.update(RF.racket_section(self.model.racket, fit))
+        self.sections.update(racket_fit.racket_section(self.model.racket, fit))
         self.report["racket"] = dict(counts=counts, fit=fit.to_dict())
         fitted = fit.params(self.model.racket)
         units = dict(velocity="m/s", spin="rad/s")
         if (~kept).any():
             radius, mass = ball_properties(self.model)
             x, y = arrays.x[~kept], arrays.y_obs[~kept]
-            self.comparison["racket"] = _comparison("held_out", len(x), RF.racket_errors(self.base.racket, x, y, radius,
-                                                                                          mass),
-                                                    RF.racket_errors(fitted, x, y, radius, mass), units)
+            self.comparison["racket"] = _comparison("held_out", len(x),
+                                                    racket_fit.racket_errors(self.base.racket, x, y, radius, mass),
+                                                    racket_fit.racket_errors(fitted, x, y, radius, mass), units)
         else:
             self.comparison["racket"] = _comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
                                                     units)
