@@ -6,7 +6,9 @@ numpy (no simulator, no compilation):
 * pure-noise contact errors: the held-out reduction is not significant;
 * flights flown with more drag than the model's, the model's initial states refitted: the
   correction removes most of the residual and names the drag-like term first;
-* a phase with too few items gives a reason, and nothing in the output is NaN.
+* a phase with too few items gives a reason, and nothing in the output is NaN;
+* racket contacts with less grip beyond a rim: recovered and named by the contact distance;
+* table spin errors from a spin that decays in flight: named by the spin times.
 """
 
 import math
@@ -158,3 +160,53 @@ def test_too_few_items_give_a_reason_and_no_nan():
     assert "reason" in out["table"] and "at least" in out["table"]["reason"]
     assert "reason" in out["racket"]
     assert finite_everywhere(out)
+
+
+def racket_problem(n, errors, rng):
+    """A Problem-like object of n racket contacts (racket frame, contact points on a disc of 9 cm);
+    ``errors(x)`` gives the model's (n, 6) errors from the inputs x (n, 8)."""
+    v = np.stack([rng.uniform(-12.0, -3.0, n), rng.uniform(-3.0, 3.0, n), rng.uniform(-3.0, 3.0, n)], 1)
+    w = rng.uniform(-150.0, 150.0, (n, 3))
+    radius, angle = 0.09 * np.sqrt(rng.random(n)), rng.uniform(0.0, 2 * np.pi, n)
+    d = np.stack([radius * np.cos(angle), radius * np.sin(angle)], 1)
+    x = np.concatenate([v, w, d], 1)
+    train, test = split(n, rng)
+    data = dict(x=x, pos=np.zeros((n, 3)), known=np.ones(n), known_in=np.ones(n), train=train, test=test)
+    return types.SimpleNamespace(data={"racket": data}, base={"racket": errors(x)}, phases=("racket",))
+
+
+def test_less_grip_towards_the_rim_is_recovered_and_named_by_the_distance():
+    """A rim beyond 8.2 cm (the outer sixth of the contacts) with less grip: the tangential
+    velocity error is a share of the slip there and nothing elsewhere."""
+    rng = np.random.default_rng(5)
+
+    def errors(x):
+        v, w, dist = x[:, :3], x[:, 3:6], np.linalg.norm(x[:, 6:8], axis=1)
+        slip = np.stack([v[:, 1] - RADIUS * w[:, 2], v[:, 2] + RADIUS * w[:, 1]], 1)
+        e = 0.01 * rng.standard_normal((len(x), 6))
+        e[:, 1:3] += 0.3 * slip * (dist > 0.082)[:, None]
+        return e
+
+    r = B.bounds(racket_problem(300, errors, rng), RADIUS)["racket"]
+    h = r["heldout"]
+    # the knots are the quantiles of |d| (6.4, 7.8, 8.5 cm here), not the rim itself: a step
+    # between them recovers part of it
+    assert h["significant"] and h["pct"] > 35.0, h
+    assert "|d|" in r["terms"][0]["name"] and "slip" in r["terms"][0]["name"], r["terms"]
+
+
+def test_spin_changing_in_flight_is_named_by_the_spin_times():
+    """Table bounces whose compared spins are the segments' means, with a spin that decays in
+    flight: the spin errors are the incoming spin times its time to the contact."""
+    rng = np.random.default_rng(6)
+    rate = 0.5  # [1/s]
+    pb = table_problem(300, lambda x: 0.005 * rng.standard_normal((len(x), 6)), rng)
+    d = pb.data["table"]
+    d["spin_dt"] = rng.uniform(0.1, 0.5, (300, 2))
+    e = pb.base["table"]
+    e[:, 3:] += RADIUS * rate * d["x"][:, 3:6] * d["spin_dt"][:, :1]
+    # observed post-bounce spin: the model's (here half the incoming, reversed) less the error
+    d["y_obs"] = np.concatenate([np.zeros((300, 3)), -0.5 * d["x"][:, 3:6] - e[:, 3:] / RADIUS], 1)
+    t = B.bounds(pb, RADIUS)["table"]
+    assert t["heldout"]["significant"] and t["heldout"]["pct"] > 50.0, t["heldout"]
+    assert "time from the incoming segment's mean sample" in t["terms"][0]["name"], t["terms"]
