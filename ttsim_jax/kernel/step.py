@@ -148,14 +148,19 @@ def may_hit(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt, sp
                                                                               span + dt)
 
 
+def step_flags(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt):
+    """(:func:`may_have_event`, :func:`may_need_network`) of one ball, from one :func:`may_hit`."""
+    fixed, near = may_hit(model, ball, free, rackets, dt)
+    racket = jnp.zeros((), bool) if near is None else jnp.any(near)
+    event = reduce(jnp.logical_or, fixed) | racket | ev.out_of_play(free.pos) | ~is_valid(free)
+    # sustained table contact: its end of step (:func:`settle`) may move the ball onto a racket
+    return event, racket | fixed[FIXED_SLOTS.index(ev.REST)]
+
+
 def may_have_event(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt):
     """Whether :func:`detect` or :func:`resolve` could report anything for this step (one ball):
     :func:`may_hit`, leaving play or an invalid state."""
-    fixed, near = may_hit(model, ball, free, rackets, dt)
-    flag = reduce(jnp.logical_or, fixed)
-    if near is not None:
-        flag |= jnp.any(near)
-    return flag | ev.out_of_play(free.pos) | ~is_valid(free)
+    return step_flags(model, ball, free, rackets, dt)[0]
 
 
 def _racket_flags(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
@@ -164,17 +169,10 @@ def _racket_flags(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
                                                                   free.vel, dt)
 
 
-def racket_may_hit(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
-    """Whether the ball may meet any racket in the step (one ball; the racket test of :func:`may_have_event`)."""
-    return jnp.any(_racket_flags(model, ball, free, rackets, dt))
-
-
 def may_need_network(model: Model, ball: Ball, free: Ball, rackets: Racket, dt):
     """A superset of the balls whose step ends in a racket contact (one ball): the racket test on the
     free flight, and every ball in sustained table contact, whose end of step :func:`settle` moves."""
-    radius, _ = ball_properties(model)
-    return (racket_may_hit(model, ball, free, rackets, dt)
-            | table_stage.touching(model.table, model.effects, radius, ball.pos, ball.vel))
+    return step_flags(model, ball, free, rackets, dt)[1]
 
 
 def detect(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt, done=None, elapsed=0.0) -> Proposal:
@@ -481,7 +479,9 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     r_ax = 0 if rackets_batched else None
     t_ax = None if jnp.ndim(t) == 0 else 0
     free = jax.vmap(partial(flight, integrator=integrator), in_axes=(phys_axes, 0, t_ax, None))(phys, ball, t, dt)
-    flag = alive & jax.vmap(may_have_event, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free, rackets, dt)
+    # one pass of the cheap tests gives both flags (the second is only read with a network and rackets)
+    flag, near = jax.vmap(step_flags, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free, rackets, dt)
+    flag, near = alive & flag, alive & near
     base = jax.tree.map(lambda f, o: jnp.where(alive[:, None], f, o), free, ball)
     capacity = min(capacity, b)
 
@@ -531,8 +531,6 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         everyone = jnp.arange(b)
         crowded = jnp.sum(flag) > capacity
         if net_rows is not None:
-            near = alive & jax.vmap(may_need_network, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free,
-                                                                                              rackets, dt)
             crowded |= jnp.sum(near) > net_rows
         return jax.lax.cond(crowded, lambda: write(everyone, events(everyone)), one_buffer)
     if buffering != "loop":
