@@ -7,18 +7,23 @@
 # 1. peers.py, flight + table at 65,536 / 262,144 / 1,048,576 balls: the kernel (reference path),
 #    kernel_fused, the plain scan, numba_cuda (full geometry) and numba_cuda_lean (the lean loop),
 #    the numba CPU loops up to 65,536 balls; one JSON and its plot.
-# 2. env_throughput.py: env-steps/s of the default ReturnBall task at 65,536 environments (the larger
-#    of the two sizes measured on an H100 before: 13.9 M env-steps/s, against 1.2 M at 4,096).
+# 2. env_throughput.py: env-steps/s of the default ReturnBall task at 65,536 and 262,144 environments
+#    (its best batch: 65,536 was the larger of the two sizes measured on an H100 before, 13.9 M
+#    env-steps/s, against 1.2 M at 4,096).
 # 3. ttsim train ppo on the default config for 40 s (checked after each chunk, compilation included):
 #    env-steps per second of training.
 #
 # Every step runs under its own `timeout` with its log in OUT, and a step whose imports fail in the
 # check before is skipped with the reason in session.log, so one failure does not cost the others. OUT receives at
 # most 8 files, flat: session.log, peers.log, peers_gpu.json, peers_gpu.png, env_throughput.log,
-# env_throughput_gpu.json, ppo.log, ppo_metrics.json. The time limits add up to 415 s (about 330 s
+# env_throughput_gpu.json, ppo.log, ppo_metrics.json. The time limits add up to 470 s (about 380 s
 # expected on an H100 from the compile and run times of earlier runs).
 #
-# The package is used from this checkout (PYTHONPATH), nothing is installed. PYTHON picks the
+# The package is used from this checkout (PYTHONPATH), nothing is installed. Pure-Python packages the
+# machine's interpreter lacks (gymnasium and jaxopt were missing on a lent H100) are taken from
+# .gpu_deps/ when it exists (gitignored; fill it on a machine that has them and carry it along):
+#   for m in gymnasium farama_notifications cloudpickle jaxopt; do
+#       cp -r "$(python -c "import $m, os; print(os.path.dirname($m.__file__))")" .gpu_deps/; done PYTHON picks the
 # interpreter (default /opt/torch/.venv/bin/python3 where it exists, else python3).
 # GPU_SESSION_QUICK=1 shrinks every size, for a dry run on a CPU (the CUDA peers are skipped there).
 set -u
@@ -27,6 +32,7 @@ cd "$(dirname "$0")/.."
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+[ -d "$PWD/.gpu_deps" ] && export PYTHONPATH="$PYTHONPATH:$PWD/.gpu_deps"
 PY="${PYTHON:-}"
 if [ -z "$PY" ]; then
     if [ -x /opt/torch/.venv/bin/python3 ]; then PY=/opt/torch/.venv/bin/python3; else PY=python3; fi
@@ -40,9 +46,9 @@ if [ "${GPU_SESSION_QUICK:-0}" = 1 ]; then
     T_CHECK=120 T_PEERS=600 T_ENV=300 T_PPO=600
 else
     PEERS_ARGS=(--batches 65536,262144,1048576 --budget 2e8 --repeats 3 --max-batch-numba 65536)
-    ENV_ARGS=(--envs 65536 --steps 50 --repeats 3)
+    ENV_ARGS=(--envs 65536 262144 --steps 50 --repeats 3)
     PPO_SECONDS=40
-    T_CHECK=30 T_PEERS=280 T_ENV=45 T_PPO=60
+    T_CHECK=30 T_PEERS=280 T_ENV=100 T_PPO=60
 fi
 
 say() { echo "[$(date +%T)] $*" | tee -a "$LOG"; }

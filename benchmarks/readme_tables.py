@@ -28,6 +28,7 @@ DEFAULT = REPO / "benchmarks" / "results" / "peers_cpu.json"
 TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "results" / "peers_gpu.json",
           "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json",
           "peers-gpu-lean-table": REPO / "benchmarks" / "results" / "peers_gpu_lean.json",
+          "peers-gpu-now-table": REPO / "benchmarks" / "results" / "peers_gpu_61ba2cf.json",
           "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json"}
 PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_lean", "numba_cuda", "numba_cuda_lean", "mujoco", "mjx")
 
