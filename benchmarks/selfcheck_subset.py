@@ -34,10 +34,10 @@ def plan_parts(singles=(), pairs=None) -> list:
         return name, plan, 100 * full.index(plan[0])
 
     if pairs is None:
-        out = [part("pairs", SC.cases((), SC.PAIRS, None))]
+        out = [part("pairs", SC.cases((), SC.PAIRS, None, control=False))]
     else:
-        out = [part("pair_" + "+".join(q), SC.cases((), [tuple(q)], None)) for q in pairs]
-    return out + [part(f"single_{n}", SC.cases((n,), (), None)) for n in singles]
+        out = [part("pair_" + "+".join(q), SC.cases((), [tuple(q)], None, control=False)) for q in pairs]
+    return out + [part(f"single_{n}", SC.cases((n,), (), None, control=False)) for n in singles]
 
 
 def main(argv=None) -> int:

@@ -121,7 +121,8 @@ def test_outside_plan_and_the_tracker_log_of_one_direction():
     from ttsim_jax.data import load
 
     plan = SC.outside_cases()
-    assert len(plan) >= 8 and {k for k, _ in plan} == set(SC.OUTSIDE_KINDS)
+    assert len(plan) >= 9 and {k for k, _ in plan} == set(SC.OUTSIDE_KINDS) | {"control"}
+    assert plan[-1] == ("control", ())  # last: the stored cases of a run without it keep their numbers
     assert SC.outside_cases((("outside", ("no_such_effect",)),)) == []
     ds = load(Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games")
     log = SC.as_tracker_log(ds, one_way=True)
@@ -163,7 +164,30 @@ def test_drawn_magnitudes_are_valid_parameters_in_the_upper_realistic_range(name
 
 def test_cases_plan():
     plan = SC.cases(("spin_decay",), (("air_flow", "buckling"),), "racket_edge")
-    assert plan == [("single", ("spin_decay",)), ("pair", ("air_flow", "buckling")), ("outside", ("racket_edge",))]
+    assert plan == [("single", ("spin_decay",)), ("pair", ("air_flow", "buckling")), ("outside", ("racket_edge",)),
+                    ("control", ())]
+    assert SC.cases(("spin_decay",), (), None, control=False) == [("single", ("spin_decay",))]
+    assert SC.case_path("run", 5, ()).name == "05_control.json"
+
+
+def test_the_control_case_is_right_only_when_nothing_is_found_and_no_phase_is_located():
+    quiet = SC.score("control", [], [cand("worn_ball", False, table=held(0.3, lo=-1.0))], NO_WHERE, {},
+                     dict(level="unexplained", gaps=[]))
+    assert not quiet["false_alarm"] and quiet["outcome"] == "nothing found" and quiet["located"] == []
+    above = SC.score("control", [], [], NO_WHERE, {}, dict(level="unexplained", gaps=["flight"]))
+    assert above["false_alarm"] and above["outcome"] == "false alarm: nothing significant, located in flight"
+    named = SC.score("control", [], [cand("worn_ball", table=held(5.0))], NO_WHERE, {},
+                     dict(level="explained", gaps=[]))
+    assert named["false_alarm"] and named["outcome"] == "false alarm: worn_ball"
+    rows = [dict(r, kind="control", effects=[], bound_significant=b)
+            for r, b in ((quiet, []), (above, ["flight"]), (named, []))]
+    assert [SC._verdict(r) for r in rows] == ["right", "wrong", "wrong"]
+    s = SC.summary(rows)
+    assert (s["n_control"], s["control_false_alarms"], s["control_bound_significant"]) == (3, 2, ["flight"])
+    assert s["n_undetectable"] == 0 and s["n_single"] == 0
+    text = SC.table(dict(cases=rows, summary=s, seconds=1.0, cpu_seconds=1.0))
+    assert "| control | none (the record's noise only) | nothing found |" in text
+    assert "a false alarm in 2, the model-free bound significant in flight" in text
 
 
 def test_a_candidate_that_worsens_another_phase_is_not_significant():
@@ -222,7 +246,7 @@ def _fake_cases(monkeypatch, calls, stop_at=None):
 def test_an_interrupted_selfcheck_resumes_from_its_stored_cases(tmp_path, monkeypatch):
     from ttsim_jax.diagnose.diagnosis import Settings
 
-    plan = SC.cases(("spin_decay", "air_flow", "table_tilt"), (), None)
+    plan = SC.cases(("spin_decay", "air_flow", "table_tilt"), (), None, control=False)
     settings = Settings.quick()
     calls = []
     _fake_cases(monkeypatch, calls, stop_at=2)
@@ -249,7 +273,7 @@ def test_a_stored_case_of_other_draws_is_not_resumed(tmp_path, monkeypatch):
     """The key holds the drawn parameters: cases stored before a change of DRAWS are refused."""
     from ttsim_jax.diagnose.diagnosis import Settings
 
-    plan = SC.cases(("spin_decay",), (), None)
+    plan = SC.cases(("spin_decay",), (), None, control=False)
     _fake_cases(monkeypatch, [])
     SC.selfcheck(plan, Settings.quick(), seed=5, store=tmp_path)
     monkeypatch.setitem(SC.DRAWS, "spin_decay", lambda r: {"rate": r.uniform(0.05, 0.1), "quadratic": 0.0})
@@ -333,6 +357,7 @@ def test_a_subset_runs_each_case_at_its_full_run_seed():
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     full = SC.cases(C.candidate_names(), SC.PAIRS, SC.OUTSIDE)
+    assert full[-1] == ("control", ())
     for pairs in (None, [SC.PAIRS[1]], SC.PAIRS[::-1]):
         parts = mod.plan_parts(["worn_ball", "buckling"], pairs)
         assert len(parts) == (1 if pairs is None else len(pairs)) + 2

@@ -17,7 +17,9 @@ from ttsim_jax.diagnose import candidates as candidate_fit
 OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
 #: The outside suite: each effect generated and withheld from the candidates, in every phase, as
 #: labelled games and as a tracker's raw logs, in both directions and in one; the effects on the
-#: record (a tracker's clock running fast, a camera's scale) have no candidate at all.
+#: record (a tracker's clock running fast, a camera's scale) have no candidate at all. The last
+#: case is the effect-free control (the model's own physics and the record's noise): right when
+#: nothing is found and no phase stands above its noise floor.
 OUTSIDE_PLAN = (
     ("outside", ("racket_edge",)),
     ("outside", ("table_tilt",)),
@@ -32,6 +34,7 @@ OUTSIDE_PLAN = (
     ("outside", ("clock_rate",)),
     ("outside_oneway", ("air_density",)),
     ("outside", ("camera_scale",)),
+    ("control", ()),
 )
 
 def effect_phases(names) -> tuple:

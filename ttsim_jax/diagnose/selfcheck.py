@@ -6,6 +6,9 @@ with conti2026 (the effects hidden from the model) and scores the result against
 
 * *single*: one catalogue effect;
 * *pair*: two catalogue effects at once;
+* *control*: no effect at all, only the record's noise (last in every suite): the right answer is
+  "unexplained" with nothing significant and no phase above its noise floor, the model-free bound
+  included;
 * *outside*: an effect the diagnosis's catalogue lacks (the candidates are every simulator effect
   but it): the right answer is "unexplained", with the gap located in the phase it acts in. The
   outside suite (:data:`OUTSIDE_PLAN`, ``--outside``) also records some cases as a tracker does
@@ -244,6 +247,16 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
     if kind == "pair":
         first, second = (true_among(c) for c in sig[:2]) if len(sig) >= 2 else (set(), set())
         out["both"] = bool(first and second and first | second == set(names))
+    if kind == "control":
+        # Right: nothing accepted and no phase above its floor or with a flagged regime.
+        gaps = (verdict or {}).get("gaps", [])
+        located = [p for p in candidate_fit.PHASES if p in gaps or where.get(p, {}).get("flagged")]
+        out.update(located=located, phase=located[0] if located else None, phase_right=not located,
+                   level=verdict["level"] if verdict else ("explained" if sig else "unexplained"),
+                   false_alarm=bool(sig or located))
+        out["outcome"] = "nothing found" if not out["false_alarm"] else \
+            f"false alarm: {top or 'nothing significant'}" + (", located in " + "+".join(located) if located else "")
+        return out
     if kind in OUTSIDE_KINDS:
         # Right: never "explained" (the cause is not among the candidates; "partly explained" says
         # how much is left), and the gap located in a phase the effect acts in: above its noise
@@ -271,9 +284,10 @@ def summary(rows: list) -> dict:
     shrink recovered; counts of undetectable ones (and of them, nothing found); pairs; outside."""
     ok = [r for r in rows if "error" not in r]
     single = [r for r in ok if r["kind"] == "single" and r["detectable"]]
-    undet = [r for r in ok if r["kind"] not in OUTSIDE_KINDS and not r["detectable"]]
+    undet = [r for r in ok if r["kind"] not in OUTSIDE_KINDS + ("control",) and not r["detectable"]]
     pairs = [r for r in ok if r["kind"] == "pair" and r["detectable"]]
     outside = [r for r in ok if r["kind"] in OUTSIDE_KINDS]
+    control = [r for r in ok if r["kind"] == "control"]
     shrink = [r["shrink"] for r in single if math.isfinite(r["shrink"])]
     resolved = [r for r in outside if r.get("detectable") or not r.get("oracle_phase")]
     shares = [r["bound_share"] for r in resolved if math.isfinite(r.get("bound_share", math.nan))]
@@ -295,14 +309,17 @@ def summary(rows: list) -> dict:
                 outside_bound_share_median=float(np.median(shares)) if shares else math.nan,
                 outside_bound_reaching=sum(v >= 0.7 for v in shares), n_outside_bounded=len(shares),
                 outside_bound_named_rate=rate(resolved, "bound_named") if all("bound_named" in r for r in resolved) else math.nan,
+                n_control=len(control), control_false_alarms=sum(bool(r["false_alarm"]) for r in control),
+                control_bound_significant=sorted({p for r in control for p in r.get("bound_significant", ())}),
                 errors=len(rows) - len(ok))
 
 
 # ---------------------------------------------------------------------------------------------- cases
-def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE) -> list:
-    """[(kind, names)] of a selfcheck: every single effect, then the pairs, then the outside one."""
+def cases(names=QUICK, pairs=(), outside: str | None = OUTSIDE, control: bool = True) -> list:
+    """[(kind, names)] of a selfcheck: every single effect, then the pairs, the outside one and the
+    effect-free control."""
     return ([("single", (n,)) for n in names] + [("pair", tuple(p)) for p in pairs] +
-            ([("outside", (outside,))] if outside else []))
+            ([("outside", (outside,))] if outside else []) + ([("control", ())] if control else []))
 
 
 def case_inputs(names, seed: int, present=()) -> tuple[dict, dict]:
@@ -359,6 +376,8 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     simulated = [n for n in names if fx.effect_class(n).WHERE == "simulator"]
     oracle = oracle_scores(keep["problem"], model, simulated, gen.truth) if simulated else {}
     row.update(bound_score(names, out.get("bound"), oracle))
+    row["bound_significant"] = [p for p, b in (out.get("bound") or {}).items()
+                                if isinstance(b, dict) and b.get("heldout", {}).get("significant")]
     row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
                verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
@@ -401,7 +420,7 @@ def _case_key(kind: str, names, seed: int, games: int, settings, present) -> dic
 
 def case_path(store, i: int, names) -> Path:
     """The file of case ``i`` in a run folder's ``cases/``."""
-    return Path(store) / "cases" / f"{i:02d}_{'+'.join(names)}.json"
+    return Path(store) / "cases" / f"{i:02d}_{'+'.join(names) or 'control'}.json"
 
 
 def stored_cases(store) -> list:
@@ -465,7 +484,7 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
             if path is not None:
                 atomic_write(path, json.dumps(jsonable(dict(key=key, row=row)), indent=1).encode())
         if progress:
-            progress("+".join(names))
+            progress("+".join(names) or "control")
     return dict(cases=rows, summary=summary(rows), seconds=time.perf_counter() - t0,
                 cpu_seconds=time.process_time() - c0, resumed=resumed)
 
@@ -475,6 +494,8 @@ OUTCOME_COLOURS = {"right": "#2ca02c", "wrong": "#d62728", "undetectable": "#7f7
 
 
 def _verdict(r: dict) -> str:
+    if r["kind"] == "control":
+        return "wrong" if r["false_alarm"] else "right"
     if r["kind"] in OUTSIDE_KINDS:
         return "right" if not r.get("wrong_explained", not r["unexplained"]) and r["phase_right"] else "wrong"
     if not r["detectable"]:
@@ -496,7 +517,7 @@ def plot(result: dict, path):
         ax.barh(y[k] + 0.18, r["oracle_pct"], height=0.34, color="#c7c7c7", edgecolor="k", lw=0.5)
         ax.barh(y[k] - 0.18, r["found_pct"], height=0.34, color=OUTCOME_COLOURS[_verdict(r)])
         label = f"{r['oracle_phase'] or '-'}"
-        if r["kind"] in OUTSIDE_KINDS:
+        if r["kind"] in OUTSIDE_KINDS + ("control",):
             label = r["outcome"]
         elif math.isfinite(r["shrink"]):
             label += f", {r['shrink']:.2f} of the oracle"
@@ -511,7 +532,7 @@ def plot(result: dict, path):
     ax.legend(handles, ["found, phase right / unexplained and located", "missed or false alarm",
                         "undetectable, nothing found"], fontsize=7, loc="upper center", ncol=3,
               bbox_to_anchor=(0.4, -0.75 / (height - 1.4)), frameon=False)
-    ax.set_xlim(0, 1.6 * max([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0]))
+    ax.set_xlim(0, 1.6 * float(np.nanmax([r["oracle_pct"] for r in rows] + [r["found_pct"] for r in rows] + [1.0])))
     ax.set_title("withheld-effect selfcheck: what the diagnosis recovers of the oracle's shrink", fontsize=9)
     return save_figure(fig, path)
 
@@ -533,8 +554,13 @@ def table(result: dict) -> str:
             share = f", {r['bound_share']:.2f}" if math.isfinite(r.get("bound_share", math.nan)) else ""
             term = (r["bound_terms"][0] if r.get("bound_terms") else "no term").replace("|", "\\|")  # |v| in a table cell
             bound = f"{r['bound_phase']} {r['bound_pct']:.1f}{share}; {term} ({'right' if r['bound_named'] else 'other'})"
+        if r["kind"] == "control":
+            effects = "none (the record's noise only)"
+            sig = r.get("bound_significant", [])
+            bound = "significant in " + ", ".join(sig) if sig else "not significant in any phase"
+        oracle = f"{r['oracle_pct']:.1f} ({r['oracle_phase']})" if r.get("oracle_phase") else "-"
         lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
-                     f"{r['oracle_pct']:.1f} ({r['oracle_phase']}) | {shrink} | {bound} |")
+                     f"{oracle} | {shrink} | {bound} |")
     s = result["summary"]
     lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f} "
                  f"(of them {s.get('n_interchangeable', 0)} as interchangeable with the first), phase right "
@@ -547,7 +573,9 @@ def table(result: dict) -> str:
                  f"{s.get('outside_located_rate', math.nan):.2f}, model-free bound reaching 70 % of the oracle's "
                  f"shrink in {s.get('outside_bound_reaching', 0)} of {s.get('n_outside_bounded', 0)} (median share "
                  f"{s.get('outside_bound_share_median', math.nan):.2f}), its strongest term naming the effect's "
-                 f"variables {s.get('outside_bound_named_rate', math.nan):.2f}; "
+                 f"variables {s.get('outside_bound_named_rate', math.nan):.2f}; effect-free control: "
+                 f"{s.get('n_control', 0)} cases, a false alarm in {s.get('control_false_alarms', 0)}, the model-free "
+                 f"bound significant in {', '.join(s.get('control_bound_significant', [])) or 'no phase'}; "
                  f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU"
                  + (f" ({result['resumed']} cases taken from an earlier, interrupted run)" if result.get("resumed") else ""))
     return "\n".join(lines)
