@@ -210,3 +210,51 @@ def test_spin_changing_in_flight_is_named_by_the_spin_times():
     t = B.bounds(pb, RADIUS)["table"]
     assert t["heldout"]["significant"] and t["heldout"]["pct"] > 50.0, t["heldout"]
     assert "time from the incoming segment's mean sample" in t["terms"][0]["name"], t["terms"]
+
+
+def fly_in_air(state, k, dt, steps, t0, air):
+    """fly(), the drag taken against air moving at air(t) (S, 3), t the session time t0 + tau."""
+    def rate(y, t):
+        rel = y[:, 3:] - air(t)
+        return np.concatenate([y[:, 3:], G - k * np.linalg.norm(rel, axis=1, keepdims=True) * rel], 1)
+
+    y, out = state.copy(), [state[:, :3]]
+    for i in range(steps):
+        t = t0 + i * dt
+        k1 = rate(y, t)
+        k2 = rate(y + 0.5 * dt * k1, t + 0.5 * dt)
+        k3 = rate(y + 0.5 * dt * k2, t + 0.5 * dt)
+        k4 = rate(y + dt * k3, t + dt)
+        y = y + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(y[:, :3])
+    return np.stack(out, 1)
+
+
+def test_gusts_are_found_in_the_segments_own_winds_and_predict_held_out_segments(monkeypatch):
+    """Air moving in a gust of 0.13 Hz along the table (one session, a flight every ~5 s, slower
+    than the gust): no function of the state predicts it, its phase in session time does."""
+    rng = np.random.default_rng(5)
+    s, t, dt, freq = 90, 100, 0.005, 0.13
+    t0 = np.sort(rng.uniform(0.0, 450.0, s))
+    air = lambda tt: 1.5 * np.sin(2 * np.pi * freq * tt)[:, None] * np.array([1.0, 0.0, 0.0])  # noqa: E731
+    start = np.stack([rng.uniform(-1.5, -1.0, s), rng.uniform(-0.5, 0.5, s), rng.uniform(0.1, 0.3, s)], 1)
+    velocity = np.stack([rng.uniform(5.0, 12.0, s), rng.uniform(-1.0, 1.0, s), rng.uniform(-0.5, 2.5, s)], 1)
+    truth = np.concatenate([start, velocity], 1)
+    obs = fly_in_air(truth, K_MODEL, dt, t - 1, t0, air) + 2e-4 * rng.standard_normal((s, t, 3))
+    mask = np.ones((s, t))
+    x = refit(obs, mask, truth, dt, t - 1)
+    e = (fly(x, K_MODEL, dt, t - 1) - obs) * mask[..., None]
+    tau = np.broadcast_to(np.arange(t)[None] * dt, (s, t))
+    train, test = split(s, rng)
+    d = dict(tau=tau, pos=obs, mask=mask, spin=rng.uniform(-100.0, 100.0, (s, 3)), train=train, test=test,
+             t0=t0, session=np.zeros(s, np.int64))
+    pb = types.SimpleNamespace(data={"flight": d}, base={"flight": e}, phases=("flight",), pooled=False)
+    g, sessions = B.flight_basis(d, e, True)
+    found = B.gust_components(d, g, e, train > 0, sessions)
+    assert found and abs(found[0][1] - freq) < 0.01 and found[0][0] == 0, found
+    with_gusts = B.flight_bound(pb)
+    assert with_gusts["gusts"] and with_gusts["terms"][0]["name"].startswith("air moving in gusts"), with_gusts["terms"]
+    monkeypatch.setattr(B, "gust_components", lambda *a, **k: [])
+    without = B.flight_bound(pb)
+    assert with_gusts["heldout"]["significant"], with_gusts["heldout"]
+    assert with_gusts["heldout"]["pct"] > without["heldout"]["pct"] + 30.0, (with_gusts["heldout"], without["heldout"])

@@ -375,6 +375,10 @@ def test_the_bound_is_scored_against_the_oracle_and_its_terms():
     assert (b["bound_phase"], b["bound_pct"], b["bound_share"], b["bound_named"]) == ("table", 30.0, 0.75, True)
     assert not SC.bound_score(["worn_ball"], dict(bound, table=dict(bound["table"], terms=[{"name": "impact angle", "share": 1}])),
                               {"table": held(40.0)})["bound_named"]
+    # a reduction below the significance rule counts as none, and is kept apart
+    weak = SC.bound_score(["table_tilt"], dict(bound, table=dict(bound["table"], heldout=dict(
+        pct=3.0, ci95=[2.0, 4.0], significant=False))), {"table": held(4.0)})
+    assert (weak["bound_pct"], weak["bound_share"], weak["bound_pct_raw"], weak["bound_share_raw"]) == (0.0, 0.0, 3.0, 0.75)
     record = SC.bound_score(["clock_rate"], bound, {})  # no oracle for an effect on the record
     assert record["bound_phase"] == "table" and math.isnan(record["bound_share"])
     assert SC.bound_score(["air_density"], bound, {})["bound_phase"] is None  # no bound in its phase
@@ -387,3 +391,18 @@ def test_the_bound_is_scored_against_the_oracle_and_its_terms():
     assert result["summary"]["outside_bound_reaching"] == 1 and result["summary"]["outside_bound_named_rate"] == 1.0
     assert result["summary"]["outside_located_rate"] == 1.0 and result["summary"]["n_outside_resolved"] == 1
     assert "table 30.0, 0.75; post-bounce r·ω y" in SC.table(result)
+
+
+def test_the_unresolved_parts_of_an_effect_are_set_to_neutral_in_a_copy_of_the_truth():
+    truth = {"sessions": [{"effects": {"air_flow": {"wind": [0.3, 0.0, 0.0], "gust_amp": [[0.1, 0, 0]] * 3}}}],
+             "effects": {"air_flow": {"params": {"wind": [0.3, 0.0, 0.0], "gust_amp": [[0.2, 0, 0]] * 3}}}}
+    steady = SC.neutral_parts(truth, SC.UNRESOLVED)
+    assert steady["sessions"][0]["effects"]["air_flow"]["gust_amp"] == [[0.0, 0.0, 0.0]] * 3
+    assert steady["effects"]["air_flow"]["params"]["gust_amp"] == [[0.0, 0.0, 0.0]] * 3
+    assert steady["sessions"][0]["effects"]["air_flow"]["wind"] == [0.3, 0.0, 0.0]
+    assert truth["sessions"][0]["effects"]["air_flow"]["gust_amp"][0] == [0.1, 0, 0]  # the truth itself unchanged
+    row = dict(kind="outside_log", effects=["air_flow"], detectable=True, phase_right=True, bound_share=0.36,
+               bound_share_steady=0.8, bound_named=True, unexplained=True)
+    s = SC.summary([row, dict(row, bound_share=0.75, bound_share_steady=math.nan), dict(row, bound_share=0.2,
+                                                                                          bound_share_steady=0.5)])
+    assert (s["outside_bound_reaching"], s["outside_bound_reaching_resolved"]) == (1, 2)

@@ -45,10 +45,16 @@ these variables generalises: what remains is noise, or depends on something not 
   spin is the segment's measured spin, held. A segment's rows are weighted as the candidates'
   robust flight loss weighs it (:data:`~ttsim_jax.diagnose.candidates.ROBUST`), so that a few
   mis-cut segments do not steer the fit; the score is the plain one, as for the candidates.
-  Air that changes faster than the segments follow one another (gusts of 1-20 s against a
-  training segment every ~10 s of a session) is out of its reach: what a held-out segment met is
-  not a function of the training segments' air. On a one-way air-flow case the true steady wind
-  alone, gusts off, closes 17 % of the held-out error against the whole effect's 29 %.
+  Air that changes in gusts (periods of 1-20 s, against a training segment every ~10 s of a
+  session) is no function of the state, nor one that the segments sample finely enough to
+  interpolate: on a one-way air-flow case the true steady wind alone, gusts off, closes 17 % of the
+  held-out error against the whole effect's 29 %. Gusts are periodic, though: each training
+  segment's own steady wind (linear, from the wind columns) is laid against its session time, and
+  the periodogram that the ``air_flow`` candidate's search uses
+  (:func:`~ttsim_jax.diagnose.gusts.periodogram_gusts`) picks the frequencies that stand above
+  noise (:func:`gust_components`); a wind at each of them, in sine and cosine of the session
+  time, joins the columns (:func:`flight_basis`), so a held-out segment between training ones is
+  predicted from the phase of the gust.
 
 Fit (:func:`ridge_cv`): ridge regression on features scaled by their RMS (not centred:
 :func:`_scaled`; the constant unpenalised), per error component for contacts and jointly over
@@ -77,6 +83,7 @@ import math
 import numpy as np
 
 from ttsim_jax.diagnose import candidates
+from ttsim_jax.diagnose import gusts as gust_search
 
 #: Least training items (contacts; segments in flight) of a phase with a bound, and of an error
 #: component with a fitted correction.
@@ -88,6 +95,8 @@ FOLDS = 5
 #: Ridge weights tried, relative to the mean diagonal of the weighted Gram matrix of the
 #: scaled features (so that a weight means the same for any number of rows).
 LAMBDAS = np.logspace(-6, 2, 17)
+#: Gust components sought per session (as many as the ``air_flow`` effect has).
+GUST_COMPONENTS = 3
 #: Terms reported per phase.
 TOP_TERMS = 3
 #: Labels of the contact error components (the 6-vector of :mod:`~ttsim_jax.diagnose.stages`).
@@ -420,7 +429,7 @@ def _fields(v, spin) -> np.ndarray:
     return np.concatenate([per_axis.reshape(len(v), -1, 3), drag, magnus], 1)
 
 
-def flight_basis(d: dict, errors, per_session: bool) -> tuple[np.ndarray, int]:
+def flight_basis(d: dict, errors, per_session: bool, gusts=()) -> tuple[np.ndarray, int]:
     """(S, T, M, 3) position changes at the samples of each segment by a unit of each of the
     correction's M vector fields (its double integral along the segment with the constant and
     linear parts in time projected out; 0 at padding and in unusable segments), and the number of
@@ -428,7 +437,9 @@ def flight_basis(d: dict, errors, per_session: bool) -> tuple[np.ndarray, int]:
 
     Columns: B (:data:`FLIGHT_FEATURES` x axes, feature-major), a steady wind's 6 (:func:`_fields`),
     and, with ``per_session``, for each session a constant acceleration and a steady wind of its
-    own (a frame tilt and the hall's air of that session; 9 columns each).
+    own (a frame tilt and the hall's air of that session; 9 columns each); then, per gust
+    component (session, frequency f) of ``gusts``, a steady wind's change of drag times
+    sin(2 pi f t) and times cos(2 pi f t), t the session time (6 columns each).
 
     Arguments:
         d: the flight arrays (``tau``, ``pos``, ``mask``, ``spin``, optional ``session``);
@@ -442,7 +453,9 @@ def flight_basis(d: dict, errors, per_session: bool) -> tuple[np.ndarray, int]:
     sessions = sessions if sessions > 1 else 0
     common = 3 * len(FLIGHT_FEATURES) + 6
     path = pos + np.asarray(errors, np.float64)  # the model's own flight at the samples
-    out = np.zeros(tau.shape + (common + 9 * sessions, 3))
+    t0 = np.asarray(d.get("t0", np.zeros(len(tau))), np.float64)
+    first_gust = common + 9 * sessions
+    out = np.zeros(tau.shape + (first_gust + 6 * len(gusts), 3))
     for s in range(len(tau)):
         m = mask[s]
         t = tau[s][m]
@@ -450,10 +463,18 @@ def flight_basis(d: dict, errors, per_session: bool) -> tuple[np.ndarray, int]:
             continue
         v = np.gradient(path[s][m], t, axis=0, edge_order=2)
         f = _fields(v, spin[s])
+        drag = f[:, common - 6:common - 3]
         if sessions:
             own = np.concatenate([f[:, 0:3], f[:, common - 6:common]], 1)  # constant, wind
             f = np.concatenate([f, np.zeros((len(t), 9 * sessions, 3))], 1)
             f[:, common + 9 * session[s]:common + 9 * session[s] + 9] = own
+        if len(gusts):
+            f = np.concatenate([f, np.zeros((len(t), 6 * len(gusts), 3))], 1)
+            for k, (gs, freq) in enumerate(gusts):
+                if gs == session[s]:
+                    arg = 2.0 * np.pi * freq * (t0[s] + t)[:, None, None]
+                    f[:, first_gust + 6 * k:first_gust + 6 * k + 6] = np.concatenate(
+                        [drag * np.sin(arg), drag * np.cos(arg)], 1)
         g = _double_integral(f.reshape(len(t), -1), t)
         a = np.stack([np.ones_like(t), t - t.mean()], 1)
         g -= a @ np.linalg.lstsq(a, g, rcond=None)[0]  # what the initial-state refit absorbs
@@ -461,12 +482,12 @@ def flight_basis(d: dict, errors, per_session: bool) -> tuple[np.ndarray, int]:
     return out, sessions
 
 
-def flight_parts(theta, sessions: int) -> tuple[np.ndarray, list, list]:
+def flight_parts(theta, sessions: int, gusts=()) -> tuple[np.ndarray, list, list]:
     """The named parts of the fitted flight correction (see the module docstring).
 
     Arguments:
         theta: (M,) coefficients of the columns of :func:`flight_basis`; sessions: sessions with
-        columns of their own.
+        columns of their own; gusts: its gust components (session, frequency).
 
     Returns:
         ((P, M) parts summing to theta, P names, P coefficients: the part's coefficient per unit
@@ -506,7 +527,57 @@ def flight_parts(theta, sessions: int) -> tuple[np.ndarray, list, list]:
         add(tilt, "constant acceleration per session (a tilt of that session's frame)",
             np.linalg.norm(own[:, :3], axis=1).max())
         add(wind, f"{WIND}, one per session", np.linalg.norm(own[:, 3:6], axis=1).max())
+    if len(gusts):
+        first = common + 9 * sessions
+        amp = np.hypot(theta[first:].reshape(-1, 2, 3)[:, 0], theta[first:].reshape(-1, 2, 3)[:, 1])
+        freqs = ", ".join(f"{f:.2g}" for f in sorted({round(float(f), 3) for _, f in gusts}))
+        add(list(range(first, len(theta))), f"air moving in gusts: a wind varying in session time at {freqs} Hz "
+            "(its change of drag)", np.linalg.norm(amp, axis=1).max())
     return np.stack(parts), names, coefs
+
+
+def gust_components(d: dict, g, errors, train, sessions: int) -> list:
+    """Gust components (session, frequency [Hz]) of the flights: per training segment its own
+    steady wind (the least-squares coefficients of the drag-change columns of ``g``, :func:`flight_basis`,
+    on the segment's residual, with their information), and per session the periodogram of those
+    winds against the segments' mean times (:func:`ttsim_jax.diagnose.gusts.periodogram_gusts`),
+    keeping the components it finds. Linear: no simulation, unlike the ``air_flow`` candidate's
+    search (:func:`ttsim_jax.diagnose.gusts.gust_stage`), which refits each segment's state.
+
+    Arguments:
+        d: the flight arrays; g: (S, T, M, 3) :func:`flight_basis` without gusts; errors: (S, T, 3)
+        the model's position residuals; train: (S,) training segments; sessions: as returned by
+        :func:`flight_basis`.
+    """
+    if "t0" not in d:  # no session times: nothing to lay the winds against
+        return []
+    mask = np.asarray(d["mask"]) > 0
+    col = 3 * len(FLIGHT_FEATURES)  # the steady wind's drag columns
+    n = mask.sum(1)
+    offsets, info, reduced = np.zeros((len(n), 3)), np.zeros((len(n), 3, 3)), np.full(len(n), np.inf)
+    for s in np.flatnonzero(train & (n >= 6)):
+        x = g[s][mask[s]][:, col:col + 3].transpose(0, 2, 1).reshape(-1, 3)
+        y = -np.asarray(errors[s], np.float64)[mask[s]].reshape(-1)
+        a = x.T @ x
+        if not np.all(np.isfinite(a)) or np.linalg.matrix_rank(a) < 3:
+            continue
+        offsets[s] = np.linalg.solve(a, x.T @ y)
+        info[s] = a
+        reduced[s] = float(np.sum((y - x @ offsets[s]) ** 2)) / max(3.0 * n[s] - 9.0, 1.0)
+    ok = np.isfinite(reduced)
+    if not ok.any():
+        return []
+    sigma2 = max(float(np.median(reduced[ok])), 1e-20)
+    ok &= reduced < gust_search.OUTLIER**2 * sigma2  # a mis-cut segment would pull with a wild offset
+    times = gust_search.mean_times(d)
+    session = np.asarray(d.get("session", np.zeros(len(n))), np.int64)
+    out = []
+    for k in np.unique(session[ok]):
+        rows = ok & (session == k)
+        amp, freq, _, _ = gust_search.periodogram_gusts(times[rows], offsets[rows], info[rows] / sigma2,
+                                                       components=GUST_COMPONENTS)
+        out += [(int(k), float(f)) for a, f in zip(amp, freq) if np.linalg.norm(a) > 0]
+    return out
 
 
 def flight_bound(pb, seed: int = 0) -> dict:
@@ -530,6 +601,9 @@ def flight_bound(pb, seed: int = 0) -> dict:
                            f"needs at least {MIN_TRAIN} and {MIN_TEST}")
     # per-session terms where the candidates fit per-session parameters
     g, sessions = flight_basis(d, e, not getattr(pb, "pooled", False))
+    gusts = gust_components(d, g, e, train, sessions)
+    if gusts:
+        g, sessions = flight_basis(d, e, not getattr(pb, "pooled", False), gusts)
     s, t, m, _ = g.shape
     # the candidates' robust weight of each segment, from the model's errors (held fixed)
     sse, n = candidates.item_sums(pb, "flight", e)
@@ -551,14 +625,16 @@ def flight_bound(pb, seed: int = 0) -> dict:
     if not _finite(h):
         return dict(reason="the held-out flight error is not defined (no held-out error to reduce)")
     unit = np.where(np.isfinite(scale), 1.0 / scale, 0.0)
-    named, names, coefs = flight_parts(unit * beta[:, 0], sessions)
+    named, names, coefs = flight_parts(unit * beta[:, 0], sessions, gusts)
     parts = (named * np.where(np.isfinite(scale), scale, 0.0))[:, :, None]  # in the units of the scaled columns
     fall = attribute(z, parts, y, np.repeat((test[:, None] * mask).reshape(-1), 3)[:, None])
     terms = _terms(names, fall, coefs)
     what = ("a missing acceleration linear in 1, |v|, v, |v| v, ω×v and |v| ω×v per axis and a steady wind"
-            + (f", and a frame tilt and a steady wind per session ({sessions} sessions)" if sessions else ""))
+            + (f", and a frame tilt and a steady wind per session ({sessions} sessions)" if sessions else "")
+            + (f", and {len(gusts)} gust components found in the segments' own winds" if gusts else ""))
     return dict(heldout=h, terms=terms, text=_text("flight", what, h, terms), features=list(FLIGHT_FEATURES),
-                sessions=sessions, n_train=int(train.sum()), **{"lambda": lam.tolist()})
+                sessions=sessions, gusts=[dict(session=k, freq_hz=f) for k, f in gusts], n_train=int(train.sum()),
+                **{"lambda": lam.tolist()})
 
 
 # ---------------------------------------------------------------------------------------------- all phases

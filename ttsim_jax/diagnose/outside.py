@@ -70,7 +70,8 @@ TERMS = {
 
 def bound_score(names, bound: dict, oracle: dict) -> dict:
     """How far the model-free correction (the diagnosis's ``bound``) gets in the effects' phase: its
-    held-out reduction there against the oracle's (``bound_share``; NaN without an oracle), its
+    held-out reduction there against the oracle's (``bound_share``; NaN without an oracle; 0 where
+    the reduction is not significant, ``bound_pct_raw`` and ``bound_share_raw`` keep it), its
     strongest terms, and whether the first names a variable of :data:`TERMS` (``bound_named``).
 
     The phase is the oracle's best one; without an oracle (an effect on the record), the phase of the
@@ -78,7 +79,8 @@ def bound_score(names, bound: dict, oracle: dict) -> dict:
     phases = effect_phases(names)
     ok = {p: b for p, b in (bound or {}).items() if isinstance(b, dict) and "heldout" in b and p in phases}
     if not ok:
-        return dict(bound_phase=None, bound_pct=math.nan, bound_share=math.nan, bound_terms=[], bound_named=False)
+        return dict(bound_phase=None, bound_pct=math.nan, bound_share=math.nan, bound_pct_raw=math.nan,
+                    bound_share_raw=math.nan, bound_terms=[], bound_named=False)
     ranked = {p: h for p, h in oracle.items() if p in ok}
     if ranked:
         p = max(ranked, key=lambda q: ranked[q]["pct"])
@@ -88,8 +90,10 @@ def bound_score(names, bound: dict, oracle: dict) -> dict:
     pct = float(b["heldout"]["pct"]) if b["heldout"].get("significant") else 0.0
     terms = [t["name"] for t in b.get("terms", [])]
     words = [w for n in names for w in TERMS.get(n, ())]
-    return dict(bound_phase=p, bound_pct=pct,
-                bound_share=float(pct / oracle[p]["pct"]) if p in oracle and oracle[p]["pct"] > 0 else math.nan,
+    raw = float(b["heldout"]["pct"])
+    ref = oracle[p]["pct"] if p in oracle and oracle[p]["pct"] > 0 else math.nan
+    return dict(bound_phase=p, bound_pct=pct, bound_share=float(pct / ref), bound_pct_raw=raw,
+                bound_share_raw=float(raw / ref),
                 bound_terms=terms, bound_named=bool(terms and any(w in terms[0] for w in words)))
 
 
