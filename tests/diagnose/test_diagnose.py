@@ -107,6 +107,12 @@ def test_cli_writes_every_file(clean_run):
     for fig in FIGURES.values():
         assert f"]({fig})" in report
     assert "## Where" in report and "## Which effect" in report
+    # where the time went: every stage once, the candidates each, adding up to the run time
+    t = d["timings"]
+    assert {"model errors", "noise floor", "model-free bounds", "verdict"} <= set(t), t
+    assert {f"candidate {n}" for n in ("spin_decay", "worn_ball", "table_tilt")} <= set(t), t
+    assert all(v >= 0.0 for v in t.values()) and abs(sum(t.values()) - d["seconds"]) < 0.05 * d["seconds"] + 0.1
+    assert "Run time" in report and "candidate " in report.split("Run time")[1].splitlines()[0]
 
 
 def test_forward_selection_keeps_an_effect_only_when_it_adds(withheld):

@@ -145,12 +145,20 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         ``record``, ``floor`` (per phase the noise floor and the removable gap, or why there is
         none: :func:`ttsim_jax.diagnose.floor.floors`), ``candidates`` (ranked), ``combined``,
         ``before_after``, ``landing``,
-        ``verdict``, ``settings``, ``seconds``, and ``arrays`` (per-item errors for the figures).
+        ``verdict``, ``settings``, ``seconds``, ``timings`` ({stage: seconds}: where the time went,
+        compilation included), and ``arrays`` (per-item errors for the figures).
     """
     from ttsim_jax.kernel.step import ball_properties
 
     tick = progress or (lambda what, n=1: None)
     t_start = time.perf_counter()
+    timings, last = {}, [t_start]
+
+    def lap(what):
+        """Seconds since the previous lap, under ``what`` (summed), for ``timings``."""
+        now = time.perf_counter()
+        timings[what] = timings.get(what, 0.0) + now - last[0]
+        last[0] = now
     radius = float(ball_properties(model)[0])
     names = candidates.candidate_names(settings.effects)
     ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
@@ -159,6 +167,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     tick("model errors", 1)
     pb = candidates.problem(ph, model, settings.test_fraction, settings.seed)
     refuse_non_finite(pb, ph)
+    lap("model errors")
     if keep is not None:
         keep["problem"] = pb
     tick("landing rollouts" if settings.landing else "noise floor and bounds", 1)
@@ -175,17 +184,21 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             items["landing"] = where.landing_items(cases, landing["error"]["model"], radius)
         else:
             out["skipped"]["landing"] = landing["skipped"]
+        lap("landing rollouts")
     tick("noise floor and bounds" if settings.landing else "noise floor and bounds (no landing)", 1)
     out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
+    lap("noise floor")
     floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
     out["where"] = {p: where.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
     out["no_data"] = no_data(out["skipped"], settings.landing)
     out["dependence"] = {p: residuals.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
     out["record"] = residuals.record_sizes(ds, ph, model)
+    lap("where and the record")
     from ttsim_jax.diagnose.bound import bounds
 
     out["bound"] = bounds(pb, radius, settings.seed, ph.skipped)  # how far any correction gets, per phase
+    lap("model-free bounds")
 
     # which effect
     cands = []
@@ -200,6 +213,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             tick(following, 1)
             continue
         cands.append(candidates.fit(pb, [name], model, group=group_of[name], steps=settings.steps, lr=settings.lr))
+        lap(f"candidate {name}")
         tick(following, 1)
     ranked = candidates.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
@@ -223,6 +237,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     elif significant:
         best = significant[0]
         out["combined"] = _candidate_json(best, 1)
+    lap("ranking and forward selection")
     tick("landing after the effects" if landing is not None and cases is not None else "verdict", 1)
     arrays = {f"before_{p}": _items(ph, pb, p, pb.base[p], radius, _test_rows(pb, p))["error"] for p in pb.phases}
     out["before_after"] = {}
@@ -244,11 +259,14 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
             arrays["after_landing"] = after[np.isfinite(after)]
         out["landing"] = entry
+        lap("landing after the effects")
     tick("verdict", 1)
     out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
                              [c for c in ranked if c.spec.name in out["implausible"]])
     out["pooled_sessions"] = pb.pooled
+    lap("verdict")
     out["seconds"] = time.perf_counter() - t_start
+    out["timings"] = timings
     out["arrays"] = arrays
     out["histories"] = {c.spec.name: c.history for c in ranked}
     return out

@@ -268,7 +268,9 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
         lines += ["", f"Landing error (rollouts, {g['n']} contacts): median {g['before_median']:.3f} m"
                   + (f" -> {g['after_median']:.3f} m with the effects (median {g['reduction_median_pct']:+.0f} % lower)"
                      if "after_median" in g else "")]
-    lines += ["", f"Run time {out['seconds']:.0f} s. Every number is in diagnosis.json.", ""]
+    spent = sorted((out.get("timings") or {}).items(), key=lambda kv: -kv[1])[:4]
+    where_time = " (" + ", ".join(f"{k} {v:.0f} s" for k, v in spent) + ")" if spent else ""
+    lines += ["", f"Run time {out['seconds']:.0f} s{where_time}. Every number is in diagnosis.json.", ""]
     return "\n".join(lines)
 
 
