@@ -4,6 +4,7 @@ summary's rates, and the magnitudes drawn per effect."""
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -406,3 +407,17 @@ def test_the_unresolved_parts_of_an_effect_are_set_to_neutral_in_a_copy_of_the_t
     s = SC.summary([row, dict(row, bound_share=0.75, bound_share_steady=math.nan), dict(row, bound_share=0.2,
                                                                                           bound_share_steady=0.5)])
     assert (s["outside_bound_reaching"], s["outside_bound_reaching_resolved"]) == (1, 2)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="memory maps are counted from Linux's /proc")
+def test_compiled_programs_are_dropped_only_when_the_memory_maps_crowd():
+    import jax
+    import jax.numpy as jnp
+
+    assert not SC.release_compiled_if_crowded(share=1e9)
+    f = jax.jit(lambda x: jnp.sin(x) + 3.0)
+    f(jnp.ones(7)).block_until_ready()
+    assert f._cache_size() == 1
+    # a share below what is in use: dropped (the next call compiles again)
+    assert SC.release_compiled_if_crowded(share=1e-9)
+    assert f._cache_size() == 0

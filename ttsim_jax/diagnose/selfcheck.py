@@ -451,6 +451,31 @@ def neutral_parts(truth: dict, parts: dict) -> dict:
     return out
 
 
+def release_compiled_if_crowded(share: float = 0.5) -> bool:
+    """Drops JAX's compiled programs (:func:`jax.clear_caches`) when this process's memory maps
+    exceed ``share`` of the kernel's limit (``vm.max_map_count``); returns whether it did.
+
+    Every compiled CPU program maps its code sections; a selfcheck compiles hundreds per case, and
+    a run of a dozen cases in one process reached the default limit of 65,530 maps, where LLVM
+    fails with "Unable to allocate section memory" (free memory notwithstanding). Dropping the
+    programs unmaps them; the next case compiles what it needs again. Off Linux (no /proc), nothing."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps") as f:
+            used = sum(1 for _ in f)
+    except (OSError, ValueError):
+        return False
+    if used <= share * limit:
+        return False
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+    return True
+
+
 def case_path(store, i: int, names) -> Path:
     """The file of case ``i`` in a run folder's ``cases/``."""
     return Path(store) / "cases" / f"{i:02d}_{'+'.join(names) or 'control'}.json"
@@ -516,6 +541,7 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
             rows.append(row)
             if path is not None:
                 atomic_write(path, json.dumps(jsonable(dict(key=key, row=row)), indent=1).encode())
+            release_compiled_if_crowded()
         if progress:
             progress("+".join(names) or "control")
     return dict(cases=rows, summary=summary(rows), seconds=time.perf_counter() - t0,
