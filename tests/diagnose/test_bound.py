@@ -236,6 +236,7 @@ def test_gusts_are_found_in_the_segments_own_winds_and_predict_held_out_segments
     rng = np.random.default_rng(5)
     s, t, dt, freq = 90, 100, 0.005, 0.13
     t0 = np.sort(rng.uniform(0.0, 450.0, s))
+    session = (np.arange(s) >= s - 12).astype(np.int64)  # a second, short session: columns of its own
     air = lambda tt: 1.5 * np.sin(2 * np.pi * freq * tt)[:, None] * np.array([1.0, 0.0, 0.0])  # noqa: E731
     start = np.stack([rng.uniform(-1.5, -1.0, s), rng.uniform(-0.5, 0.5, s), rng.uniform(0.1, 0.3, s)], 1)
     velocity = np.stack([rng.uniform(5.0, 12.0, s), rng.uniform(-1.0, 1.0, s), rng.uniform(-0.5, 2.5, s)], 1)
@@ -247,13 +248,13 @@ def test_gusts_are_found_in_the_segments_own_winds_and_predict_held_out_segments
     tau = np.broadcast_to(np.arange(t)[None] * dt, (s, t))
     train, test = split(s, rng)
     d = dict(tau=tau, pos=obs, mask=mask, spin=rng.uniform(-100.0, 100.0, (s, 3)), train=train, test=test,
-             t0=t0, session=np.zeros(s, np.int64))
+             t0=t0, session=session)
     pb = types.SimpleNamespace(data={"flight": d}, base={"flight": e}, phases=("flight",), pooled=False)
     g, sessions = B.flight_basis(d, e, True)
     found = B.gust_components(d, g, e, train > 0, sessions)
-    assert found and abs(found[0][1] - freq) < 0.01 and found[0][0] == 0, found
+    assert sessions == 2 and found and abs(found[0][1] - freq) < 0.01 and found[0][0] == 0, found
     with_gusts = B.flight_bound(pb)
-    assert with_gusts["gusts"] and with_gusts["terms"][0]["name"].startswith("air moving in gusts"), with_gusts["terms"]
+    assert with_gusts["sessions"] == 2 and with_gusts["gusts"] and with_gusts["terms"][0]["name"].startswith("air moving in gusts"), with_gusts["terms"]
     monkeypatch.setattr(B, "gust_components", lambda *a, **k: [])
     without = B.flight_bound(pb)
     assert with_gusts["heldout"]["significant"], with_gusts["heldout"]

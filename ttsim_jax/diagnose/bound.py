@@ -521,7 +521,7 @@ def flight_parts(theta, sessions: int, gusts=()) -> tuple[np.ndarray, list, list
         names += [iso_names[0] if iso >= 0 else iso_names[1], rest_name]
         coefs += [float(iso), float(np.linalg.norm(block - iso * np.eye(3)))]
     if sessions:
-        own = theta[common:].reshape(sessions, 9)
+        own = theta[common:common + 9 * sessions].reshape(sessions, 9)
         tilt = [common + 9 * i + j for i in range(sessions) for j in range(3)]
         wind = [common + 9 * i + j for i in range(sessions) for j in range(3, 9)]
         add(tilt, "constant acceleration per session (a tilt of that session's frame)",

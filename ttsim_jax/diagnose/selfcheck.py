@@ -613,7 +613,7 @@ def table(result: dict) -> str:
             share = f", {r['bound_share']:.2f}" if math.isfinite(r.get("bound_share", math.nan)) else ""
             term = (r["bound_terms"][0] if r.get("bound_terms") else "no term").replace("|", "\\|")  # |v| in a table cell
             raw = r.get("bound_pct_raw", math.nan)
-            below = f" ({raw:.1f} not significant)" if r["bound_pct"] == 0.0 and math.isfinite(raw) and raw > 0 else ""
+            below = f" ({raw:.1f} not significant)" if r["bound_pct"] == 0.0 and math.isfinite(raw) and raw >= 0.05 else ""
             if math.isfinite(r.get("bound_share_steady", math.nan)):
                 share += f" (of the oracle without its unresolved parts: {r['bound_share_steady']:.2f})"
             bound = (f"{r['bound_phase']} {r['bound_pct']:.1f}{below}{share}; {term} "
