@@ -113,7 +113,7 @@ def test_outside_case_is_wrong_only_when_explained_and_located_by_a_gap_above_th
     assert full["wrong_explained"] and not full["phase_right"] and full["outcome"] == "explained by worn_ball, not located"
     s = SC.summary([dict(partly, kind="outside_log"), dict(full, kind="outside_oneway")])
     assert (s["n_outside"], s["outside_wrong_explained"], s["outside_located_rate"]) == (2, 1, 0.5)
-    assert [SC._verdict(dict(r, kind="outside")) for r in (partly, full)] == ["right", "wrong"]
+    assert [SC.verdict_of(dict(r, kind="outside")) for r in (partly, full)] == ["right", "wrong"]
 
 
 def test_outside_plan_and_the_tracker_log_of_one_direction():
@@ -182,7 +182,7 @@ def test_the_control_case_is_right_only_when_nothing_is_found_and_no_phase_is_lo
     assert named["false_alarm"] and named["outcome"] == "false alarm: worn_ball"
     rows = [dict(r, kind="control", effects=[], bound_significant=b)
             for r, b in ((quiet, []), (above, ["flight"]), (named, []))]
-    assert [SC._verdict(r) for r in rows] == ["right", "wrong", "wrong"]
+    assert [SC.verdict_of(r) for r in rows] == ["right", "wrong", "wrong"]
     s = SC.summary(rows)
     assert (s["n_control"], s["control_false_alarms"], s["control_bound_significant"]) == (3, 2, ["flight"])
     assert s["n_undetectable"] == 0 and s["n_single"] == 0
@@ -218,7 +218,7 @@ def test_figure_colours_each_case_by_its_outcome(tmp_path):
     alarm = SC.score("single", ["buckling"], [cand("worn_ball", table=held(5.0))], NO_WHERE, {"table": held(0.1, lo=-1.0)})
     where = dict(NO_WHERE, racket={"flagged": [("speed", "above 9 m/s")]})
     outside = SC.score("outside", ["racket_edge"], [], where, {"racket": held(30.0)})
-    verdicts = [SC._verdict(dict(r, kind=k)) for r, k in ((found, "single"), (missed, "single"), (quiet, "single"),
+    verdicts = [SC.verdict_of(dict(r, kind=k)) for r, k in ((found, "single"), (missed, "single"), (quiet, "single"),
                                                           (alarm, "single"), (outside, "outside"))]
     assert verdicts == ["right", "wrong", "undetectable", "wrong", "right"]
     rows = [dict(r, kind="single", effects=["table_tilt"]) for r in (found, missed)]
