@@ -338,7 +338,8 @@ def test_a_case_keeps_each_candidate_and_what_it_added_on_top():
                           interchangeable_with=[]))
     digest = SC.candidate_digest([first, tilt, cand("worn_ball", significant=False, racket=held(0.1, lo=-1.0))])
     assert [c["name"] for c in digest] == ["spin_decay", "table_tilt", "worn_ball"]
-    assert digest[0] == dict(name="spin_decay", significant=True, heldout={"table": dict(pct=52.0, ci95=[50.0, 54.0])})
+    assert digest[0] == dict(name="spin_decay", significant=True, heldout={"table": dict(pct=52.0, ci95=[50.0, 54.0])},
+                             implausible=[])
     assert digest[1]["adds"] == dict(accepted=False, on_top_of=["spin_decay"],
                                      heldout={"table": dict(pct=0.4, ci95=[-0.3, 2.4])}, interchangeable_with=[])
     assert not digest[2]["significant"] and "adds" not in digest[2]
@@ -421,3 +422,16 @@ def test_compiled_programs_are_dropped_only_when_the_memory_maps_crowd():
     # a share below what is in use: dropped (the next call compiles again)
     assert SC.release_compiled_if_crowded(share=1e-9)
     assert f._cache_size() == 0
+
+
+def test_a_significant_fit_beyond_the_plausible_ranges_is_not_the_top_candidate():
+    """The diagnosis does not accept a fit that needs parameters no lab meets (a buckling loss
+    over a 0.03 m/s width): the case is scored on what it accepts, as its verdict reads."""
+    oracle = {"racket": held(11.3)}
+    stand_in = dict(cand("buckling", racket=held(11.2)), implausible=["buckling.racket_width = 0.03323 m/s"])
+    r = SC.score("single", ["worn_ball"], [stand_in, cand("worn_ball", racket=held(11.1))], NO_WHERE, oracle)
+    assert r["rank1"] and r["top"] == "worn_ball" and r["outcome"] == "found"
+    assert SC.candidate_digest([stand_in])[0]["implausible"] == ["buckling.racket_width = 0.03323 m/s"]
+    plausible = SC.score("single", ["worn_ball"], [cand("buckling", racket=held(11.2)),
+                                                  cand("worn_ball", racket=held(11.1))], NO_WHERE, oracle)
+    assert not plausible["rank1"] and plausible["top"] == "buckling"

@@ -229,7 +229,9 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
     names = tuple(names)
     true_phases = effect_phases(names)
     # the diagnosis's accepted effects: significant, and not redundant on top of those before them
-    sig = [c for c in candidates if c["significant"] and c.get("adds", {}).get("accepted", True)]
+    # (a significant fit beyond the plausible ranges stands in for something else and is not accepted)
+    sig = [c for c in candidates if c["significant"] and not c.get("implausible")
+           and c.get("adds", {}).get("accepted", True)]
     oracle = {p: h for p, h in oracle.items() if p in true_phases}
     detectable = any(candidate_fit.significant(p, h) for p, h in oracle.items())
     best = max(oracle, key=lambda p: oracle[p]["pct"]) if oracle else None
@@ -412,7 +414,8 @@ def candidate_digest(candidates: list) -> list:
 
     out = []
     for c in candidates:
-        row = dict(name=c["name"], significant=bool(c["significant"]), heldout=phases(c["heldout"]))
+        row = dict(name=c["name"], significant=bool(c["significant"]), heldout=phases(c["heldout"]),
+                   implausible=list(c.get("implausible") or []))
         if "adds" in c:
             a = c["adds"]
             row["adds"] = dict(accepted=bool(a.get("accepted", True)), on_top_of=list(a.get("on_top_of", [])),
