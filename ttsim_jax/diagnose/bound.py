@@ -475,8 +475,7 @@ def gust_components(d: dict, g, errors, train, sessions: int) -> list:
     ok = np.isfinite(reduced)
     if not ok.any():
         return []
-    sigma2 = max(float(np.median(reduced[ok])), 1e-20)
-    ok &= reduced < gust_search.OUTLIER**2 * sigma2  # a mis-cut segment would pull with a wild offset
+    ok, sigma2 = gust_search.typical_segments(reduced, ok)
     times = gust_search.mean_times(d)
     session = np.asarray(d.get("session", np.zeros(len(n))), np.int64)
     out = []

@@ -160,6 +160,16 @@ def periodogram_gusts(t, w, info, components: int = 3, min_chi2: float = MIN_CHI
 SCALES = {"wind": 0.05, "gust_amp": 0.05, "gust_phase": 0.3, "gust_freq": 0.002}
 
 
+def typical_segments(reduced, rows) -> tuple[np.ndarray, float]:
+    """(rows kept, sigma^2): the noise variance from the median of the segments' reduced residuals
+    after their wind offset, and ``rows`` without the segments above :data:`OUTLIER`^2 times it (a
+    flight the segmentation cut wrongly, a contact inside: its wild offset would pull the
+    periodogram)."""
+    reduced, rows = np.asarray(reduced, np.float64), np.asarray(rows, bool)
+    sigma2 = max(float(np.median(reduced[rows])) if rows.any() else 0.0, 1e-12)
+    return rows & (reduced < OUTLIER**2 * sigma2), sigma2
+
+
 def mean_times(fl: dict) -> np.ndarray:
     """(S,) each flight segment's mean sample time [s] (session time)."""
     tau, mask = np.asarray(fl["tau"], np.float64), np.asarray(fl["mask"], np.float64)
@@ -182,10 +192,7 @@ def gust_stage(pb, model, specs, consts, u, x, i):
     dof = np.maximum(3.0 * mask.sum(1) - 9.0, 0.0)
     reduced = sse / np.maximum(dof, 1.0)
     train = (np.asarray(fl["train"]) > 0) & (mask.sum(1) >= 6)
-    # the noise from the typical segment; a segment that the offset leaves far above it (a flight
-    # the segmentation cut wrongly, a contact inside) would pull the periodogram with a wild offset
-    sigma2 = max(float(np.median(reduced[train])) if train.any() else 0.0, 1e-12)
-    train &= reduced < OUTLIER**2 * sigma2
+    train, sigma2 = typical_segments(reduced, train)
     t, session = mean_times(fl), np.asarray(fl["session"])
     n = pb.n_sessions
     start = {k: np.broadcast_to(np.asarray(stages.start_of(sp, const, k, 0), np.float64), (n,) + p.shape).copy()

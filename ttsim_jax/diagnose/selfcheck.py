@@ -255,10 +255,11 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
     if kind == "pair":
         first, second = (true_among(c) for c in sig[:2]) if len(sig) >= 2 else (set(), set())
         out["both"] = bool(first and second and first | second == set(names))
+    # located: the phases above their noise floor, or with a regime flagged
+    gaps = (verdict or {}).get("gaps", [])
+    located = [p for p in candidate_fit.PHASES if p in gaps or where.get(p, {}).get("flagged")]
     if kind == "control":
-        # Right: nothing accepted and no phase above its floor or with a flagged regime.
-        gaps = (verdict or {}).get("gaps", [])
-        located = [p for p in candidate_fit.PHASES if p in gaps or where.get(p, {}).get("flagged")]
+        # Right: nothing accepted and nothing located.
         out.update(located=located, phase=located[0] if located else None, phase_right=not located,
                    level=verdict["level"] if verdict else ("explained" if sig else "unexplained"),
                    false_alarm=bool(sig or located))
@@ -269,9 +270,7 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         # Right: never "explained" (the cause is not among the candidates; "partly explained" says
         # how much is left), and the gap located in a phase the effect acts in: above its noise
         # floor, or a regime flagged in it.
-        gaps = (verdict or {}).get("gaps", [])
         level = verdict["level"] if verdict else ("explained" if sig else "unexplained")
-        located = [p for p in candidate_fit.PHASES if p in gaps or where.get(p, {}).get("flagged")]
         out.update(located=located, phase=located[0] if located else None, level=level,
                    phase_right=bool(set(located) & set(true_phases)), rank1=False,
                    wrong_explained=level == "explained")
