@@ -3,10 +3,10 @@
 Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1 ms in float32:
 
 - ``kernel``: the rally kernel (``ttsim_jax.rollout``; called only in :func:`kernel_rollout`).
-- ``kernel_fused``: the same with ``fused=True`` (``ttsim_jax.kernel.fused``: a Pallas kernel flies
-  the balls many steps per launch); compiled by Triton on a GPU, in Pallas's interpret mode
-  elsewhere (a correctness run there, not a speed: ``--max-batch-fused``). Flight + table only:
-  it does not cover racket policies.
+- ``kernel_fused``: the same with ``fused=True`` (``ttsim_jax.kernel.fused``: a kernel flies the
+  balls many steps per launch); a Pallas kernel compiled by Triton on a GPU, its body as plain XLA
+  over the whole batch on a CPU. Flight + table only: it does not cover racket policies. Where
+  ``fused="auto"`` takes the fused path (a GPU; a CPU from 1,024 balls), ``kernel`` runs it too.
 - ``plain_scan``: a straightforward ``lax.scan`` over steps of ``jax.vmap`` of a single-ball step
   calling the project's stages (``aero.flight_step``, ``table.table_contact``,
   ``racket.racket_contact``) with an end-of-step penetration check: no event log, no gathering,
@@ -425,9 +425,8 @@ def main(argv=None) -> int:
                    help="largest batch the plain scan runs (default: no limit)")
     p.add_argument("--max-batch-numba", type=int, default=1 << 30,
                    help="largest batch the numba CPU loops (numba, numba_lean) run (default: no limit)")
-    p.add_argument("--max-batch-fused", type=int, default=None,
-                   help="largest batch the fused kernel runs (default: no limit on a GPU, 4096 elsewhere, where "
-                        "Pallas runs in interpret mode)")
+    p.add_argument("--max-batch-fused", type=int, default=1 << 30,
+                   help="largest batch the fused kernel runs (default: no limit)")
     p.add_argument("--mujoco-chunk", type=int, default=64, help="balls per MuJoCo model (default: %(default)s)")
     p.add_argument("--mjx", action="store_true",
                    help="also run MJX (slow to compile and run on CPU; batches up to --max-batch-mjx)")
@@ -449,15 +448,13 @@ def main(argv=None) -> int:
         p.error(f"--configs: unknown {sorted(bad)}; known: {list(CONFIGS)}")
     model = load_model(MODEL, dtype=jnp.float32)
     gpu = jax.default_backend() == "gpu"
-    if args.max_batch_fused is None:
-        args.max_batch_fused = 1 << 30 if gpu else 4096
     device = str(jax.devices()[0])
     report = dict(benchmark="rally_kernel_peers", unit="ball-steps/s (batch x steps / seconds)", model=MODEL,
                   dt_s=DT, integrator="rk4", dtype="float32", device=device,
                   device_kind=jax.devices()[0].device_kind, platform=platform.platform(),
                   cpu_count=__import__("os").cpu_count(), versions=_versions(), repeats=args.repeats,
                   budget=args.budget, quick=args.quick,
-                  fused_pallas="triton (compiled)" if gpu else "interpret mode (a correctness run, not a speed)",
+                  fused_kernel="pallas, triton (compiled)" if gpu else "the kernel's body as plain XLA over the batch",
                   notes=["mujoco/mjx: similar physics, not the same (MuJoCo's ellipsoid fluid model and soft "
                          "contact, float64; flight + table only)",
                          "plain_scan: end-of-step contact check, no time of impact; its first bounce is the "

@@ -1,4 +1,4 @@
-"""The fused flight path (Pallas, interpret mode on CPU) equals the reference path.
+"""The fused flight path (Pallas on a GPU, its body as plain XLA on a CPU) equals the reference path.
 
 The comparison uses ``test_rollout``'s shots, racket schedule and compiled shape (64 balls, 400
 steps), two seeds of them, so that its reference rollouts are the ones that module compiles.
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, rollout
+from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, per_ball_axes, rollout
 from ttsim_jax.kernel import fused
 from ttsim_jax.kernel.step import flight, may_have_event
 from ttsim_jax.physics.events import NET, RACKET, TABLE
@@ -59,6 +59,37 @@ def test_fused_equals_reference_on_random_shots(runs):
     assert (kinds == TABLE).sum() > 100 and (kinds == RACKET).sum() > 20 and (kinds == NET).any()
 
 
+def test_fused_equals_reference_with_per_ball_parameters(model):
+    """Per-ball ball, air, drag-table and table parameters (what domain randomisation, the
+    sensitivity studies and the diagnosis fly) on a CPU's fused path: the reference path's
+    events and states, with the shared racket schedule."""
+    if jax.default_backend() == "gpu":
+        pytest.skip("per-ball parameters take the reference path on a GPU")
+    rng = np.random.default_rng(11)
+    drag = model.aero.drag
+    scale = jnp.asarray(rng.uniform(0.85, 1.15, B))
+    batched = model.replace(
+        ball=model.ball.replace(radius=jnp.asarray(rng.uniform(0.0198, 0.0202, B)),
+                                mass=jnp.asarray(rng.uniform(0.0026, 0.0028, B))),
+        aero=model.aero.replace(rho_air=jnp.asarray(rng.uniform(1.0, 1.3, B)),
+                                drag=drag.replace(cd=scale[:, None, None] * drag.cd[None],
+                                                  re_ref=jnp.broadcast_to(drag.re_ref, (B,) + drag.re_ref.shape),
+                                                  sp=jnp.broadcast_to(drag.sp, (B,) + drag.sp.shape),
+                                                  re_cap=jnp.full(B, drag.re_cap), cd_min=jnp.full(B, drag.cd_min))),
+        table=model.table.replace(e0=jnp.asarray(rng.uniform(0.85, 0.95, B))))
+    axes = per_ball_axes(model, "ball.radius", "ball.mass", "aero.rho_air", "aero.drag", "table.e0")
+    assert fused.unsupported(model, axes, integrator="rk4", policy=None, rackets_batched=False, sample=False) is None
+    state, sched = init_state(shots(B, seed=5)), two_rackets(N)
+    ref = rollout(batched, state, N, 1e-3, sched, model_axes=axes)
+    fus = rollout(batched, state, N, 1e-3, sched, model_axes=axes, execution=Execution(fused=True))
+    _assert_same_rollout(ref, fus, atol=1e-9)
+    kinds = np.asarray(ref[1].events.kind)
+    assert (kinds == TABLE).sum() > 40 and (kinds == RACKET).sum() > 5
+    # the parameters matter: the same shots with the shared model end elsewhere
+    shared = rollout(model, state, N, 1e-3, sched, execution=Execution(fused=True))
+    assert float(jnp.max(jnp.abs(shared[0].ball.pos - fus[0].ball.pos))) > 1e-3
+
+
 def test_kernel_flies_until_the_step_before_a_possible_event(model):
     """Balls in open air take every sub-step; a ball about to land stops before the step the
     ordinary step flags, at most a few steps early (the margins); a budget is respected."""
@@ -92,6 +123,23 @@ def test_kernel_flies_until_the_step_before_a_possible_event(model):
         flags.append(bool(flag_one(b, nxt)))
         b = nxt
     assert any(flags)
+
+
+@pytest.mark.parametrize("moving", [9, 100, 700])
+def test_kernel_gathers_the_moving_balls_with_the_same_result(model, moving):
+    """On a CPU the kernel flies only the balls with a budget, gathered into B/64, B/8 or B rows
+    (here 1,024 balls: 16, 128 or all; the rollouts above, 64 balls, gather into 8): the same flight as over the whole batch, the others untouched."""
+    b = 1024
+    ball = shots(b, seed=3)
+    budget = jnp.zeros(b, jnp.int32).at[np.random.default_rng(moving).choice(b, moving, replace=False)].set(24)
+    params, layout = fused.pack(model, jnp.asarray(1e-3), None, ball.pos.dtype)
+    out, n = jax.jit(lambda bl, bu: fused.fly(params, layout, bl, bu, substeps=24))(ball, budget)
+    whole, n_whole = fused._fly_xla(params, layout, ball, budget, substeps=24)
+    np.testing.assert_array_equal(np.asarray(n), np.asarray(n_whole))
+    assert int((np.asarray(n) > 0).sum()) > 0.8 * moving  # most fly (a few stop at once)
+    np.testing.assert_allclose(np.asarray(out.as_array()), np.asarray(whole.as_array()), rtol=1e-12, atol=1e-12)
+    still = np.asarray(budget) == 0
+    np.testing.assert_array_equal(np.asarray(out.as_array())[still], np.asarray(ball.as_array())[still])
 
 
 def test_kernel_lowers_to_triton(model):

@@ -26,18 +26,18 @@ class Execution:
         reference: run the exact event detection for every ball at every step instead of only for
             the balls whose gaps change sign (same results, slower; for testing).
         block_size: run the batch in blocks of this many balls, one after the other, each through
-            the whole rollout (same results); default (None) 1,024 on CPU (cache-sized), none on
-            GPU; 0 for none.
+            the whole rollout (same results); default (None) 1,024 on CPU on the reference path
+            (cache-sized), none on the fused path and on GPU; 0 for none.
         buffering: how a step hands its flagged balls to the contact models (same results):
             ``"loop"`` (default on CPU) or ``"single"`` (default on GPU and other accelerators);
             see :func:`~ttsim_jax.kernel.step.step`.
-        fused: the fused flight path (:mod:`~ttsim_jax.kernel.fused`: a Pallas kernel flies the balls
+        fused: the fused flight path (:mod:`~ttsim_jax.kernel.fused`: a kernel flies the balls
             many steps per launch up to their next possible event; same results within float32
             rounding): ``"auto"`` (default: wherever it covers the rollout and pays,
             :func:`~ttsim_jax.kernel.rollout.fused_pays`: on a GPU, and on a CPU from 1,024 balls),
             True (refused with the reason where it does not cover the rollout) or False (the
-            reference path). Pallas runs compiled (Triton) on a GPU and in interpret mode elsewhere,
-            which on a CPU lowers to ordinary XLA loops (benchmarks/README.md). ``jax.grad`` always
+            reference path). The kernel is a Pallas (Triton) kernel on a GPU; on a CPU its body runs
+            as plain XLA over the whole batch (benchmarks/README.md). ``jax.grad`` always
             differentiates the reference path.
         memory_budget_bytes: a rollout whose state, event log and recording
             (:func:`~ttsim_jax.kernel.rollout.memory_bytes`) need more is refused before compiling,

@@ -1,9 +1,11 @@
 """The fused flight path: many free-flight steps per kernel launch, contacts left to the step.
 
 On a GPU the rally kernel's step is launch-bound: a 1 ms step is hundreds of small kernels, most
-of them for the few balls that have a contact. Here one Pallas kernel (``jax.experimental.pallas``;
-Triton on a GPU, interpret mode elsewhere) flies a block of balls through up to ``substeps`` RK4
-steps with the state kept in registers, and stops each ball before the first step in which
+of them for the few balls that have a contact. Here one Pallas kernel (``jax.experimental.pallas``,
+Triton) flies a block of balls through up to ``substeps`` RK4 steps with the state kept in
+registers; on a CPU the same body runs as plain XLA over the whole batch, where a sub-step
+compiles to one loop over the balls (:func:`_fly_moving`, which also gathers the few balls still
+moving in a rollout's last launches). It stops each ball before the first step in which
 anything *may* happen to it: a conservative version of :func:`~ttsim_jax.kernel.step.may_have_event`
 (the swept box of the step meeting the table or the box a racket sweeps over the rollout, the
 floor, the net plane, leaving play, a state near the invalid range), each with a margin
@@ -18,8 +20,8 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
 table), no effect acting on the ball's flight or on the table's surface, ball / aero / table
-parameters shared by all balls, rackets as a schedule shared by all balls (or none), and no
-sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
+parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls
+(or none), and no sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
 and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
@@ -77,8 +79,9 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool, 
     if hooked:
         return f"effects acting on the flight or the table's surface: {hooked}"
     shared = axes.ball, axes.aero, axes.table
-    if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)):
-        return "per-ball ball, aero or table parameters"
+    if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)) and \
+            jax.default_backend() == "gpu":
+        return "per-ball ball, aero or table parameters on a GPU (the Triton kernel reads them as scalars)"
     return None
 
 
@@ -119,34 +122,63 @@ _DRAG = {aero_stage.ConstantCoefficient: "constant", aero_stage.DragTable: "tabl
 _MAGNUS = {aero_stage.ConstantCoefficient: "constant", aero_stage.DurrMagnus: "durr", aero_stage.MagnusTable: "table"}
 
 
-def pack(model, dt, racket_boxes, dtype):
-    """The kernel's parameters as one vector and its :class:`Layout`.
+def _leaf_axes(model, axes):
+    """The model's structure with each leaf's per-ball axis (0 or None)."""
+    if axes is None:
+        return jax.tree.map(lambda _: None, model)
+    return jax.tree.map(lambda a, sub: jax.tree.map(lambda _: a, sub), axes, model, is_leaf=lambda x: x is None)
+
+
+def _any(*axes):
+    """0 where any of the given leaves is per ball (a value computed from them is), else None."""
+    return 0 if any(a == 0 for a in axes) else None
+
+
+def pack(model, dt, racket_boxes, dtype, axes=None):
+    """The kernel's parameters as one vector (or one column per ball) and its :class:`Layout`.
 
     Arguments:
-        model: the model (shared leaves); dt: the step [s];
+        model: the model; dt: the step [s];
         racket_boxes: (R, 2, 3) lower and upper corners of the boxes the rackets' centres sweep,
-            widened by the face, or None; dtype: the simulation's float dtype.
+            widened by the face, or None; dtype: the simulation's float dtype;
+        axes: the model's per-ball axes (pytree prefix of 0 / None) or None (all shared).
 
     Returns:
-        (params (size,), layout).
+        (params, layout): params (size,) where every parameter is shared, else (size, B), one
+        column per ball (the kernel then reads a row of B values where it reads a scalar; only
+        :func:`_fly_xla` runs that form).
     """
+    ax = _leaf_axes(model, axes)
     radius, mass = model.ball.radius, model.ball.mass
     volume = (4.0 / 3.0) * jnp.pi * radius**3
     ratio = model.aero.rho_air * volume / mass
-    t = model.table
-    head = [dt, radius, ratio, model.aero.nu, model.aero.buoyancy, model.aero.gravity, t.length, t.width, t.floor_z]
-    drag, magnus = model.aero.drag, model.aero.magnus
-    parts = head + _drag_leaves(drag) + _magnus_leaves(magnus)
+    t, a, tx, aa = model.table, model.aero, ax.table, ax.aero
+    parts = [dt, radius, ratio, a.nu, a.buoyancy, a.gravity, t.length, t.width, t.floor_z]
+    per_ball = [None, ax.ball.radius, _any(aa.rho_air, ax.ball.radius, ax.ball.mass), aa.nu, aa.buoyancy, aa.gravity,
+                tx.length, tx.width, tx.floor_z]
+    drag, magnus = a.drag, a.magnus
+    parts += _drag_leaves(drag) + _magnus_leaves(magnus)
+    per_ball += _drag_leaves(aa.drag) + _magnus_leaves(aa.magnus)
     if racket_boxes is not None:
         parts.append(racket_boxes)
-    flat = jnp.concatenate([jnp.ravel(jnp.asarray(a, dtype)) for a in parts])
+        per_ball.append(None)
+    batched = [p for p, b in zip(parts, per_ball) if b == 0]
+    if batched:
+        n = jnp.shape(batched[0])[0]
+        # a per-ball leaf (B, ...) gives one row per ball; a shared one is repeated for every ball
+        rows = [jnp.reshape(jnp.asarray(p, dtype), (n, -1)) if b == 0
+                else jnp.broadcast_to(jnp.ravel(jnp.asarray(p, dtype)), (n, jnp.size(p))) for p, b in zip(parts, per_ball)]
+        flat = jnp.concatenate(rows, axis=1).T
+    else:
+        flat = jnp.concatenate([jnp.ravel(jnp.asarray(p, dtype)) for p in parts])
     size = 1 << max(0, int(flat.shape[0] - 1).bit_length())
+    last = lambda a: a.shape[-1]  # noqa: E731 (a per-ball table has the batch first)
     layout = Layout(drag=_DRAG[type(drag)], magnus=_MAGNUS[type(magnus)],
-                    n_re=drag.re_ref.shape[0] if isinstance(drag, aero_stage.DragTable) else 0,
-                    n_sp=drag.sp.shape[1] if isinstance(drag, aero_stage.DragTable) else 0,
-                    n_v=magnus.v_ref.shape[0] if isinstance(magnus, aero_stage.MagnusTable) else 0,
+                    n_re=last(drag.re_ref) if isinstance(drag, aero_stage.DragTable) else 0,
+                    n_sp=last(drag.sp) if isinstance(drag, aero_stage.DragTable) else 0,
+                    n_v=last(magnus.v_ref) if isinstance(magnus, aero_stage.MagnusTable) else 0,
                     n_rackets=0 if racket_boxes is None else racket_boxes.shape[0], size=size)
-    return jnp.pad(flat, (0, size - flat.shape[0])), layout
+    return jnp.pad(flat, [(0, size - flat.shape[0])] + [(0, 0)] * (flat.ndim - 1)), layout
 
 
 class _Reader:
@@ -330,17 +362,20 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
     Arguments:
         params, layout: from :func:`pack`; ball: :class:`~ttsim_jax.state.Ball` (B, 3) fields;
         budget: (B,) int32 steps each ball may take (0: it stays where it is).
-        substeps: most steps per launch; block: balls per kernel program (a power of two);
-        interpret: run Pallas in interpret mode (default: everywhere but on a GPU).
+        substeps: most steps per launch; block: balls per Pallas program (a power of two);
+        interpret: None (default): the Triton kernel on a GPU, elsewhere the kernel's body as plain
+            XLA over the balls that move (:func:`_fly_moving`); True: Pallas in interpret mode
+            (a check of the kernel as Pallas runs it, slow); False: the Pallas kernel compiled.
 
     Returns:
         (ball after the steps, (B,) int32 steps taken).
     """
+    if interpret is None and jax.default_backend() != "gpu":
+        return _fly_moving(params, layout, ball, budget, substeps=substeps)
     from jax.experimental import pallas as pl
 
     b = budget.shape[0]
-    if interpret is None:
-        interpret = jax.default_backend() != "gpu"
+    interpret = bool(interpret)
     block = min(block, 1 << max(0, (b - 1).bit_length()))
     n_blocks = -(-b // block)
     pad = n_blocks * block - b
@@ -362,6 +397,62 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
     out = [a[:b] for a in out]
     stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
     return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
+
+
+class _Slot:
+    """A stand-in for a Pallas ref that holds one whole array (the kernel's body run as plain XLA)."""
+
+    def __init__(self, value=None):
+        self.value = value
+
+    def __getitem__(self, index):
+        return self.value if index is Ellipsis else self.value[index]
+
+    def __setitem__(self, index, value):
+        self.value = value
+
+
+def _fly_xla(params, layout: Layout, ball, budget, *, substeps: int):
+    """:func:`fly` without Pallas: the kernel's body over all the given balls at once. XLA compiles
+    a sub-step into one loop over the balls (measured on a CPU at 65,536 balls: as fast as the
+    lean hand-written loop on one core; blocks of 256-4,096 balls ran 1.5-2.4x slower)."""
+    cols = [a[:, i] for a in (ball.pos, ball.vel, ball.spin) for i in range(3)] + [budget.astype(jnp.int32)]
+    outs = [_Slot() for _ in range(10)]
+    _kernel(layout, substeps, _Slot(params), *[_Slot(c) for c in cols], *outs)
+    out = [o.value for o in outs]
+    stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
+    return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
+
+
+#: Fractions of the batch into which :func:`_fly_moving` gathers the balls that move.
+GATHER_FRACTIONS = (64, 8)
+
+
+def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int):
+    """:func:`_fly_xla` over the balls that move only, gathered into the smallest of B / 64, B / 8
+    and B rows that holds them. A ball stopped for an event falls behind the others by the rest of
+    that launch, so the last launches of a rollout move few balls; without the gather each costs
+    a whole batch's sub-steps."""
+    b = budget.shape[0]
+    sizes = [b // f for f in GATHER_FRACTIONS if b // f >= 8]  # (the equality tests' 64 balls gather into 8)
+    moving = budget > 0
+
+    def gathered(size):
+        def run():
+            (idx,) = jnp.nonzero(moving, size=size, fill_value=b)  # b: past the end, dropped below
+            sub = jax.tree.map(lambda a: a.at[idx].get(mode="fill", fill_value=0), ball)
+            # per-ball parameters follow their balls (the padding rows, which do not fly, read the last ball's)
+            p = params if params.ndim == 1 else params.at[:, idx].get(mode="clip")
+            out, n = _fly_xla(p, layout, sub, budget.at[idx].get(mode="fill", fill_value=0), substeps=substeps)
+            put = lambda a, v: a.at[idx].set(v, mode="drop")  # noqa: E731
+            return jax.tree.map(put, ball, out), put(jnp.zeros_like(budget), n)
+        return run
+
+    branches = [gathered(s) for s in sizes] + [lambda: _fly_xla(params, layout, ball, budget, substeps=substeps)]
+    if len(branches) == 1:
+        return branches[0]()
+    count = jnp.sum(moving.astype(jnp.int32))
+    return jax.lax.switch(sum((count > s).astype(jnp.int32) for s in sizes), branches)
 
 
 # --------------------------------------------------------------------------- the rollout's loop
@@ -406,7 +497,7 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
     """
     dtype = ball.pos.dtype
     end = k + length
-    radius = model.ball.radius
+    radius = jnp.max(model.ball.radius)  # per ball or not: the largest widens the racket boxes most
     last_row = None if schedule is None else schedule.pos.shape[0] - 1
 
     def body(carry):
@@ -418,7 +509,7 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
             hi = jnp.minimum(jnp.max(jnp.where(moving, kb, lo)) + substeps, end)
             rows = jnp.arange(schedule.pos.shape[0]) + step0
             boxes = racket_boxes(schedule, (rows >= lo) & (rows < hi), dt, radius)
-        params, layout = pack(model, dt, boxes, dtype)
+        params, layout = pack(model, dt, boxes, dtype, axes)
         ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret)
         kb = kb + n
         on = kb < end

@@ -162,10 +162,13 @@ class _Static:
         return jax.tree_util.tree_unflatten(self.treedef, self.leaves)
 
 
-def default_block(batch: int) -> int:
-    """Balls per block: on CPU, blocks of 1,024 balls keep a step's working set in cache (about 2.3x
-    faster at 65,536 balls than the whole batch at once; ``benchmarks/README.md``); elsewhere none."""
-    return 1024 if jax.default_backend() == "cpu" and batch > 1024 else 0
+def default_block(batch: int, fused: bool = False) -> int:
+    """Balls per block: on CPU, blocks of 1,024 balls keep a reference step's working set in cache
+    (about 2.3x faster at 65,536 balls than the whole batch at once; ``benchmarks/README.md``);
+    elsewhere, and on the fused path, none: there XLA compiles the flight kernel's sub-step into
+    one loop over the balls, which runs fastest over the whole batch (its state is 40 bytes a ball,
+    read and written once a sub-step) and whose early exits pay only where the batch is wide."""
+    return 1024 if jax.default_backend() == "cpu" and batch > 1024 and not fused else 0
 
 
 def _split_per_ball(model, axes):
@@ -455,7 +458,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         fused = why is None and not reference and (fused is True or fused_pays(batch))
-    block = default_block(batch) if block_size is None else int(block_size)
+    block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
         buffering = default_buffering()
