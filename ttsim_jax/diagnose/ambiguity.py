@@ -105,3 +105,69 @@ def indistinguishable(pb, candidates: list) -> list:
                                    for m in names))
         out.append(dict(names=names, cosine=float(min(links)), separate="; ".join(hints)))
     return out
+
+
+#: Readings of a gap that need no candidate: the simplest change that a family of effects shares.
+#: Per reading: its text, the phases and the error component it acts on (the 6-vector of
+#: :mod:`~ttsim_jax.diagnose.stages`: the table's post-bounce normal velocity is component 2 and its
+#: incoming normal velocity input 2; the racket's are 0 and 0, in the racket frame), and what data
+#: would tell an effect from it, and the catalogue's effects that are that change (they are not
+#: compared with it). A candidate whose signature on these components is nearly parallel
+#: to a reading's (:data:`COLLINEAR`) shows no more than the reading does: the data support the
+#: change, not what distinguishes the candidate (buckling's onset, a worn ball's loss at every speed).
+READINGS = {
+    "uniform_restitution": dict(
+        text="a restitution change at every impact speed (the post-contact normal velocity off in proportion to "
+             "the normal impact speed): any effect that changes the restitution, a worn or softer ball, a harder "
+             "table, reads the same",
+        components={"table": (2, 2), "racket": (0, 0)},
+        effects=("worn_ball",),  # the effects that are this change and nothing more: they name it
+        separate="contacts over a wide range of impact speeds, the slow ones included (buckling sets in above an "
+                 "onset, a worn ball loses at every speed)"),
+}
+
+
+def _reading_signature(pb, components: dict) -> dict:
+    """{phase: (K,) signature} of a reading: the error component in proportion to the incoming
+    normal speed, on the phase's real items, in :func:`signature`'s units."""
+    out = {}
+    for p, (err, inp) in components.items():
+        if p not in pb.data:
+            continue
+        d = pb.data[p]
+        w = (np.asarray(d["train"], np.float64) + np.asarray(d["test"], np.float64)) > 0
+        out[p] = np.abs(np.asarray(d["x"], np.float64)[:, inp]) * w / np.sqrt(max(pb.norm.get(p, 1.0), 1e-30))
+    return out
+
+
+def reads_as(pb, candidate) -> list:
+    """The :data:`READINGS` that ``candidate`` cannot be told from on these data.
+
+    The candidate's signature (:func:`signature`) is compared on the reading's error component
+    only (an effect acting through the restitution also moves the tangential velocity and spin, in
+    proportion to its normal change), over the contact phases where it changes the errors.
+
+    Returns:
+        [{"reading", "text", "cosine", "separate"}] for each reading whose cosine with the
+        candidate is at least :data:`COLLINEAR`.
+    """
+    sig = signature(pb, candidate.errors)
+    out = []
+    for key, r in READINGS.items():
+        if candidate.spec.name in r["effects"]:
+            continue
+        ref = _reading_signature(pb, r["components"])
+        parts = {}
+        for p, (err, _) in r["components"].items():
+            if p in sig and p in ref:
+                own = sig[p].reshape(-1, 6)
+                if np.linalg.norm(own) > 0:
+                    parts[p] = own[:, err]
+        if not parts:
+            continue
+        # the candidate must act through this component: most of its change there, not elsewhere
+        through = sum(np.sum(v**2) for v in parts.values()) / sum(np.sum(sig[p]**2) for p in parts)
+        cos = abs(similarity(parts, ref))
+        if cos >= COLLINEAR and through >= 0.5:
+            out.append(dict(reading=key, text=r["text"], cosine=cos, separate=r["separate"]))
+    return out

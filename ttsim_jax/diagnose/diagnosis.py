@@ -225,6 +225,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["implausible"] = [c.spec.name for c in ranked if c.significant and beyond[c.spec.name]]
     significant = [c for c in ranked if c.significant and not beyond[c.spec.name]]
     out["indistinguishable"] = ambiguity.indistinguishable(pb, [c for c in ranked if c.significant])
+    # an accepted fit that moves the errors only as a simpler reading does names no cause
+    out["reads_as"] = {c.spec.name: r for c in significant if (r := ambiguity.reads_as(pb, c))}
 
     # how far
     accepted, best = significant, None

@@ -262,6 +262,10 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     for g in out.get("indistinguishable", []):
         lines.append(f"- indistinguishable on these data (cosine {g['cosine']:.2f}): {', '.join(g['names'])}; "
                      f"{g['separate']} would tell them apart")
+    for name, found in out.get("reads_as", {}).items():
+        for r in found:
+            lines.append(f"- {name} reads on these data as {r['text']} (cosine {r['cosine']:.2f}); {r['separate']} "
+                         "would tell them apart")
     lines += ["", f"![held-out errors before and after]({FIGURES['before_after']})"]
     if out.get("landing"):
         g = out["landing"]

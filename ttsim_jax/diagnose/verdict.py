@@ -173,7 +173,11 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
       stands above its floor (:func:`open_gaps`), and in no phase does a model-free correction
       (``out["bound"]``) do significantly better;
     * *partly explained*: they are significant but close less somewhere: the text says how much
-      each phase's gap shrinks and how much is left, and where the rest lies;
+      each phase's gap shrinks and how much is left, and where the rest lies; or they close it, but
+      one of them changes the errors only as a reading that needs no candidate does
+      (``out["reads_as"]``, :func:`~ttsim_jax.diagnose.ambiguity.reads_as`: buckling fitted with
+      its onset below the impacts is a restitution change at every speed), so the data show the
+      change and not its cause;
     * *unexplained*: no candidate with plausible parameters is significant.
 
     Phases with a gap above their floor that no accepted effect acts in are named in every case.
@@ -227,7 +231,9 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE
                  and (p in gaps or not isinstance(out.get("floor", {}).get(p), dict))]
         more, beyond_catalogue = _bound_text(out)
-        level = "partly explained" if short or untouched or more else "explained"
+        readings = {c.spec.name: out.get("reads_as", {}).get(c.spec.name) for c in significant}
+        readings = {n: r for n, r in readings.items() if r}
+        level = "partly explained" if short or untouched or more or readings else "explained"
         closes = []
         for p, g in shares.items():
             if g["share"] is None:
@@ -245,6 +251,10 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
             text += (" What is left lies in: " + "; ".join(located) + "." if located else
                      " What is left is not located in any regime.")
         text += _alike(out, [c.spec.name for c in significant])
+        for n, found in readings.items():
+            for r in found:
+                text += (f" What {n} changes on these data is {r['text']} (cosine {r['cosine']:.2f}): the data show "
+                         f"that change, not what names {n}; {r['separate']} would tell them apart.")
         for n, others in interchangeable(out.get("candidates", [])).items():
             text += (f" {n} and {', '.join(others)} are interchangeable on these data: each adds nothing significant "
                      "on top of the other.")
