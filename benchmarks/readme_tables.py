@@ -29,7 +29,9 @@ TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "resu
           "peers-gpu-fused-table": REPO / "benchmarks" / "results" / "peers_gpu_fused.json",
           "peers-gpu-lean-table": REPO / "benchmarks" / "results" / "peers_gpu_lean.json",
           "peers-gpu-now-table": REPO / "benchmarks" / "results" / "peers_gpu_61ba2cf.json",
-          "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json"}
+          "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json",
+          "peers-cpu-fused-table": REPO / "benchmarks" / "results" / "peers_cpu_fused_xla.json",
+          "peers-cpu-fused-long-table": REPO / "benchmarks" / "results" / "peers_cpu_fused_xla_1000.json"}
 PEERS = ("kernel", "kernel_fused", "plain_scan", "numba", "numba_lean", "numba_cuda", "numba_cuda_lean", "mujoco", "mjx")
 
 
