@@ -16,8 +16,8 @@ conti2026 without effects, float32, dt = 1 ms. Each stage adds one piece to the 
 - ``kernel_nolog``: the rally kernel's reference path (``fused=False``) without an event log
   (``max_events=0``): the flagged balls gathered into buffers, exact time of impact, contacts.
 - ``kernel``: the same with the event log (``max_events=8``).
-- ``kernel_fused``: the default path at this size (``fused="auto"``: the Pallas flight kernel in
-  interpret mode on a CPU).
+- ``kernel_fused``: the default path at this size (``fused="auto"``: the flight kernel's body as
+  plain XLA over the batch on a CPU).
 
 Besides the times, XLA's own cost analysis of one step of ``xla_flight`` and ``xla_flags`` gives the
 floating-point operations and the bytes a compiled step reads and writes, per ball.

@@ -361,9 +361,10 @@ def default_buffering() -> str:
 
 
 #: Least batch at which ``fused="auto"`` takes the fused path on a CPU. Measured on 2 cores (flight
-#: + table, ``benchmarks/README.md``): 2.0x the reference path at 1,024 balls and 1.5-2.0x up to
-#: 262,144, 0.88-0.94x the hand-written numba loop. Below, it runs 1.4-1.6x faster but compiles
-#: about 3 s longer than the reference path, more than a small batch's run takes.
+#: + table, ``benchmarks/README.md``, one run): 3.7x the reference path at 1,024 balls (0.86x the
+#: lean hand-written numba loop) and 5.4x at 65,536 (1.20x the lean loop). It compiles about 12 s
+#: longer than the reference path (measured with Pallas's interpret mode, where the smaller batches
+#: ran 1.4-1.6x faster: less than a small batch's run saves).
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
 
