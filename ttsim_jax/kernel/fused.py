@@ -122,7 +122,7 @@ _DRAG = {aero_stage.ConstantCoefficient: "constant", aero_stage.DragTable: "tabl
 _MAGNUS = {aero_stage.ConstantCoefficient: "constant", aero_stage.DurrMagnus: "durr", aero_stage.MagnusTable: "table"}
 
 
-def _leaf_axes(model, axes):
+def leaf_axes(model, axes):
     """The model's structure with each leaf's per-ball axis (0 or None)."""
     if axes is None:
         return jax.tree.map(lambda _: None, model)
@@ -148,7 +148,7 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
         column per ball (the kernel then reads a row of B values where it reads a scalar; only
         :func:`_fly_xla` runs that form).
     """
-    ax = _leaf_axes(model, axes)
+    ax = leaf_axes(model, axes)
     radius, mass = model.ball.radius, model.ball.mass
     volume = (4.0 / 3.0) * jnp.pi * radius**3
     ratio = model.aero.rho_air * volume / mass
@@ -379,8 +379,8 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
     block = min(block, 1 << max(0, (b - 1).bit_length()))
     n_blocks = -(-b // block)
     pad = n_blocks * block - b
-    cols = [a[:, i] for a in (ball.pos, ball.vel, ball.spin) for i in range(3)]
-    cols = [jnp.pad(c, (0, pad), mode="edge") for c in cols] + [jnp.pad(budget.astype(jnp.int32), (0, pad))]
+    cols = _columns(ball, budget)
+    cols = [jnp.pad(c, (0, pad), mode="edge") for c in cols[:9]] + [jnp.pad(cols[9], (0, pad))]
     dtype = ball.pos.dtype
     lanes = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec((layout.size,), lambda i: (0,))
@@ -394,7 +394,16 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
         lambda *refs: _kernel(layout, substeps, *refs), out_shape=out_shape, grid=(n_blocks,),
         in_specs=[whole] + [lanes] * 10, out_specs=[lanes] * 10, interpret=interpret, name="fused_flight",
         **extra)(params, *cols)
-    out = [a[:b] for a in out]
+    return _from_columns(ball, [a[:b] for a in out])
+
+
+def _columns(ball, budget) -> list:
+    """The kernel's 10 inputs: pos, vel, spin x, y, z as (B,) columns, then the int32 budget."""
+    return [a[:, i] for a in (ball.pos, ball.vel, ball.spin) for i in range(3)] + [budget.astype(jnp.int32)]
+
+
+def _from_columns(ball, out):
+    """(ball of ``ball``'s type, steps taken) from the kernel's 10 output columns."""
     stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
     return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
 
@@ -416,12 +425,9 @@ def _fly_xla(params, layout: Layout, ball, budget, *, substeps: int):
     """:func:`fly` without Pallas: the kernel's body over all the given balls at once. XLA compiles
     a sub-step into one loop over the balls (measured on a CPU at 65,536 balls: as fast as the
     lean hand-written loop on one core; blocks of 256-4,096 balls ran 1.5-2.4x slower)."""
-    cols = [a[:, i] for a in (ball.pos, ball.vel, ball.spin) for i in range(3)] + [budget.astype(jnp.int32)]
     outs = [_Slot() for _ in range(10)]
-    _kernel(layout, substeps, _Slot(params), *[_Slot(c) for c in cols], *outs)
-    out = [o.value for o in outs]
-    stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
-    return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
+    _kernel(layout, substeps, _Slot(params), *[_Slot(c) for c in _columns(ball, budget)], *outs)
+    return _from_columns(ball, [o.value for o in outs])
 
 
 #: Fractions of the batch into which :func:`_fly_moving` gathers the balls that move.

@@ -124,8 +124,7 @@ def _resolve_axes(model: Model, model_axes):
 
 def _check_per_ball(model, axes, batch):
     leaves, treedef = jax.tree_util.tree_flatten_with_path(model)
-    flat_axes = jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: ax, sub), axes, model,
-                             is_leaf=lambda x: x is None)
+    flat_axes = fused_path.leaf_axes(model, axes)
     # flattened along the model's own structure: a field that is None in the model (no leaf) must
     # not shift the axes of the leaves after it
     for (path, leaf), ax in zip(leaves, treedef.flatten_up_to(flat_axes)):
