@@ -119,9 +119,9 @@ def refit(obs, mask, x0, dt, steps, iterations=4):
     return x
 
 
-def test_missing_drag_is_recovered_and_named_drag_like():
-    rng = np.random.default_rng(3)
-    s, t, dt = 48, 128, 0.005
+def drag_problem(rng, s=48, sessions=1):
+    """Flights flown with K_EXTRA more drag than the model's, refitted, in ``sessions`` sessions."""
+    t, dt = 128, 0.005
     start = np.stack([rng.uniform(-1.5, -1.0, s), rng.uniform(-0.5, 0.5, s), rng.uniform(0.1, 0.3, s)], 1)
     velocity = np.stack([rng.uniform(4.0, 14.0, s), rng.uniform(-1.5, 1.5, s), rng.uniform(-1.0, 3.0, s)], 1)
     truth = np.concatenate([start, velocity], 1)
@@ -133,8 +133,12 @@ def test_missing_drag_is_recovered_and_named_drag_like():
     tau = np.broadcast_to(np.minimum(np.arange(t)[None], n[:, None] - 1) * dt, (s, t))
     train, test = split(s, rng)
     spin = rng.uniform(-100.0, 100.0, (s, 3))
-    d = dict(tau=tau, pos=obs, mask=mask, spin=spin, train=train, test=test)
-    pb = types.SimpleNamespace(data={"flight": d}, base={"flight": e}, phases=("flight",))
+    d = dict(tau=tau, pos=obs, mask=mask, spin=spin, train=train, test=test, session=np.arange(s) % sessions)
+    return types.SimpleNamespace(data={"flight": d}, base={"flight": e}, phases=("flight",))
+
+
+def test_missing_drag_is_recovered_and_named_drag_like():
+    pb = drag_problem(np.random.default_rng(3))
     f = B.bounds(pb, RADIUS)["flight"]
     h = f["heldout"]
     assert h["significant"] and h["pct"] > 80.0, h
@@ -142,6 +146,19 @@ def test_missing_drag_is_recovered_and_named_drag_like():
     assert f["terms"][0]["share"] > 0.5, f["terms"]
     # the coefficient is the missing drag, -K_EXTRA, roughly
     assert -1.5 * K_EXTRA < f["terms"][0]["coef"] < -0.5 * K_EXTRA, f["terms"]
+
+
+def test_terms_per_session_get_their_own_ridge_weight():
+    """Many sessions of few segments each: the terms per session (9 columns a session) are many
+    columns that few segments inform; under one ridge weight for all they cost the common drag
+    term its share of the held-out gain. Their own weight, chosen by cross-validation, leaves
+    them out here, and the bound is that of the same flights in one session."""
+    one = B.bounds(drag_problem(np.random.default_rng(5), s=72), RADIUS)["flight"]
+    many = B.bounds(drag_problem(np.random.default_rng(5), s=72, sessions=18), RADIUS)["flight"]
+    assert many["sessions"] == 18 and many["group_factors"][0] >= 100.0, many["group_factors"]
+    assert many["heldout"]["significant"], many["heldout"]
+    assert many["heldout"]["pct"] > one["heldout"]["pct"] - 3.0, (many["heldout"], one["heldout"])
+    assert many["terms"][0]["name"].startswith("drag-like: acceleration along −v"), many["terms"]
 
 
 def test_too_few_items_give_a_reason_and_no_nan():

@@ -4,6 +4,7 @@ the parts of a linear correction: the fitting of the diagnosis's model-free boun
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -13,6 +14,9 @@ FOLDS = 5
 #: Ridge weights tried, relative to the mean diagonal of the weighted Gram matrix of the
 #: scaled features (so that a weight means the same for any number of rows).
 LAMBDAS = np.logspace(-6, 2, 17)
+#: Ridge weights tried for a group of columns relative to the other columns' (:func:`ridge_cv_groups`);
+#: the last, 10^8, leaves the group out in effect.
+GROUP_FACTORS = (1.0, 10.0, 100.0, 1e8)
 
 
 def ridge_cv(x, y, w, fold, penalty, lambdas=LAMBDAS, one_se: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -31,11 +35,43 @@ def ridge_cv(x, y, w, fold, penalty, lambdas=LAMBDAS, one_se: bool = True) -> tu
     Returns:
         (beta (K, J), chosen relative weight (J,)); a target whose rows all weigh 0 gets beta 0.
     """
+    beta, chosen, _ = _fit(_moments(x, y, w, fold), penalty, np.ones(len(penalty)), lambdas, one_se)
+    return beta, chosen
+
+
+def ridge_cv_groups(x, y, w, fold, penalty, groups, factors=GROUP_FACTORS, lambdas=LAMBDAS,
+                    one_se: bool = False) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """:func:`ridge_cv` where some groups of penalised columns may need a stronger ridge weight than
+    the others (many columns that few items inform, e.g. terms per session): each group's weight is
+    a factor of :data:`GROUP_FACTORS` times the others', the factors chosen with the weight by the
+    same cross-validation (the smallest held-fold error summed over the targets); the largest factor
+    leaves the group out in effect.
+
+    Arguments:
+        as :func:`ridge_cv`; groups: boolean (K,) masks of the columns of each group; factors: the
+            factors tried per group.
+
+    Returns:
+        (beta (K, J), chosen relative weight (J,), chosen factor per group).
+    """
+    mom = _moments(x, y, w, fold)
+    best = None
+    for combo in itertools.product(factors, repeat=len(groups)):
+        factor = np.ones(len(penalty))
+        for g, f in zip(groups, combo):
+            factor[np.asarray(g, bool)] = f
+        beta, chosen, err = _fit(mom, penalty, factor, lambdas, one_se)
+        if best is None or err.sum() < best[0]:
+            best = (float(err.sum()), beta, chosen, combo)
+    return best[1], best[2], best[3]
+
+
+def _moments(x, y, w, fold) -> tuple:
+    """Per fold and target: weighted Gram matrix, moment and sum of squares (a fold's training sums
+    are the totals minus its own)."""
     x, y, w = np.asarray(x, np.float64), np.asarray(y, np.float64), np.asarray(w, np.float64)
     k, j = x.shape[1], y.shape[1]
     folds = int(fold.max()) + 1 if len(fold) else 0
-    # per fold and target: weighted Gram matrix, moment and sum of squares; a fold's training
-    # sums are the totals minus its own
     gram, mom, sq = np.zeros((folds, j, k, k)), np.zeros((folds, j, k)), np.zeros((folds, j))
     for f in range(folds):
         rows = fold == f
@@ -43,11 +79,22 @@ def ridge_cv(x, y, w, fold, penalty, lambdas=LAMBDAS, one_se: bool = True) -> tu
         gram[f] = np.einsum("rk,rj,rl->jkl", xf, wf, xf)
         mom[f] = np.einsum("rk,rj->jk", xf, wf * yf)
         sq[f] = np.sum(wf * yf**2, 0)
+    return gram, mom, sq
+
+
+def _fit(moments, penalty, factor, lambdas, one_se: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(beta (K, J), chosen relative weight (J,), cross-validated error at it (J,)) of the ridge fit
+    whose penalty on column k is ``lambda * scale * penalty[k] * factor[k]`` (scale: the mean
+    diagonal of the Gram matrix over the penalised columns, so a weight means the same for any
+    number of rows)."""
+    gram, mom, sq = moments
+    folds, j, k = gram.shape[0], gram.shape[1], gram.shape[2]
     total_g, total_m = gram.sum(0), mom.sum(0)
-    pen = np.diag(np.asarray(penalty, np.float64))
-    beta, chosen = np.zeros((k, j)), np.zeros(j)
+    mask = np.asarray(penalty, np.float64)
+    pen = np.diag(mask * np.asarray(factor, np.float64))
+    beta, chosen, error = np.zeros((k, j)), np.zeros(j), np.zeros(j)
     for t in range(j):
-        scale = np.trace(total_g[t] @ pen) / max(np.sum(penalty), 1.0)
+        scale = np.trace(total_g[t] * mask) / max(np.sum(mask), 1.0)
         if not scale > 0 or folds < 2:
             continue
         # tiny floor on every diagonal entry keeps an unused unpenalised column solvable
@@ -62,9 +109,9 @@ def ridge_cv(x, y, w, fold, penalty, lambdas=LAMBDAS, one_se: bool = True) -> tu
         best = int(np.argmin(total))
         se = math.sqrt(folds) * float(np.std(cv[best], ddof=1))
         pick = max(i for i in range(len(lambdas)) if total[i] <= total[best] + se) if one_se else best
-        chosen[t] = lambdas[pick]
+        chosen[t], error[t] = lambdas[pick], total[pick]
         beta[:, t] = np.linalg.solve(total_g[t] + lambdas[pick] * scale * pen + floor, total_m[t])
-    return beta, chosen
+    return beta, chosen, error
 
 
 def folds(n: int, train: np.ndarray, seed: int) -> np.ndarray:
