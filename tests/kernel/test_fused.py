@@ -59,12 +59,23 @@ def test_fused_equals_reference_on_random_shots(runs):
     assert (kinds == TABLE).sum() > 100 and (kinds == RACKET).sum() > 20 and (kinds == NET).any()
 
 
-def test_fused_equals_reference_with_per_ball_parameters(model):
+def per_ball_rackets(n_steps, rng):
+    """(B, T, 2, ...) schedules: :func:`two_rackets` moved and sped up per ball (a few cm, a few
+    tenths of m/s), as the environment gives each of its rackets its own."""
+    sched = two_rackets(n_steps)
+    shift = jnp.asarray(rng.uniform(-0.05, 0.05, (B, 1, 2, 3)))
+    speed = jnp.asarray(rng.uniform(-0.3, 0.3, (B, 1, 2, 3)))
+    t = jnp.arange(n_steps)[None, :, None, None] * 1e-3
+    each = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (B,) + a.shape), sched)
+    return each.replace(pos=each.pos + shift + t * speed, vel=each.vel + speed)
+
+
+def test_fused_equals_reference_with_per_ball_parameters_and_rackets(model):
     """Per-ball ball, air, drag-table and table parameters (what domain randomisation, the
-    sensitivity studies and the diagnosis fly) on a CPU's fused path: the reference path's
-    events and states, with the shared racket schedule."""
+    sensitivity studies and the diagnosis fly) and a racket schedule per ball (what the
+    environment gives its rackets) on a CPU's fused path: the reference path's events and states."""
     if jax.default_backend() == "gpu":
-        pytest.skip("per-ball parameters take the reference path on a GPU")
+        pytest.skip("per-ball parameters and rackets take the reference path on a GPU")
     rng = np.random.default_rng(11)
     drag = model.aero.drag
     scale = jnp.asarray(rng.uniform(0.85, 1.15, B))
@@ -78,8 +89,8 @@ def test_fused_equals_reference_with_per_ball_parameters(model):
                                                   re_cap=jnp.full(B, drag.re_cap), cd_min=jnp.full(B, drag.cd_min))),
         table=model.table.replace(e0=jnp.asarray(rng.uniform(0.85, 0.95, B))))
     axes = per_ball_axes(model, "ball.radius", "ball.mass", "aero.rho_air", "aero.drag", "table.e0")
-    assert fused.unsupported(model, axes, integrator="rk4", policy=None, rackets_batched=False, sample=False) is None
-    state, sched = init_state(shots(B, seed=5)), two_rackets(N)
+    assert fused.unsupported(model, axes, integrator="rk4", policy=None, rackets_batched=True, sample=False) is None
+    state, sched = init_state(shots(B, seed=5)), per_ball_rackets(N, rng)
     ref = rollout(batched, state, N, 1e-3, sched, model_axes=axes)
     fus = rollout(batched, state, N, 1e-3, sched, model_axes=axes, execution=Execution(fused=True))
     _assert_same_rollout(ref, fus, atol=1e-9)

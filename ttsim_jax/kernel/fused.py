@@ -20,7 +20,7 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
 table), no effect acting on the ball's flight or on the table's surface, ball / aero / table
-parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls
+parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls or (on a CPU) one per ball
 (or none), and no sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
 and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
@@ -69,8 +69,8 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool, 
         return f"integrator {integrator!r} (the fused kernel is RK4)"
     if policy is not None:
         return "a racket policy (the fused kernel needs the rackets' schedule to bound where they go)"
-    if rackets_batched:
-        return "a per-ball racket schedule"
+    if rackets_batched and jax.default_backend() == "gpu":
+        return "a per-ball racket schedule on a GPU (the Triton kernel reads the rackets' boxes as scalars)"
     if sample:
         return "a sampled residual (its draws follow the step count)"
     if type(model.aero.drag) not in _DRAG or type(model.aero.magnus) not in _MAGNUS:
@@ -140,7 +140,8 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
     Arguments:
         model: the model; dt: the step [s];
         racket_boxes: (R, 2, 3) lower and upper corners of the boxes the rackets' centres sweep,
-            widened by the face, or None; dtype: the simulation's float dtype;
+            widened by the face, (B, R, 2, 3) one set per ball (then the result has a column per
+            ball), or None; dtype: the simulation's float dtype;
         axes: the model's per-ball axes (pytree prefix of 0 / None) or None (all shared).
 
     Returns:
@@ -161,7 +162,7 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
     per_ball += _drag_leaves(aa.drag) + _magnus_leaves(aa.magnus)
     if racket_boxes is not None:
         parts.append(racket_boxes)
-        per_ball.append(None)
+        per_ball.append(0 if racket_boxes.ndim == 4 else None)
     batched = [p for p, b in zip(parts, per_ball) if b == 0]
     if batched:
         n = jnp.shape(batched[0])[0]
@@ -177,7 +178,7 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
                     n_re=last(drag.re_ref) if isinstance(drag, aero_stage.DragTable) else 0,
                     n_sp=last(drag.sp) if isinstance(drag, aero_stage.DragTable) else 0,
                     n_v=last(magnus.v_ref) if isinstance(magnus, aero_stage.MagnusTable) else 0,
-                    n_rackets=0 if racket_boxes is None else racket_boxes.shape[0], size=size)
+                    n_rackets=0 if racket_boxes is None else racket_boxes.shape[-3], size=size)
     return jnp.pad(flat, [(0, size - flat.shape[0])] + [(0, 0)] * (flat.ndim - 1)), layout
 
 
@@ -463,11 +464,13 @@ def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int):
 
 # --------------------------------------------------------------------------- the rollout's loop
 def racket_boxes(schedule, rows, dt, radius):
-    """(R, 2, 3) boxes that hold the centre of every ball touching a racket in the schedule's rows.
+    """(R, 2, 3) boxes that hold the centre of every ball touching a racket in the schedule's rows;
+    (B, R, 2, 3) for a schedule per ball.
 
     Arguments:
-        schedule: :class:`~ttsim_jax.state.Racket` with (T, R, ...) fields; rows: (T,) bool, the
-            steps the kernel may fly through; dt: step [s]; radius: ball radius [m].
+        schedule: :class:`~ttsim_jax.state.Racket` with (T, R, ...) fields, or (T, B, R, ...) per
+            ball; rows: (T,) bool, the steps the kernel may fly through, or (T, B) per ball;
+            dt: step [s]; radius: ball radius [m].
 
     Returns:
         Per racket, the corners of the box its centre spans over those steps (start and end of
@@ -476,15 +479,16 @@ def racket_boxes(schedule, rows, dt, radius):
     """
     inf = jnp.asarray(jnp.inf, schedule.pos.dtype)
     start, end = schedule.pos, schedule.pos + dt * schedule.vel
-    sel = rows[:, None, None]
+    sel = rows[..., None, None]
     lo = jnp.min(jnp.where(sel, jnp.minimum(start, end), inf), axis=0)
     hi = jnp.max(jnp.where(sel, jnp.maximum(start, end), -inf), axis=0)
-    reach = (jnp.max(schedule.face, axis=(0, 2)) + radius + ev.SWEEP_MARGIN)[:, None]
-    return jnp.stack([lo - reach, hi + reach], axis=1)
+    reach = (jnp.max(schedule.face, axis=(0, -1)) + radius + ev.SWEEP_MARGIN)[..., None]
+    return jnp.stack([lo - reach, hi + reach], axis=-2)
 
 
 def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
-            substeps: int = SUBSTEPS, block: int = BLOCK, interpret: bool | None = None):
+            rackets_batched: bool = False, substeps: int = SUBSTEPS, block: int = BLOCK,
+            interpret: bool | None = None):
     """Advances every ball from step ``k`` to ``k + length`` on the fused path.
 
     Each ball keeps its own step count: the kernel (:func:`fly`) flies it up to its next possible
@@ -495,8 +499,9 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
         model, axes: the model and its per-ball axes; ball, alive, status, ball_id, log: the
             batch as in :func:`~ttsim_jax.kernel.step.step`; k: () step count of every ball;
             length: steps to take (static); schedule: the rackets' (T, R, ...) schedule from step
-            ``step0`` on, or None; t0, dt: the clock (time of step k is t0 + k dt);
-            stepper: ``step`` with its static options bound.
+            ``step0`` on ((T, B, R, ...) with ``rackets_batched``: one per ball, each ball's
+            kernel stop tested against its own rackets' boxes), or None; t0, dt: the clock (time of
+            step k is t0 + k dt); stepper: ``step`` with its static options bound.
 
     Returns:
         (ball, alive, status, log) at step ``k + length``.
@@ -510,10 +515,14 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
         ball, alive, status, log, kb = carry
         boxes = None
         if schedule is not None:
-            moving = kb < end
-            lo = jnp.min(kb)
-            hi = jnp.minimum(jnp.max(jnp.where(moving, kb, lo)) + substeps, end)
             rows = jnp.arange(schedule.pos.shape[0]) + step0
+            if rackets_batched:  # each ball's own rows, its own boxes
+                rows = rows[:, None]
+                lo, hi = kb, jnp.minimum(kb + substeps, end)
+            else:
+                moving = kb < end
+                lo = jnp.min(kb)
+                hi = jnp.minimum(jnp.max(jnp.where(moving, kb, lo)) + substeps, end)
             boxes = racket_boxes(schedule, (rows >= lo) & (rows < hi), dt, radius)
         params, layout = pack(model, dt, boxes, dtype, axes)
         ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret)
@@ -523,7 +532,10 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
         rackets = None
         if schedule is not None:
             row = jnp.clip(kb - step0, 0, last_row)
-            rackets = jax.tree.map(lambda a: a[row], schedule)
+            if rackets_batched:
+                rackets = jax.tree.map(lambda a: a[row, jnp.arange(row.shape[0])], schedule)
+            else:
+                rackets = jax.tree.map(lambda a: a[row], schedule)
         ball, alive_new, status, log = stepper(model, axes, ball, alive & on, status, ball_id, log, rackets, t, dt,
                                                rackets_batched=schedule is not None, key=None)
         alive = jnp.where(on, alive_new, alive)

@@ -274,7 +274,8 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         def segment(carry: Carry, n):
             ball, alive, status, log = fused_path.advance(model, axes, carry.ball, carry.alive, carry.status,
                                                           ball_id, carry.log, carry.step, n, schedule, step0, t0,
-                                                          dt, stepper, substeps=fused)
+                                                          dt, stepper, rackets_batched=rackets_batched,
+                                                          substeps=fused)
             return Carry(ball, alive, status, log, carry.step + n)
 
         def chunk(carry, _):
