@@ -218,19 +218,26 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
 
 def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
-    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls, on a GPU always;
-    and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
+    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and without a
+    racket schedule per ball, on a GPU always; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
     import importlib
 
     R = importlib.import_module("ttsim_jax.kernel.rollout")
     n = R.FUSED_AUTO_MIN_BATCH_CPU
     if jax.default_backend() == "cpu":
         assert not R.fused_pays(n - 1) and R.fused_pays(n) and R.fused_pays(1 << 20)
+        assert not R.fused_pays(1 << 20, rackets_batched=True)  # measured slower (see fused_pays)
     else:
         assert R.fused_pays(1) == (jax.default_backend() == "gpu")
     taken = []
     monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
-    runs = ((n - 1, "auto"), (n, "auto"), (n, False))
-    for batch, choice in runs:
-        rollout(model, init_state(shots(batch)), 10, execution=Execution(fused=choice))
-    assert taken == [fused.SUBSTEPS if c == "auto" and R.fused_pays(b) else 0 for b, c in runs], taken
+    runs = ((n - 1, "auto", False), (n, "auto", False), (n, False, False))
+    if jax.default_backend() != "gpu":  # per-ball rackets: covered on a CPU only
+        runs += ((n, "auto", True), (n, True, True))
+    for batch, choice, own in runs:
+        sched = two_rackets(10)
+        if own:  # a schedule per ball
+            sched = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (batch,) + a.shape), sched)
+        rollout(model, init_state(shots(batch)), 10, 1e-3, sched, execution=Execution(fused=choice))
+    pays = lambda b, c, own: c is True or (c == "auto" and R.fused_pays(b, own))  # noqa: E731
+    assert taken == [fused.SUBSTEPS if pays(*r) else 0 for r in runs], taken

@@ -468,9 +468,10 @@ def racket_boxes(schedule, rows, dt, radius):
     (B, R, 2, 3) for a schedule per ball.
 
     Arguments:
-        schedule: :class:`~ttsim_jax.state.Racket` with (T, R, ...) fields, or (T, B, R, ...) per
-            ball; rows: (T,) bool, the steps the kernel may fly through, or (T, B) per ball;
-            dt: step [s]; radius: ball radius [m].
+        schedule: :class:`~ttsim_jax.state.Racket` (or anything with its ``pos``, ``vel`` and
+            ``face``) with (T, R, ...) fields, or (T, B, R, ...) per ball; rows: (T,) bool, the
+            steps the kernel may fly through, or (T, B) per ball; dt: step [s]; radius: ball
+            radius [m].
 
     Returns:
         Per racket, the corners of the box its centre spans over those steps (start and end of
@@ -482,8 +483,30 @@ def racket_boxes(schedule, rows, dt, radius):
     sel = rows[..., None, None]
     lo = jnp.min(jnp.where(sel, jnp.minimum(start, end), inf), axis=0)
     hi = jnp.max(jnp.where(sel, jnp.maximum(start, end), -inf), axis=0)
-    reach = (jnp.max(schedule.face, axis=(0, -1)) + radius + ev.SWEEP_MARGIN)[..., None]
+    reach = (jnp.max(jnp.where(rows[..., None, None], schedule.face, 0.0), axis=(0, -1)) + radius
+             + ev.SWEEP_MARGIN)[..., None]
     return jnp.stack([lo - reach, hi + reach], axis=-2)
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """What :func:`racket_boxes` reads of a schedule: (T, [B,] R, ...) positions, velocities, faces."""
+
+    pos: jax.Array
+    vel: jax.Array
+    face: jax.Array
+
+
+def _own_rows(schedule, kb, end, step0, substeps: int):
+    """Each ball's next ``substeps`` rows of a per-ball (T, B, R, ...) schedule, as a (substeps, B,
+    R, ...) :class:`_Sweep`, and which of them come before ``end``: O(B substeps) per launch,
+    where selecting them among all T rows cost O(B T) (a 300-step rollout ran 17x slower)."""
+    ahead = jnp.arange(substeps)[:, None]
+    steps = kb[None] + ahead  # (substeps, B)
+    row = jnp.clip(steps - step0, 0, schedule.pos.shape[0] - 1)
+    col = jnp.arange(kb.shape[0])[None]
+    pick = lambda a: a[row, col]  # noqa: E731
+    return _Sweep(pick(schedule.pos), pick(schedule.vel), pick(schedule.face)), steps < end
 
 
 def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
@@ -515,15 +538,14 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
         ball, alive, status, log, kb = carry
         boxes = None
         if schedule is not None:
-            rows = jnp.arange(schedule.pos.shape[0]) + step0
-            if rackets_batched:  # each ball's own rows, its own boxes
-                rows = rows[:, None]
-                lo, hi = kb, jnp.minimum(kb + substeps, end)
+            if rackets_batched:  # each ball's own next rows, its own boxes
+                boxes = racket_boxes(*_own_rows(schedule, kb, end, step0, substeps), dt, radius)
             else:
+                rows = jnp.arange(schedule.pos.shape[0]) + step0
                 moving = kb < end
                 lo = jnp.min(kb)
                 hi = jnp.minimum(jnp.max(jnp.where(moving, kb, lo)) + substeps, end)
-            boxes = racket_boxes(schedule, (rows >= lo) & (rows < hi), dt, radius)
+                boxes = racket_boxes(schedule, (rows >= lo) & (rows < hi), dt, radius)
         params, layout = pack(model, dt, boxes, dtype, axes)
         ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret)
         kb = kb + n

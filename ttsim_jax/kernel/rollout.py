@@ -368,11 +368,15 @@ def default_buffering() -> str:
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
 
-def fused_pays(batch: int) -> bool:
+def fused_pays(batch: int, rackets_batched: bool = False) -> bool:
     """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
-    on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls."""
+    on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls, and not
+    with a racket schedule per ball. That the CPU's fused path covers, but it ran slower than the
+    reference path (4,096 balls, two rackets per ball: 0.14-0.20x over 10-300 steps; the
+    environment's default task 0.63x of its env-steps/s): every launch runs the ordinary step over
+    the whole batch for the few balls near an event, and per-ball rackets stop many balls often."""
     backend = jax.default_backend()
-    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU)
+    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and not rackets_batched)
 
 
 def default_capacity(batch: int) -> int:
@@ -458,7 +462,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
-        fused = why is None and not reference and (fused is True or fused_pays(batch))
+        fused = why is None and not reference and (fused is True or fused_pays(batch, batched))
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
