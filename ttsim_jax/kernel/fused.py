@@ -20,8 +20,8 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
 table), no effect acting on the ball's flight or on the table's surface, ball / aero / table
-parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls or (on a CPU) one per ball
-(or none), and no sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
+parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls
+or (on a CPU) one per ball (or none), and no sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
 and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
