@@ -64,8 +64,8 @@ the largest weight within one standard error of the best, for flight the best. I
 per session and the gusts each get a weight of their own, a factor of 1, 10, 100 or 10^8 (left
 out) times the common terms', chosen by the same cross-validation
 (:func:`~ttsim_jax.diagnose.ridge.ridge_cv_groups`): 14 sessions of about 5 training segments give
-126 columns per session that few segments inform, and one weight for all either overfits them or
-shrinks the common terms with them.
+126 columns of terms per session (9 a session) that few segments inform, and one weight for all
+either overfits them or shrinks the common terms with them.
 
 A linear correction fitted on a few dozen items is no upper limit: a physical candidate with a
 few parameters can do better on the same data (it needs less of them), so the bound is a measured
