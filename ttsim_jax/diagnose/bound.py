@@ -115,6 +115,10 @@ AXES = {"table": ("x", "y", "z"), "racket": ("x (about the face normal)", "y", "
 #: Flight features phi, in the order of the columns of B.
 FLIGHT_FEATURES = ("1", "|v|", "v_x", "v_y", "v_z", "|v|v_x", "|v|v_y", "|v|v_z", "(ω×v)_x", "(ω×v)_y", "(ω×v)_z",
                    "|v|(ω×v)_x", "|v|(ω×v)_y", "|v|(ω×v)_z")
+#: Columns of the flight correction that every session shares (:func:`flight_basis`): B, then a
+#: steady wind's 6; each session with terms of its own then has 9 (a constant acceleration, a wind).
+COMMON = 3 * len(FLIGHT_FEATURES) + 6
+PER_SESSION = 9
 #: Name of the steady wind's terms (:func:`_fields`).
 WIND = "a steady wind: the change of drag and Magnus force by air moving at w, |v| w + (v̂·w) v and |v| ω̂×w"
 #: The 3 x 3 blocks of B (first column of the block) and the names of their isotropic part
@@ -364,10 +368,9 @@ def flight_basis(d: dict, errors, per_session: bool, gusts=()) -> tuple[np.ndarr
     session = np.asarray(d.get("session", np.zeros(len(tau))), np.int64)
     sessions = int(session[mask.any(1)].max()) + 1 if per_session and mask.any() else 0
     sessions = sessions if sessions > 1 else 0
-    common = 3 * len(FLIGHT_FEATURES) + 6
     path = pos + np.asarray(errors, np.float64)  # the model's own flight at the samples
     t0 = np.asarray(d.get("t0", np.zeros(len(tau))), np.float64)
-    first_gust = common + 9 * sessions
+    first_gust = COMMON + PER_SESSION * sessions
     out = np.zeros(tau.shape + (first_gust + 6 * len(gusts), 3))
     for s in range(len(tau)):
         m = mask[s]
@@ -376,11 +379,11 @@ def flight_basis(d: dict, errors, per_session: bool, gusts=()) -> tuple[np.ndarr
             continue
         v = np.gradient(path[s][m], t, axis=0, edge_order=2)
         f = _fields(v, spin[s])
-        drag = f[:, common - 6:common - 3]
+        drag = f[:, COMMON - 6:COMMON - 3]
         if sessions:
-            own = np.concatenate([f[:, 0:3], f[:, common - 6:common]], 1)  # constant, wind
-            f = np.concatenate([f, np.zeros((len(t), 9 * sessions, 3))], 1)
-            f[:, common + 9 * session[s]:common + 9 * session[s] + 9] = own
+            own = np.concatenate([f[:, 0:3], f[:, COMMON - 6:COMMON]], 1)  # constant, wind
+            f = np.concatenate([f, np.zeros((len(t), PER_SESSION * sessions, 3))], 1)
+            f[:, COMMON + PER_SESSION * session[s]:COMMON + PER_SESSION * (session[s] + 1)] = own
         if len(gusts):
             f = np.concatenate([f, np.zeros((len(t), 6 * len(gusts), 3))], 1)
             for k, (gs, freq) in enumerate(gusts):
@@ -408,7 +411,6 @@ def flight_parts(theta, sessions: int, gusts=()) -> tuple[np.ndarray, list, list
         largest session's)).
     """
     k = len(FLIGHT_FEATURES)
-    common = 3 * k + 6
     parts, names, coefs = [], [], []
 
     def add(cells, name, coef):
@@ -422,7 +424,7 @@ def flight_parts(theta, sessions: int, gusts=()) -> tuple[np.ndarray, list, list
     add([2], "constant vertical acceleration: gravity or clock scale", b[0, 2])
     add([0, 1], "constant horizontal acceleration (a tilted frame or a steady push)", np.linalg.norm(b[0, :2]))
     add([3, 4, 5], "acceleration along a fixed direction in proportion to |v|", np.linalg.norm(b[1]))
-    add(list(range(3 * k, common)), f"{WIND}, the same in every session", np.linalg.norm(theta[3 * k:3 * k + 3]))
+    add(list(range(3 * k, COMMON)), f"{WIND}, the same in every session", np.linalg.norm(theta[3 * k:3 * k + 3]))
     for first, iso_names, rest_name in FLIGHT_BLOCKS:
         block = b[first:first + 3]
         iso = np.trace(block) / 3.0
@@ -434,14 +436,14 @@ def flight_parts(theta, sessions: int, gusts=()) -> tuple[np.ndarray, list, list
         names += [iso_names[0] if iso >= 0 else iso_names[1], rest_name]
         coefs += [float(iso), float(np.linalg.norm(block - iso * np.eye(3)))]
     if sessions:
-        own = theta[common:common + 9 * sessions].reshape(sessions, 9)
-        tilt = [common + 9 * i + j for i in range(sessions) for j in range(3)]
-        wind = [common + 9 * i + j for i in range(sessions) for j in range(3, 9)]
+        own = theta[COMMON:COMMON + PER_SESSION * sessions].reshape(sessions, PER_SESSION)
+        tilt = [COMMON + PER_SESSION * i + j for i in range(sessions) for j in range(3)]
+        wind = [COMMON + PER_SESSION * i + j for i in range(sessions) for j in range(3, PER_SESSION)]
         add(tilt, "constant acceleration per session (a tilt of that session's frame)",
             np.linalg.norm(own[:, :3], axis=1).max())
         add(wind, f"{WIND}, one per session", np.linalg.norm(own[:, 3:6], axis=1).max())
     if len(gusts):
-        first = common + 9 * sessions
+        first = COMMON + PER_SESSION * sessions
         amp = np.hypot(theta[first:].reshape(-1, 2, 3)[:, 0], theta[first:].reshape(-1, 2, 3)[:, 1])
         freqs = ", ".join(f"{f:.2g}" for f in sorted({round(float(f), 3) for _, f in gusts}))
         add(list(range(first, len(theta))), f"air moving in gusts: a wind varying in session time at {freqs} Hz "
@@ -536,10 +538,9 @@ def flight_bound(pb, seed: int = 0) -> dict:
     # weight they either overfit or, the weight raised for them, shrink the common terms; each
     # group's weight is chosen apart (on a one-way air-density case, 14 sessions of 5 training
     # segments, one weight for all held out 37.7 %, not significant, against the oracle's 73.7 %)
-    common = 3 * len(FLIGHT_FEATURES) + 6
-    first_gust = common + 9 * sessions
+    first_gust = COMMON + PER_SESSION * sessions
     cols = np.arange(m)
-    groups = [g for g in ((cols >= common) & (cols < first_gust), cols >= first_gust) if g.any()]
+    groups = [g for g in ((cols >= COMMON) & (cols < first_gust), cols >= first_gust) if g.any()]
     beta, lam, factors = ridge_cv_groups(z, y, w, fold, np.ones(m), groups, one_se=False)
     corrected = e + (z @ beta).reshape(s, t, 3) * mask[..., None]
     h = _heldout(pb, "flight", corrected, seed)

@@ -21,8 +21,9 @@ What the kernel covers (:func:`unsupported` says why anything else runs the refe
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
 table), no effect acting on the ball's flight or on the table's surface, ball / aero / table
 parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls
-or (on a CPU) one per ball (or none), and no sampled residual. The coefficient tables are passed to the kernel as one small vector of scalars
-and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
+or (on a CPU) one per ball (or none), and no sampled residual. The coefficient tables are passed
+to the kernel as one small vector of scalars and interpolated with the same ramps as
+``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
 the reference path's, so ``jax.grad`` through ``rollout(..., fused=True)`` differentiates the
@@ -463,50 +464,38 @@ def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int):
 
 
 # --------------------------------------------------------------------------- the rollout's loop
-def racket_boxes(schedule, rows, dt, radius):
+def racket_boxes(pos, vel, face, rows, dt, radius):
     """(R, 2, 3) boxes that hold the centre of every ball touching a racket in the schedule's rows;
     (B, R, 2, 3) for a schedule per ball.
 
     Arguments:
-        schedule: :class:`~ttsim_jax.state.Racket` (or anything with its ``pos``, ``vel`` and
-            ``face``) with (T, R, ...) fields, or (T, B, R, ...) per ball; rows: (T,) bool, the
-            steps the kernel may fly through, or (T, B) per ball; dt: step [s]; radius: ball
-            radius [m].
+        pos, vel, face: a :class:`~ttsim_jax.state.Racket` schedule's fields, (T, R, ...), or
+            (T, B, R, ...) per ball; rows: (T,) bool, the steps the kernel may fly through, or
+            (T, B) per ball; dt: step [s]; radius: ball radius [m].
 
     Returns:
         Per racket, the corners of the box its centre spans over those steps (start and end of
         each step), widened by its largest face semi-axis, a radius and ``SWEEP_MARGIN``; an empty
         box (lower corner +inf) when no row is selected.
     """
-    inf = jnp.asarray(jnp.inf, schedule.pos.dtype)
-    start, end = schedule.pos, schedule.pos + dt * schedule.vel
+    inf = jnp.asarray(jnp.inf, pos.dtype)
+    start, end = pos, pos + dt * vel
     sel = rows[..., None, None]
     lo = jnp.min(jnp.where(sel, jnp.minimum(start, end), inf), axis=0)
     hi = jnp.max(jnp.where(sel, jnp.maximum(start, end), -inf), axis=0)
-    reach = (jnp.max(jnp.where(rows[..., None, None], schedule.face, 0.0), axis=(0, -1)) + radius
-             + ev.SWEEP_MARGIN)[..., None]
+    reach = (jnp.max(jnp.where(sel, face, 0.0), axis=(0, -1)) + radius + ev.SWEEP_MARGIN)[..., None]
     return jnp.stack([lo - reach, hi + reach], axis=-2)
 
 
-@dataclass(frozen=True)
-class _Sweep:
-    """What :func:`racket_boxes` reads of a schedule: (T, [B,] R, ...) positions, velocities, faces."""
-
-    pos: jax.Array
-    vel: jax.Array
-    face: jax.Array
-
-
 def _own_rows(schedule, kb, end, step0, substeps: int):
-    """Each ball's next ``substeps`` rows of a per-ball (T, B, R, ...) schedule, as a (substeps, B,
-    R, ...) :class:`_Sweep`, and which of them come before ``end``: O(B substeps) per launch,
-    where selecting them among all T rows cost O(B T) (a 300-step rollout ran 17x slower)."""
-    ahead = jnp.arange(substeps)[:, None]
-    steps = kb[None] + ahead  # (substeps, B)
+    """Each ball's next ``substeps`` rows of a per-ball (T, B, R, ...) schedule: (pos, vel, face) as
+    (substeps, B, R, ...) and which rows come before ``end``, :func:`racket_boxes`'s arguments.
+    O(B substeps) per launch, where selecting them among all T rows cost O(B T) (a 300-step
+    rollout ran 17x slower)."""
+    steps = kb[None] + jnp.arange(substeps)[:, None]  # (substeps, B)
     row = jnp.clip(steps - step0, 0, schedule.pos.shape[0] - 1)
     col = jnp.arange(kb.shape[0])[None]
-    pick = lambda a: a[row, col]  # noqa: E731
-    return _Sweep(pick(schedule.pos), pick(schedule.vel), pick(schedule.face)), steps < end
+    return schedule.pos[row, col], schedule.vel[row, col], schedule.face[row, col], steps < end
 
 
 def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
@@ -545,7 +534,8 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
                 moving = kb < end
                 lo = jnp.min(kb)
                 hi = jnp.minimum(jnp.max(jnp.where(moving, kb, lo)) + substeps, end)
-                boxes = racket_boxes(schedule, (rows >= lo) & (rows < hi), dt, radius)
+                boxes = racket_boxes(schedule.pos, schedule.vel, schedule.face, (rows >= lo) & (rows < hi), dt,
+                                     radius)
         params, layout = pack(model, dt, boxes, dtype, axes)
         ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret)
         kb = kb + n
