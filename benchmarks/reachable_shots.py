@@ -17,7 +17,7 @@ import numpy as np
 
 from ttsim_jax import init_state, load_model, rollout
 from ttsim_jax.env.config import load_task_config
-from ttsim_jax.env.return_ball import shot_bank
+from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.physics import events as ev
 
 DT, STEPS, EVERY = 1e-3, 2000, 2

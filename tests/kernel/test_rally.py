@@ -160,8 +160,10 @@ def test_net_is_reported_not_modelled():
     kinds = np.asarray(r.events.kind[0]).tolist()
     assert NET in kinds
     k = kinds.index(NET)
-    # passes through unchanged
-    np.testing.assert_array_equal(np.asarray(r.events.post.vel[0, k]), np.asarray(r.events.pre.vel[0, k]))
+    # passes through unchanged (to the last bit or two: XLA may compute the logged path point in two
+    # fused loops, which round differently; a modelled net would change it by far more)
+    np.testing.assert_allclose(np.asarray(r.events.post.vel[0, k]), np.asarray(r.events.pre.vel[0, k]),
+                               rtol=1e-14, atol=0)
     assert float(r.events.post.vel[0, k, 0]) > 4.0
 
 

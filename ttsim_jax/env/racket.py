@@ -80,11 +80,12 @@ def rotation(angle):
     """
     cp, sp = jnp.cos(angle[0]), jnp.sin(angle[0])
     cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
-    zero, one = jnp.zeros_like(cp), jnp.ones_like(cp)
-    ry = jnp.array([[cp, zero, sp], [zero, one, zero], [-sp, zero, cp]])
-    rz = jnp.array([[cy, -sy, zero], [sy, cy, zero], [zero, zero, one]])
-    base = jnp.diag(jnp.array([-1.0, -1.0, 1.0], cp.dtype))  # normal -x, tip up
-    return rz @ ry @ base
+    zero = jnp.zeros_like(cp)
+    # computed once: fused into the matrix's nine entries, each entry computed its own cosines
+    cp, sp, cy, sy = jax.lax.optimization_barrier((cp, sp, cy, sy))
+    # rz(yaw) @ ry(pitch) @ diag(-1, -1, 1) (normal -x, tip up), multiplied out: under vmap the
+    # products were batched 3 x 3 dots, slow on a CPU
+    return jnp.array([[-cy * cp, sy, cy * sp], [-sy * cp, -cy, sy * sp], [sp, zero, cp]])
 
 
 def angular_velocity(angle, rate):

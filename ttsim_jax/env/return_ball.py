@@ -34,12 +34,12 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from ttsim_jax.files.cache import compile_notice, enable_compilation_cache
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
+from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.env.config import TaskConfig, load_task_config
 from ttsim_jax.env.spaces import OBS_BOUND
 from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
@@ -55,6 +55,9 @@ OUTCOME_NAMES = ("running", "legal", "net", "out", "miss", "volley", "shot_fault
 RESET_INFO = {"outcome": RUNNING, "legal": False, "contact": False, "landing_error": -1.0}
 # Slots of the event log of one control step (10 ms hold two or three events at most).
 MAX_EVENTS = 4
+# New episodes made per step by :meth:`ReturnBall.step`: for B / RESET_FRACTION environments, at
+# least RESET_MIN_ROWS (an episode lasts 50-200 steps, so a step ends about B / 100 of them).
+RESET_FRACTION, RESET_MIN_ROWS = 16, 8
 # Cap of the ball-racket distance in the approach term [m].
 APPROACH_CAP = 3.0
 # Entries the tracker's plan adds to the observation (``[observation] plan``): point, velocity, time, valid.
@@ -139,65 +142,6 @@ class EnvParams:
     intercept: intercept.InterceptParams
 
 
-def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
-    """The incoming shots: ``sample_shots`` of the configured types, redrawing any faster or spinning
-    faster than the configured maxima.
-
-    Aiming thousands of shots through the model takes a minute on a CPU, so an aimed bank is kept in
-    ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache``), named by a hash of the ``[shots]`` settings,
-    the model's parameters and the sampler's source; ``cache=False`` always draws afresh.
-
-    Returns:
-        (:class:`Ball` (S, 3) float32 numpy fields, (S,) int shot type index into ``config.shots.types``).
-    """
-    import hashlib
-    import inspect
-
-    from ttsim_jax import shots as shots_module
-    from ttsim_jax.files.cache import cache_root
-
-    c = config.shots
-    path = None
-    if cache and c.aim:
-        digest = hashlib.sha256(repr(c).encode())
-        for leaf in jax.tree.leaves(model):
-            digest.update(np.asarray(leaf).tobytes())
-        digest.update(inspect.getsource(shots_module).encode())
-        path = cache_root() / f"shots-{digest.hexdigest()[:20]}.npz"
-        if path.is_file():
-            with np.load(path) as f:
-                return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]
-    kept, labels, seed = [], [], c.seed
-    while sum(len(k) for k in kept) < c.bank:
-        ball, lab = shots_module.sample_shots(2 * c.bank, seed=seed, types=list(c.types),
-                                              radius=float(model.ball.radius), model=model if c.aim else None)
-        ok = ((np.linalg.norm(ball.vel, axis=-1) <= c.max_speed) & (np.linalg.norm(ball.spin, axis=-1) <= c.max_spin)
-              & np.isfinite(ball.vel).all(-1))
-        if not ok.any():
-            raise ConfigError(f"{config.source}: [shots] no shot of types {list(c.types)} is within max_speed = "
-                              f"{c.max_speed} and max_spin = {c.max_spin}")
-        kept.append(np.concatenate([ball.pos, ball.vel, ball.spin], -1)[ok])
-        labels.append(lab[ok])
-        seed += 1_000_003
-    arr = np.concatenate(kept)[:c.bank].astype(np.float32)
-    lab = np.concatenate(labels)[:c.bank]
-    index = {name: i for i, name in enumerate(c.types)}
-    bank = Ball(pos=arr[:, 0:3], vel=arr[:, 3:6], spin=arr[:, 6:9])
-    types = np.array([index[s] for s in lab], np.int32)
-    if path is not None:
-        import io
-
-        from ttsim_jax.files.atomic import atomic_write
-
-        buf = io.BytesIO()
-        np.savez(buf, pos=bank.pos, vel=bank.vel, spin=bank.spin, types=types)
-        try:
-            atomic_write(path, buf.getvalue())
-        except OSError:  # a read-only home: no cache, same bank
-            pass
-    return bank, types
-
-
 def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptParams:
     """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
     nominal ``table.e0`` and racket contact coefficients, the return's arc its drag)."""
@@ -260,6 +204,7 @@ class ReturnBall:
         self.num_envs = int(num_envs)
         self.block_size = block_size
         self.reference = self.num_envs <= 64 if reference is None else bool(reference)
+        self.reset_rows = min(self.num_envs, max(RESET_MIN_ROWS, -(-self.num_envs // RESET_FRACTION)))
         self.substeps = self.config.substeps
         self.max_steps = self.config.max_steps
         self.period = 1.0 / self.config.control.rate_hz
@@ -323,10 +268,11 @@ class ReturnBall:
                 target=f32(w.target_point), intercept=intercept_params(model, c))
         return self._params
 
-    def draw_model_values(self, key, lo, hi, normal):
-        """(B, P) randomised parameter values: uniform in [lo, hi], or where ``normal`` (P,) is set, a
-        normal law of mean ``lo`` and standard deviation ``hi`` truncated at three deviations."""
-        shape = (self.num_envs, len(self.paths))
+    def draw_model_values(self, key, lo, hi, normal, n: int | None = None):
+        """(n, P) randomised parameter values (n: default ``num_envs``): uniform in [lo, hi], or where
+        ``normal`` (P,) is set, a normal law of mean ``lo`` and standard deviation ``hi`` truncated
+        at three deviations."""
+        shape = (self.num_envs if n is None else n, len(self.paths))
         u = jax.random.uniform(key, shape, jnp.float32)
         z = jax.random.truncated_normal(jax.random.fold_in(key, 1), -3.0, 3.0, shape, jnp.float32)
         return jnp.where(normal, lo + z * hi, lo + u * (hi - lo))
@@ -348,7 +294,12 @@ class ReturnBall:
         Returns:
             (obs (B, obs_dim) float32, :class:`EnvState`).
         """
-        b = self.num_envs
+        return self._fresh(key, params, jnp.arange(self.num_envs, dtype=jnp.int32))
+
+    def _fresh(self, key, params: EnvParams, ids):
+        """(obs, :class:`EnvState`) of new episodes for the environments ``ids`` (n,): n rows, the
+        kernel's ball ids those of the environments (its random draws follow a ball's id)."""
+        b = ids.shape[0]
         k_shot, k_pos, k_rand, k_obs = jax.random.split(key, 4)
         shot = jax.random.randint(k_shot, (b,), 0, params.shots.pos.shape[0])
         ball = jax.tree.map(lambda a: a[shot], params.shots)
@@ -356,12 +307,12 @@ class ReturnBall:
         pos = racket_kin.clip_workspace(params.limits, pos)
         zeros2 = jnp.zeros((b, 2), jnp.float32)
         rk = racket_kin.RacketState(pos=pos, vel=jnp.zeros_like(pos), angle=zeros2, rate=zeros2)
-        values = self.draw_model_values(k_rand, params.rand_lo, params.rand_hi, params.rand_normal)
+        values = self.draw_model_values(k_rand, params.rand_lo, params.rand_hi, params.rand_normal, b)
         progress = Rally(bounced=jnp.zeros(b, bool), hit=jnp.zeros(b, bool), outcome=jnp.zeros(b, jnp.int32),
                          landing=jnp.zeros((b, 2), jnp.float32))
         # nothing older than the first measurement exists: the history starts filled with it
         seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
-        state = EnvState(rally=init_state(ball), racket=rk, progress=progress, model_values=values, shot=shot,
+        state = EnvState(rally=init_state(ball, ball_id=ids), racket=rk, progress=progress, model_values=values, shot=shot,
                          t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None)
         state = state.replace(plan=self.plan(state, params))
         return self.observe(state), state
@@ -380,7 +331,7 @@ class ReturnBall:
     def plan(self, state: EnvState, params: EnvParams):
         """:attr:`EnvState.plan` of ``state`` (whose other fields are set): (B, 8) or (B, 0)."""
         if not self.config.observation.plan:
-            return jnp.zeros((self.num_envs, 0), jnp.float32)
+            return jnp.zeros((state.t.shape[0], 0), jnp.float32)
         ball = self.seen_ball(state)
         point, v_hit, t_hit, valid = intercept.predict(params.intercept, ball.pos, ball.vel, state.progress.bounced,
                                                        ball.spin)
@@ -495,10 +446,31 @@ class ReturnBall:
         """
         k_step, k_reset = jax.random.split(key)
         obs, nxt, reward, terminated, truncated, info = self.step_env(k_step, state, action, params)
-        obs_r, fresh = self.reset(k_reset, params)
         done = terminated | truncated
+        obs_r, fresh = self._restarts(k_reset, params, done)
         info = dict(info, final_obs=obs)
         return jnp.where(done[:, None], obs_r, obs), select(done, fresh, nxt), reward, terminated, truncated, info
+
+
+    def _restarts(self, key, params: EnvParams, done):
+        """(obs, :class:`EnvState`) of new episodes where ``done`` (B,) is set (anything elsewhere).
+
+        A step ends a few episodes out of thousands, so new ones are made for ``reset_rows`` rows
+        (B / RESET_FRACTION) and each finished environment takes one of them; a step that ends more
+        makes them for every environment, as :meth:`reset`. Making them for every environment at
+        every step (the tracker's prediction included) cost a fifth of a step's time.
+        """
+        rows = self.reset_rows
+        if rows >= self.num_envs:
+            return self.reset(key, params)
+
+        def few():
+            ids = jnp.nonzero(done, size=rows, fill_value=0)[0].astype(jnp.int32)
+            obs, fresh = self._fresh(key, params, ids)
+            slot = jnp.clip(jnp.cumsum(done) - 1, 0, rows - 1)
+            return obs[slot], jax.tree.map(lambda a: a if a.ndim == 0 else a[slot], fresh)
+
+        return jax.lax.cond(jnp.sum(done) > rows, lambda: self.reset(key, params), few)
 
 
 def select(mask, where_set: EnvState, elsewhere: EnvState) -> EnvState:

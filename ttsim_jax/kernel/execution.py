@@ -26,8 +26,8 @@ class Execution:
         reference: run the exact event detection for every ball at every step instead of only for
             the balls whose gaps change sign (same results, slower; for testing).
         block_size: run the batch in blocks of this many balls, one after the other, each through
-            the whole rollout (same results); default (None) 1,024 on CPU on the reference path
-            (cache-sized), none on the fused path and on GPU; 0 for none.
+            the whole rollout (same results); default (None) none
+            (:func:`~ttsim_jax.kernel.rollout.default_block`); 0 for none.
         buffering: how a step hands its flagged balls to the contact models (same results):
             ``"loop"`` (default on CPU) or ``"single"`` (default on GPU and other accelerators);
             see :func:`~ttsim_jax.kernel.step.step`.

@@ -162,12 +162,13 @@ class _Static:
 
 
 def default_block(batch: int, fused: bool = False) -> int:
-    """Balls per block: on CPU, blocks of 1,024 balls keep a reference step's working set in cache
-    (about 2.3x faster at 65,536 balls than the whole batch at once; ``benchmarks/README.md``);
-    elsewhere, and on the fused path, none: there XLA compiles the flight kernel's sub-step into
-    one loop over the balls, which runs fastest over the whole batch (its state is 40 bytes a ball,
-    read and written once a sub-step) and whose early exits pay only where the batch is wide."""
-    return 1024 if jax.default_backend() == "cpu" and batch > 1024 and not fused else 0
+    """Balls per block: none (0), everywhere. Blocks of 1,024 balls once kept a CPU step's working
+    set in cache; since a step runs only the contact buffers that hold a ball and the flight step
+    writes fewer temporaries, the whole batch at once is faster on a CPU too (interleaved, 2 cores:
+    0.60x the time at 4,096 balls over 10 steps with a racket per ball, 0.62x at 16,384, 0.84x
+    and 0.71x at 65,536 without and with two tracking rackets over 100 steps); each block repeats a
+    step's fixed costs. ``block_size`` still splits a batch (same results), e.g. to bound memory."""
+    return 0
 
 
 def _split_per_ball(model, axes):

@@ -107,7 +107,12 @@ def _ramps(x, xp, last=1.0):
 def _piecewise(x, xp, fp, last=1.0):
     """Piecewise-linear interpolation of fp (K, ...) at x over xp (K,); see :func:`_ramps`."""
     s = _ramps(x, xp, last)
-    return fp[0] + jnp.tensordot(s, fp[1:] - fp[:-1], axes=1)
+    # an unrolled sum, not a dot product: under vmap a dot is an operation of its own that no
+    # elementwise loop fuses with (a pass over the batch per dot in every RK4 stage)
+    out = fp[0]
+    for k in range(1, fp.shape[0]):
+        out = out + s[k - 1] * (fp[k] - fp[k - 1])
+    return out
 
 
 def drag_constant(p: ConstantCoefficient, speed, spin_rate, radius, nu):

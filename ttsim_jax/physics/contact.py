@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from ttsim_jax.physics.numerics import safe_norm
+from ttsim_jax.physics.numerics import matvec, safe_norm
 
 
 @struct.dataclass
@@ -57,7 +57,7 @@ def contact_matrices(coef: ContactCoefficients, radius, kappa):
 def apply_matrices(mats, vel, spin):
     """v+ = A_vv v + A_vw w,  w+ = A_wv v + A_ww w."""
     a_vv, a_vw, a_wv, a_ww = mats
-    return a_vv @ vel + a_vw @ spin, a_wv @ vel + a_ww @ spin
+    return matvec(a_vv, vel) + matvec(a_vw, spin), matvec(a_wv, vel) + matvec(a_ww, spin)
 
 
 def sliding_alpha(mu, e_n, vel, spin, radius, alpha_roll=0.4):

@@ -33,7 +33,7 @@ from flax import struct
 
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import component_norm, safe_divide, safe_norm
+from ttsim_jax.physics.numerics import component_norm, dot3, safe_divide, safe_norm
 
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
@@ -149,7 +149,7 @@ def table_candidate(table, effects, radius, p0, v0, p1, v1, dt):
         lambda p, s: table_stage.gap(sg(table), sg(effects), sg(radius), p), p0, v0, p1, v1, dt, TABLE_ITERATIONS)
     pos, vel = hermite(p0, v0, p1, v1, dt, tau)
     _, normal = table_stage.box_distance(table, effects, pos)
-    hit = _crossing(g0, g_min, radius) & (jnp.dot(vel, normal) < 0.0)
+    hit = _crossing(g0, g_min, radius) & (dot3(vel, normal) < 0.0)
     return Candidate(hit=hit, tau=tau)
 
 
@@ -226,7 +226,7 @@ def racket_may_hit(racket, radius, p0, v0, p1, v1, dt):
     n0 = racket.rot[:, 0]
     turn = dt * racket.ang_vel
     rel0 = p0 - racket.pos
-    h0, h1 = jnp.dot(n0, rel0), jnp.dot(n0 + jnp.cross(turn, n0), p1 - racket.pos - dt * racket.vel)
+    h0, h1 = dot3(n0, rel0), dot3(n0 + jnp.cross(turn, n0), p1 - racket.pos - dt * racket.vel)
     reach, moved = _racket_reach(racket, radius, p0, v0, p1, v1, dt, dt)
     theta = jnp.abs(turn[0]) + jnp.abs(turn[1]) + jnp.abs(turn[2])
     margin = SWEEP_MARGIN + theta * (0.25 * moved + theta * (reach + moved + SWEEP_MARGIN))

@@ -9,7 +9,14 @@ TINY = 1e-12
 
 def safe_norm(x, axis=-1, keepdims=False):
     """Euclidean norm whose value and gradient are 0 (not NaN) at x = 0."""
-    n2 = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    if x.ndim and x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
+        # the components' sum, not a reduction: a reduction over a short axis ends an elementwise
+        # loop on a CPU (under vmap, every norm in a flight step was a pass over the batch of its own)
+        n2 = x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2]
+        if keepdims:
+            n2 = n2[..., None]
+    else:
+        n2 = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     ok = n2 > TINY
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
@@ -22,6 +29,31 @@ def component_norm(*components):
         n2 = n2 + c * c
     ok = n2 > TINY
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
+
+
+def dot3(a, b):
+    """The dot product of (..., 3) vectors, as elementwise arithmetic (see :func:`matvec`; a batch of
+    3-term dot products became a reduction of its own, which XLA's CPU backend ran 10-100x slower
+    than the arithmetic around it)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def matvec(m, v):
+    """``m @ v`` for (..., 3, 3) and (..., 3), as elementwise arithmetic: under vmap a 3 x 3
+    product is a batched dot, an operation of its own on a CPU (slow for a batch of tiny ones)
+    that no elementwise loop fuses with; the sum over three terms fuses with its neighbours."""
+    return m[..., :, 0] * v[..., 0:1] + m[..., :, 1] * v[..., 1:2] + m[..., :, 2] * v[..., 2:3]
+
+
+def matmul(a, b):
+    """``a @ b`` for (..., 3, 3) matrices, as elementwise arithmetic (see :func:`matvec`)."""
+    return (a[..., :, 0:1] * b[..., None, 0, :] + a[..., :, 1:2] * b[..., None, 1, :]
+            + a[..., :, 2:3] * b[..., None, 2, :])
+
+
+def transpose(m):
+    """(..., 3, 3) ``m`` transposed."""
+    return jnp.swapaxes(m, -1, -2)
 
 
 def safe_divide(num, den, fallback=0.0):

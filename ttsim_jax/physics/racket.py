@@ -29,7 +29,7 @@ from flax import struct
 
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics.contact import ContactCoefficients, apply_matrices, contact_matrices, surface_velocity
-from ttsim_jax.physics.numerics import component_norm, rotate, safe_divide, safe_norm
+from ttsim_jax.physics.numerics import component_norm, dot3, matvec, rotate, safe_divide, safe_norm, transpose
 
 RACKET_KINDS = ("nakashima", "refined", "updated")
 
@@ -138,7 +138,7 @@ def facing(racket, pos):
 def contact_frame(racket, pos):
     """(rot, side): the racket frame turned to face the ball, and +1 / -1 for front / back face."""
     n = racket.rot[:, 0]
-    side = jnp.where(jnp.dot(n, pos - racket.pos) >= 0.0, 1.0, -1.0).astype(pos.dtype)
+    side = jnp.where(dot3(n, pos - racket.pos) >= 0.0, 1.0, -1.0).astype(pos.dtype)
     flip = jnp.stack([side, side, jnp.ones_like(side)])
     return racket.rot * flip[None, :], side
 
@@ -157,8 +157,8 @@ def racket_frame_state(params: RacketParams, racket, radius, pos, vel, spin):
     offset = pos - radius * n - racket.pos  # contact point relative to the face centre
     w_surf = racket.ang_vel if uses_racket_spin(params) else jnp.zeros_like(racket.ang_vel)
     v_surf = racket.vel + jnp.cross(w_surf, offset)
-    local = rot.T @ offset
-    return dict(v=rot.T @ (vel - v_surf), w=rot.T @ (spin - w_surf), d=local[1:3], rot=rot,
+    local = matvec(transpose(rot), offset)
+    return dict(v=matvec(transpose(rot), vel - v_surf), w=matvec(transpose(rot), spin - w_surf), d=local[1:3], rot=rot,
                 v_surf=v_surf, w_surf=w_surf)
 
 
@@ -216,4 +216,4 @@ def racket_contact(params: RacketParams, racket, radius, mass, pos, vel, spin, e
     state = racket_frame_state(params, racket, radius, pos, vel, spin)
     v_p, w_p = base_response(params, state["v"], state["w"], state["d"], radius, mass, effects)
     rot = state["rot"]
-    return rot @ v_p + state["v_surf"], rot @ w_p + state["w_surf"], state
+    return matvec(rot, v_p) + state["v_surf"], matvec(rot, w_p) + state["w_surf"], state

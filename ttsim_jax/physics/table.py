@@ -53,7 +53,7 @@ from flax import struct
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics.contact import (ContactCoefficients, apply_matrices, contact_matrices, sliding_alpha,
                                        surface_velocity)
-from ttsim_jax.physics.numerics import safe_norm, safe_unit
+from ttsim_jax.physics.numerics import dot3, matmul, matvec, safe_norm, safe_unit, transpose
 
 _Z = np.array([0.0, 0.0, 1.0])  # numpy: no device array at import; cast to the state's dtype at use
 
@@ -169,7 +169,7 @@ def friction(table: TableParams, vn, effects=()):
 
 def kinetic_energy(kappa, radius, vel, spin):
     """Kinetic energy per unit mass [J/kg]: |v|^2 / 2 + (r^2 / kappa) |w|^2 / 2 (I = m r^2 / kappa)."""
-    return 0.5 * jnp.sum(vel * vel, axis=-1) + 0.5 * radius * radius / kappa * jnp.sum(spin * spin, axis=-1)
+    return 0.5 * dot3(vel, vel) + 0.5 * radius * radius / kappa * dot3(spin, spin)
 
 
 def residual_bound(kappa, radius, vel, spin, base_v, base_w, dv, dw):
@@ -218,7 +218,7 @@ def residual_terms(table: TableParams, radius, vel, spin, effects=()):
     coef = ContactCoefficients(e_n=e_n, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(e_n))
     base_v, base_w = apply_matrices(contact_matrices(coef, radius, table.kappa), vel, spin)
     rot = residual_frame(vel)
-    dv, dw = apply_matrices(tuple(-rot.T @ da @ rot for da in table.residual), vel, spin)
+    dv, dw = apply_matrices(tuple(-matmul(transpose(rot), matmul(da, rot)) for da in table.residual), vel, spin)
     fade = residual_fade(vel)
     return base_v, base_w, fade * dv, fade * dw
 
@@ -270,16 +270,16 @@ def table_contact(table: TableParams, radius, pos, vel, spin, effects=(), edges=
     """
     normal, pos_c = _geometry(table, effects, radius, pos, edges)
     frame = _frame(normal)
-    v_loc, w_loc = local_contact(table, radius, frame @ vel, frame @ spin, effects)
+    v_loc, w_loc = local_contact(table, radius, matvec(frame, vel), matvec(frame, spin), effects)
     v_loc = v_loc.at[2].set(jnp.where(v_loc[2] < REST_SPEED, 0.0, v_loc[2]))
-    return pos_c, frame.T @ v_loc, frame.T @ w_loc
+    return pos_c, matvec(transpose(frame), v_loc), matvec(transpose(frame), w_loc)
 
 
 def touching(table: TableParams, effects, radius, pos, vel):
     """Whether a ball is in sustained contact: within CONTACT_SLOP of the table, normal speed
     below REST_SPEED."""
     dist, normal = box_distance(table, effects, pos)
-    return (jnp.abs(dist - radius) <= CONTACT_SLOP) & (jnp.abs(jnp.dot(vel, normal)) < REST_SPEED)
+    return (jnp.abs(dist - radius) <= CONTACT_SLOP) & (jnp.abs(dot3(vel, normal)) < REST_SPEED)
 
 
 def slide(table: TableParams, radius, pos, vel, spin, effects=()):
@@ -295,14 +295,14 @@ def slide(table: TableParams, radius, pos, vel, spin, effects=()):
     """
     normal, pos_c = _geometry(table, effects, radius, pos, True)
     frame = _frame(normal)
-    v_loc, w_loc = frame @ vel, frame @ spin
+    v_loc, w_loc = matvec(frame, vel), matvec(frame, spin)
     zero = jnp.zeros_like(v_loc[2])
     alpha = sliding_alpha(friction(table, jnp.abs(v_loc[2]), effects), zero, v_loc, w_loc, radius, table.alpha_roll)
     coef = ContactCoefficients(e_n=zero, alpha=jnp.stack([alpha, alpha]), e_s=jnp.ones_like(zero))
     v_c, w_c = apply_matrices(contact_matrices(coef, radius, table.kappa), v_loc, w_loc)
     press = (gap(table, effects, radius, pos) < 0.0) & (v_loc[2] < 0.0)
-    return (jnp.where(press, pos_c, pos), jnp.where(press, frame.T @ v_c, vel),
-            jnp.where(press, frame.T @ w_c, spin))
+    return (jnp.where(press, pos_c, pos), jnp.where(press, matvec(transpose(frame), v_c), vel),
+            jnp.where(press, matvec(transpose(frame), w_c), spin))
 
 
 def at_rest(table: TableParams, effects, radius, pos, vel, spin):
@@ -310,5 +310,5 @@ def at_rest(table: TableParams, effects, radius, pos, vel, spin):
     REST_SPEED."""
     _, normal = box_distance(table, effects, pos)
     frame = _frame(normal)
-    u = surface_velocity(frame @ vel, frame @ spin, radius)
+    u = surface_velocity(matvec(frame, vel), matvec(frame, spin), radius)
     return touching(table, effects, radius, pos, vel) & (safe_norm(vel) < REST_SPEED) & (safe_norm(u) < REST_SPEED)

@@ -1,0 +1,70 @@
+"""The bank of incoming shots a ReturnBall task draws its episodes from (``[shots]`` of the task
+file), drawn once and kept in the user's cache when aimed through the model."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ttsim_jax.env.config import TaskConfig
+from ttsim_jax.params import ConfigError, Model
+from ttsim_jax.state import Ball
+
+
+def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
+    """The incoming shots: ``sample_shots`` of the configured types, redrawing any faster or spinning
+    faster than the configured maxima.
+
+    Aiming thousands of shots through the model takes a minute on a CPU, so an aimed bank is kept in
+    ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache``), named by a hash of the ``[shots]`` settings,
+    the model's parameters and the sampler's source; ``cache=False`` always draws afresh.
+
+    Returns:
+        (:class:`Ball` (S, 3) float32 numpy fields, (S,) int shot type index into ``config.shots.types``).
+    """
+    import hashlib
+    import inspect
+
+    from ttsim_jax import shots as shots_module
+    from ttsim_jax.files.cache import cache_root
+
+    c = config.shots
+    path = None
+    if cache and c.aim:
+        digest = hashlib.sha256(repr(c).encode())
+        for leaf in jax.tree.leaves(model):
+            digest.update(np.asarray(leaf).tobytes())
+        digest.update(inspect.getsource(shots_module).encode())
+        path = cache_root() / f"shots-{digest.hexdigest()[:20]}.npz"
+        if path.is_file():
+            with np.load(path) as f:
+                return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]
+    kept, labels, seed = [], [], c.seed
+    while sum(len(k) for k in kept) < c.bank:
+        ball, lab = shots_module.sample_shots(2 * c.bank, seed=seed, types=list(c.types),
+                                              radius=float(model.ball.radius), model=model if c.aim else None)
+        ok = ((np.linalg.norm(ball.vel, axis=-1) <= c.max_speed) & (np.linalg.norm(ball.spin, axis=-1) <= c.max_spin)
+              & np.isfinite(ball.vel).all(-1))
+        if not ok.any():
+            raise ConfigError(f"{config.source}: [shots] no shot of types {list(c.types)} is within max_speed = "
+                              f"{c.max_speed} and max_spin = {c.max_spin}")
+        kept.append(np.concatenate([ball.pos, ball.vel, ball.spin], -1)[ok])
+        labels.append(lab[ok])
+        seed += 1_000_003
+    arr = np.concatenate(kept)[:c.bank].astype(np.float32)
+    lab = np.concatenate(labels)[:c.bank]
+    index = {name: i for i, name in enumerate(c.types)}
+    bank = Ball(pos=arr[:, 0:3], vel=arr[:, 3:6], spin=arr[:, 6:9])
+    types = np.array([index[s] for s in lab], np.int32)
+    if path is not None:
+        import io
+
+        from ttsim_jax.files.atomic import atomic_write
+
+        buf = io.BytesIO()
+        np.savez(buf, pos=bank.pos, vel=bank.vel, spin=bank.spin, types=types)
+        try:
+            atomic_write(path, buf.getvalue())
+        except OSError:  # a read-only home: no cache, same bank
+            pass
+    return bank, types
