@@ -155,6 +155,27 @@ def test_extreme_actions_and_states_stay_finite(vec):
         assert np.isfinite(np.asarray(state.racket.vel)).all()
 
 
+@pytest.mark.parametrize("finished", [[1, 6, 17], list(range(10))])
+def test_restarts_give_each_finished_environment_its_own_new_episode(vec, finished):
+    """A step makes new episodes for ``reset_rows`` rows (8 of 20 environments here) and gives each
+    finished environment one; more finished than that (the second case) takes the whole batch's."""
+    n = 20
+    env = return_ball.ReturnBall(vec.env.config, n)
+    params = vec.params
+    assert env.reset_rows == 8
+    done = jnp.zeros(n, bool).at[jnp.asarray(finished)].set(True)
+    obs, state = jax.jit(env._restarts)(jax.random.PRNGKey(3), params, done)
+    ids = np.asarray(state.rally.ball_id)
+    shots = np.asarray(state.shot)
+    for i in finished:
+        assert ids[i] == i  # the kernel's draws follow the environment, not its row among the new ones
+        assert int(state.t[i]) == 0 and int(state.progress.outcome[i]) == RUNNING and bool(state.rally.alive[i])
+        np.testing.assert_array_equal(np.asarray(state.rally.ball.pos[i]), np.asarray(params.shots.pos[shots[i]]))
+        np.testing.assert_array_equal(np.asarray(obs[i]), np.asarray(env.observe(state))[i])
+    # distinct episodes, not one copied into every finished environment
+    assert len({tuple(np.asarray(state.model_values[i])) for i in finished}) == len(finished)
+
+
 def test_domain_randomisation_draws_per_environment_values_in_range(vec):
     env, params = vec.env, vec.params
     assert env.paths == ("table.e0", "racket.e0", "aero.rho_air")
