@@ -81,8 +81,6 @@ def rotation(angle):
     cp, sp = jnp.cos(angle[0]), jnp.sin(angle[0])
     cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
     zero = jnp.zeros_like(cp)
-    # computed once: fused into the matrix's nine entries, each entry computed its own cosines
-    cp, sp, cy, sy = jax.lax.optimization_barrier((cp, sp, cy, sy))
     # rz(yaw) @ ry(pitch) @ diag(-1, -1, 1) (normal -x, tip up), multiplied out: under vmap the
     # products were batched 3 x 3 dots, slow on a CPU
     return jnp.array([[-cy * cp, sy, cy * sp], [-sy * cp, -cy, sy * sp], [sp, zero, cp]])

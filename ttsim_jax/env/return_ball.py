@@ -312,8 +312,8 @@ class ReturnBall:
                          landing=jnp.zeros((b, 2), jnp.float32))
         # nothing older than the first measurement exists: the history starts filled with it
         seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
-        state = EnvState(rally=init_state(ball, ball_id=ids), racket=rk, progress=progress, model_values=values, shot=shot,
-                         t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None)
+        state = EnvState(rally=init_state(ball, ball_id=ids), racket=rk, progress=progress, model_values=values,
+                         shot=shot, t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None)
         state = state.replace(plan=self.plan(state, params))
         return self.observe(state), state
 
@@ -450,7 +450,6 @@ class ReturnBall:
         obs_r, fresh = self._restarts(k_reset, params, done)
         info = dict(info, final_obs=obs)
         return jnp.where(done[:, None], obs_r, obs), select(done, fresh, nxt), reward, terminated, truncated, info
-
 
     def _restarts(self, key, params: EnvParams, done):
         """(obs, :class:`EnvState`) of new episodes where ``done`` (B,) is set (anything elsewhere).

@@ -12,7 +12,7 @@ def safe_norm(x, axis=-1, keepdims=False):
     if x.ndim and x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
         # the components' sum, not a reduction: a reduction over a short axis ends an elementwise
         # loop on a CPU (under vmap, every norm in a flight step was a pass over the batch of its own)
-        n2 = x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2]
+        n2 = dot3(x, x)
         if keepdims:
             n2 = n2[..., None]
     else:
