@@ -23,7 +23,9 @@ mean squared error counts robustly (:func:`_mse`): a few segments that the segme
 err fifty times more than the rest and would otherwise pull every fit towards themselves. The whole descent
 (``steps`` Adam steps, a cosine-decayed step size, one warm-started Gauss-Newton step of each
 flight segment's initial state per step) is one ``lax.scan`` in one jitted call, the data padded to
-one capacity per phase.
+one capacity per phase. The states' Jacobian costs about ten flights of forward mode, so a fresh one
+is taken only every :data:`JACOBIAN_EVERY` steps and in the final ones; the steps between reuse it
+with the latest residuals (chord steps, which reach the same optimum).
 
 Held-out score (:func:`score`): per phase, the reduction of the held-out RMS error against the
 model's, 100 (1 - RMS_after / RMS_before) [%], with a 95 % paired bootstrap interval over held-out
@@ -70,6 +72,9 @@ from ttsim_jax.diagnose.specs import (FREE, HOOK_PHASES, PHASES, START_TYPICAL, 
 REFINE = {"air_flow": gusts.gust_stage, "table_unevenness": bumps.bump_stage, "buckling": onsets.onset_stage}
 #: Gauss-Newton steps of the flight states after the descent (from the states it ended with).
 FINAL_GN = 3
+#: Descent steps per fresh Jacobian of the flight states (the steps between reuse it: the states
+#: move little from one step to the next).
+JACOBIAN_EVERY = 10
 #: Items per stratum of the split (sorted by the model's error).
 STRATUM = 5
 #: Least fall of the held-out RMS error of a significant candidate, per phase [m, m/s, m/s]: a
@@ -270,19 +275,31 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
         return total + ridge * sum(jnp.sum(v**2) for uk in u for v in uk.values()), errs
 
     def body(carry, i):
-        u, state, x, _ = carry
-        if "flight" in phases:  # one Gauss-Newton step of the states per step keeps them at their optimum
-            x = stages.flight_states(model, specs, consts, u, data["flight"], x, 1)
+        u, state, x, jac, errs = carry
+        if "flight" in phases:
+            # one Gauss-Newton step of the states per step keeps them at their optimum; the
+            # Jacobian (ten flights' worth of forward mode) is refreshed every JACOBIAN_EVERY steps
+            # and in the final steps, and between refreshes the step uses the last residuals
+            # (a chord step: the states lag the parameters by one step)
+            fresh = (i % JACOBIAN_EVERY == 0) | (i >= steps)
+            res, jac = jax.lax.cond(
+                fresh, lambda: stages.flight_jacobians(model, specs, consts, u, data["flight"], x),
+                lambda: (errs["flight"].reshape(jac.shape[:2]), jac))
+            x = jax.vmap(stages.gauss_newton_update)(x, res, jac)
         (value, errs), g = jax.value_and_grad(loss, has_aux=True)(u, x)
         # effects not being fitted keep u = 0 (neutral); a non-finite gradient is skipped
         g = tuple({k: jnp.where(jnp.isfinite(a), a, 0.0) * f for k, a in gk.items()} for gk, f in zip(g, free))
         upd, state = opt.update(g, state, u)
         upd = jax.tree.map(lambda a: jnp.where(i < steps, a, 0.0), upd)  # the final steps only refit the states
-        return (optax.apply_updates(u, upd), state, x, errs), value
+        return (optax.apply_updates(u, upd), state, x, jac, errs), value
 
     zeros = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(loss, u0, x0)[1])
+    jac0 = None
+    if "flight" in phases:
+        segments, samples = data["flight"]["pos"].shape[:2]
+        jac0 = jnp.zeros((segments, 3 * samples, x0.shape[1]), x0.dtype)
     n = steps + (FINAL_GN if "flight" in phases else 1)
-    (u, _, x, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, zeros), jnp.arange(n))
+    (u, _, x, _, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, jac0, zeros), jnp.arange(n))
     return u, history[:steps], errors, x
 
 

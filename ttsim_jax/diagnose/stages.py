@@ -110,18 +110,23 @@ def residual_jacobian(res, z):
     return jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
 
 
+def gauss_newton_update(z, r, jac):
+    """``z`` after one Gauss-Newton step for the residual ``r`` with Jacobian ``jac`` (n, len(z))
+    (``z`` kept where the step is not finite). ``jac`` may come from an earlier ``z`` (a chord step:
+    :func:`ttsim_jax.diagnose.candidates.fit` refreshes it every few descent steps)."""
+    eye = jnp.eye(z.shape[0], dtype=z.dtype)
+    h = jac.T @ jac
+    cand = z - spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
+    return jnp.where(jnp.all(jnp.isfinite(cand)), cand, z)
+
+
+def _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes):
+    return lambda z: _segment_residual(model, effects, z, spin, t0, tau, pos, mask, spin_changes).ravel()
+
+
 def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, iterations):
-    def res(z):
-        return _segment_residual(model, effects, z, spin, t0, tau, pos, mask, spin_changes).ravel()
-
-    def body(_, z):
-        eye = jnp.eye(6, dtype=z.dtype)
-        r, jac = residual_jacobian(res, z)
-        h = jac.T @ jac
-        cand = z - spd_solve(h + 1e-9 * jnp.trace(h) * eye + 1e-30, jac.T @ r)
-        return jnp.where(jnp.all(jnp.isfinite(cand)), cand, z)
-
-    return jax.lax.fori_loop(0, iterations, body, x)
+    res = _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes)
+    return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *residual_jacobian(res, z)), x)
 
 
 def initial_state(tau, pos, mask):
@@ -157,6 +162,22 @@ def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
         return _gauss_newton(model, fx, xi, spin, t0, tau, pos, mask, changes, iterations)
 
     return jax.lax.stop_gradient(jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"]))
+
+
+def flight_jacobians(model, specs, consts, u, fl: dict, x):
+    """Per segment the residual (S, 3T) at ``x`` and its Jacobian (S, 3T, 6) in the initial state
+    (effects' parameters held fixed, no gradient; arguments as :func:`flight_states`). Forward mode
+    through the flight costs about ten flights, which is why a descent reuses one Jacobian for
+    several steps."""
+    changes = _spin_changes(model, specs)
+    u = jax.lax.stop_gradient(u)
+
+    def one(xi, t0, tau, pos, mask, spin, s):
+        fx = model.effects + effects_of(specs, consts, u, s)
+        return residual_jacobian(_segment_function(model, fx, spin, t0, tau, pos, mask, changes), xi)
+
+    r, jac = jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
+    return jax.lax.stop_gradient(r), jax.lax.stop_gradient(jac)
 
 
 def flight_errors(model, specs, consts, u, fl: dict, x):
