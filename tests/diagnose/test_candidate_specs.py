@@ -18,8 +18,10 @@ def test_air_density_and_table_friction_are_candidates_in_their_phases():
     table, table_c = C.spec("table_friction")
     assert (table.phases, table.free, table.per_session) == (("table",), ("d_mu",), False)
     assert table_c["start"]["d_mu"] == 0.0 and table_c["scale"]["d_mu"] == 0.2
-    flight, other = C.groups(names, C.PHASES)
+    spinning, flight, other = C.groups(names, C.PHASES)
     assert "air_density" in flight and "table_friction" in other
+    # an effect that changes the spin in flight makes every flight of its program fly twice
+    assert "spin_decay" in spinning and "spin_decay" not in flight
 
 
 @pytest.mark.parametrize("name", ["clock_rate", "camera_scale"])

@@ -293,7 +293,10 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
         upd = jax.tree.map(lambda a: jnp.where(i < steps, a, 0.0), upd)  # the final steps only refit the states
         return (optax.apply_updates(u, upd), state, x, jac, errs), value
 
-    zeros = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(loss, u0, x0)[1])
+    # the errors' shapes from the data's (eval_shape would trace the whole loss once more)
+    dtype = jnp.result_type(model.ball.radius, jnp.float32)
+    zeros = {p: jnp.zeros(data[p]["pos"].shape if p == "flight" else (data[p]["x"].shape[0], 6), dtype)
+             for p in phases}
     jac0 = None
     if "flight" in phases:
         segments, samples = data["flight"]["pos"].shape[:2]
@@ -390,11 +393,15 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
 
 
 def groups(names, phases) -> list:
-    """Candidates split into compilation groups: those acting in flight (the costly phase) and the
-    others (contacts only), each group one compiled program; empty groups left out."""
-    flight = tuple(n for n in names if "flight" in phases_of(fx.effect_class(n)))
+    """Candidates split into compilation groups, each one compiled program (empty groups left out):
+    the flight effects that change the spin in flight (attached, even neutral, they make every
+    flight fly twice: :func:`~ttsim_jax.diagnose.stages.changes_spin`), the other flight effects
+    (the costly phase), and those acting on contacts only."""
+    flight = [n for n in names if "flight" in phases_of(fx.effect_class(n))]
+    spinning = tuple(n for n in flight if stages.changes_spin(fx.effect_class(n)))
+    steady = tuple(n for n in flight if n not in spinning)
     other = tuple(n for n in names if n not in flight)
-    return [g for g in (flight, other) if g]
+    return [g for g in (spinning, steady, other) if g]
 
 
 def score(pb: Problem, errors: dict, seed: int = 0, base: dict | None = None) -> dict:

@@ -110,6 +110,21 @@ def residual_jacobian(res, z):
     return jax.vmap(lambda t: jax.jvp(res, (z,), (t,)), out_axes=(None, 1))(eye)
 
 
+def difference_jacobian(res, z):
+    """(res(z), its Jacobian (n, len(z))) by forward differences (as MINPACK's ``lmdif`` and SciPy's
+    ``least_squares`` take it by default), each step sqrt(eps) max(|z_j|, 1).
+
+    The Gauss-Newton steps of the flight states need only an approximate Jacobian: its error slows
+    their convergence to the optimum the residual defines, it does not move that optimum. Forward
+    mode through a flight (:func:`residual_jacobian`) costs tens of flights on a CPU (XLA
+    recomputes the primal's elementwise chains inside the tangents' loops); this costs seven.
+    """
+    h = jnp.sqrt(jnp.finfo(z.dtype).eps) * jnp.maximum(jnp.abs(z), 1.0)
+    # z and its moved copies in one batch: one trace of the flight, not two
+    rs = jax.vmap(res)(jnp.concatenate([z[None], z + jnp.diag(h)]))
+    return rs[0], ((rs[1:] - rs[0]) / h[:, None]).T
+
+
 def gauss_newton_update(z, r, jac):
     """``z`` after one Gauss-Newton step for the residual ``r`` with Jacobian ``jac`` (n, len(z))
     (``z`` kept where the step is not finite). ``jac`` may come from an earlier ``z`` (a chord step:
@@ -126,7 +141,7 @@ def _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes):
 
 def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, iterations):
     res = _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes)
-    return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *residual_jacobian(res, z)), x)
+    return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *difference_jacobian(res, z)), x)
 
 
 def initial_state(tau, pos, mask):
@@ -139,9 +154,14 @@ def initial_state(tau, pos, mask):
     return jax.vmap(one)(tau, pos, mask)
 
 
+def changes_spin(effect) -> bool:
+    """Whether an effect (class or instance) changes the spin in flight: with one attached, each
+    flight is flown twice (the first flight's mean spin sets its initial spin)."""
+    return callable(getattr(effect, "spin_derivative", None))
+
+
 def _spin_changes(model, specs) -> bool:
-    return any(callable(getattr(s.cls, "spin_derivative", None)) for s in specs) or any(
-        callable(getattr(e, "spin_derivative", None)) for e in model.effects)
+    return any(changes_spin(s.cls) for s in specs) or any(changes_spin(e) for e in model.effects)
 
 
 def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
@@ -166,15 +186,15 @@ def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
 
 def flight_jacobians(model, specs, consts, u, fl: dict, x):
     """Per segment the residual (S, 3T) at ``x`` and its Jacobian (S, 3T, 6) in the initial state
-    (effects' parameters held fixed, no gradient; arguments as :func:`flight_states`). Forward mode
-    through the flight costs about ten flights, which is why a descent reuses one Jacobian for
-    several steps."""
+    (effects' parameters held fixed, no gradient; arguments as :func:`flight_states`), by forward
+    differences (:func:`difference_jacobian`): seven flights, so a descent reuses one for several
+    steps."""
     changes = _spin_changes(model, specs)
     u = jax.lax.stop_gradient(u)
 
     def one(xi, t0, tau, pos, mask, spin, s):
         fx = model.effects + effects_of(specs, consts, u, s)
-        return residual_jacobian(_segment_function(model, fx, spin, t0, tau, pos, mask, changes), xi)
+        return difference_jacobian(_segment_function(model, fx, spin, t0, tau, pos, mask, changes), xi)
 
     r, jac = jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
     return jax.lax.stop_gradient(r), jax.lax.stop_gradient(jac)

@@ -109,9 +109,11 @@ def _piecewise(x, xp, fp, last=1.0):
     s = _ramps(x, xp, last)
     # an unrolled sum, not a dot product: under vmap a dot is an operation of its own that no
     # elementwise loop fuses with (a pass over the batch per dot in every RK4 stage)
+    # (the steps and weights unstacked at once: indexing each is two traced operations, and a
+    # flight step's trace, repeated by every program that flies, was half indexing)
     out = fp[0]
-    for k in range(1, fp.shape[0]):
-        out = out + s[k - 1] * (fp[k] - fp[k - 1])
+    for s_k, step in zip(jnp.unstack(s, axis=0), jnp.unstack(fp[1:] - fp[:-1], axis=0)):
+        out = out + s_k * step
     return out
 
 
