@@ -15,7 +15,7 @@ from ttsim_jax import effects as fx
 from ttsim_jax import load_model
 from ttsim_jax.diagnose import candidates as C
 from ttsim_jax.diagnose import stages as S
-from ttsim_jax.diagnose.gusts import MIN_CHI2, mean_times, periodogram_gusts, segment_winds
+from ttsim_jax.diagnose.gusts import MIN_CHI2, SCALES, mean_times, periodogram_gusts, segment_winds
 from ttsim_jax.diagnose.phases import Flights, Phases, pad_rows
 
 WIND = np.array([0.25, -0.1, 0.0])
@@ -155,7 +155,7 @@ def test_the_gusts_lower_the_held_out_error_to_the_noise_beyond_a_steady_wind(gu
     assert h["after_rms"] < 0.0017, h
     monkeypatch.setattr(C, "REFINE", {})  # the first descent alone: the steady wind
     steady = C.fit(pb, ["air_flow"], model, steps=40)
-    assert "gust_freq" not in steady.spec.free
+    assert not np.any(steady.params["air_flow"][0]["gust_amp"]), steady.params  # held at no gusts
     # which leaves 1.9 mm: the gusts' part above the noise
     assert h["after_rms"] < 0.92 * steady.heldout["flight"]["after_rms"], (h, steady.heldout)
 
@@ -190,3 +190,19 @@ def test_the_descent_ends_with_every_segment_at_its_optimal_initial_state(gusty,
     rms, rms_best = np.sqrt(sse[real] / count[real]), np.sqrt(best[real] / count[real])
     # no segment is left above its optimum by more than a few micrometres (the noise is 1 mm)
     assert np.all(rms - rms_best < 5e-6), np.max(rms - rms_best)
+
+
+def test_both_descents_of_air_flow_share_one_compiled_program():
+    """The second descent (gusts free, per-session starts from the periodogram) has the first's
+    static spec and the same shapes of constants, so it reuses the first's compiled program."""
+    n = 3
+    first, const = C.spec("air_flow")
+    const = S.session_starts(first, const, n)
+    start = {k: np.array(v) for k, v in const["start"].items()}
+    start["gust_freq"][1] = [0.2, 0.4, 0.6]  # what a periodogram would set
+    second, const2 = S.second_descent(first, start, SCALES)
+    assert second == first and hash(second) == hash(first)
+    shapes = lambda c: jax.tree.map(np.shape, c)  # noqa: E731
+    assert shapes(const2) == shapes(const), (shapes(const2), shapes(const))
+    # per session, the first descent starts where the catalogue's neutral values are
+    assert np.all(const["start"]["gust_freq"] == 0.0) and const["start"]["wind"].shape == (n, 3)

@@ -356,7 +356,7 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
         raise ValueError(f"fit: effects {sorted(missing)} are not in the group {list(group)}")
     built = [spec(n, pb.pooled) for n in group]
     specs = tuple(b[0] for b in built)
-    consts = tuple(b[1] for b in built)
+    consts = tuple(stages.session_starts(s, b[1], pb.n_sessions) for s, b in zip(specs, built))
     fitted = [s for s in specs if s.name in names]
     phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
     scored = tuple(p for p in phases if any(p in s.phases for s in fitted))

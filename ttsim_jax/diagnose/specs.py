@@ -35,10 +35,13 @@ HOOK_PHASES = {
 #: the gusts' frequencies are not found by descent, so the first descent fits the steady wind
 #: and the gusts follow in a second (:data:`~ttsim_jax.diagnose.candidates.REFINE`); the onsets of
 #: buckling are fitted too; the bumps keep their typical centres and widths; the air density at
-#: twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m).
+#: twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m). The
+#: gusts are free from the first descent on at step 0 (held where they start): the second frees
+#: the same parameters (:data:`ttsim_jax.diagnose.gusts.SCALES`, in its order), so both descents
+#: run one compiled program.
 FREE = {
     "air_density": {"d_rho": 0.1},
-    "air_flow": {"wind": 0.2},
+    "air_flow": {"wind": 0.2, "gust_amp": 0.0, "gust_phase": 0.0, "gust_freq": 0.0},
     "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0},
     "table_unevenness": {"amplitude": 0.0015, "center": 0.3},
 }

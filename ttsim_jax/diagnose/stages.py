@@ -59,6 +59,17 @@ def start_of(sp, const: dict, k: str, session):
     return start
 
 
+def session_starts(sp, const: dict, n_sessions: int) -> dict:
+    """``const`` with each start of a per-session effect given a leading session axis (the same
+    values for every session), as a second descent's starts have it (:func:`second_descent`): the
+    descents then share one compiled program."""
+    if not sp.per_session:
+        return const
+    start = {k: np.broadcast_to(np.asarray(v), (n_sessions,) + sp.cls.PARAMS[k].shape).copy()
+             if np.ndim(v) == len(sp.cls.PARAMS[k].shape) else v for k, v in const["start"].items()}
+    return dict(const, start=start)
+
+
 def second_descent(sp, start: dict, scales: dict) -> tuple:
     """(spec, consts) of a candidate's second descent (a ``REFINE`` stage): the parameters of
     ``scales`` free at those step scales, from ``start`` ({param: value}); the others held there."""
