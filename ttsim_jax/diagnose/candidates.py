@@ -23,9 +23,10 @@ mean squared error counts robustly (:func:`_mse`): a few segments that the segme
 err fifty times more than the rest and would otherwise pull every fit towards themselves. The whole descent
 (``steps`` Adam steps, a cosine-decayed step size, one warm-started Gauss-Newton step of each
 flight segment's initial state per step) is one ``lax.scan`` in one jitted call, the data padded to
-one capacity per phase. The states' Jacobian costs about ten flights of forward mode, so a fresh one
-is taken only every :data:`JACOBIAN_EVERY` steps and in the final ones; the steps between reuse it
-with the latest residuals (chord steps, which reach the same optimum).
+one capacity per phase. The states' Jacobian costs seven flights (forward differences:
+:func:`~ttsim_jax.diagnose.stages.difference_jacobian`), so a fresh one is taken only every
+:data:`JACOBIAN_EVERY` steps and in the final ones; the steps between reuse it with the latest
+residuals (chord steps, which reach the same optimum).
 
 Held-out score (:func:`score`): per phase, the reduction of the held-out RMS error against the
 model's, 100 (1 - RMS_after / RMS_before) [%], with a 95 % paired bootstrap interval over held-out
@@ -278,7 +279,7 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
         u, state, x, jac, errs = carry
         if "flight" in phases:
             # one Gauss-Newton step of the states per step keeps them at their optimum; the
-            # Jacobian (ten flights' worth of forward mode) is refreshed every JACOBIAN_EVERY steps
+            # Jacobian (seven flights: forward differences) is refreshed every JACOBIAN_EVERY steps
             # and in the final steps, and between refreshes the step uses the last residuals
             # (a chord step: the states lag the parameters by one step)
             fresh = (i % JACOBIAN_EVERY == 0) | (i >= steps)
