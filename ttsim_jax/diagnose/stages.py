@@ -150,11 +150,6 @@ def _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes):
     return lambda z: _segment_residual(model, effects, z, spin, t0, tau, pos, mask, spin_changes).ravel()
 
 
-def _gauss_newton(model, effects, x, spin, t0, tau, pos, mask, spin_changes, iterations):
-    res = _segment_function(model, effects, spin, t0, tau, pos, mask, spin_changes)
-    return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *difference_jacobian(res, z)), x)
-
-
 def initial_state(tau, pos, mask):
     """(S, 6) start of the Gauss-Newton fit: position and velocity at tau[0] from a parabola."""
     def one(t, p, m):
@@ -175,6 +170,18 @@ def _spin_changes(model, specs) -> bool:
     return any(changes_spin(s.cls) for s in specs) or any(changes_spin(e) for e in model.effects)
 
 
+def _over_segments(model, specs, consts, u, fl: dict, x, fn):
+    """``fn(res, x_i)`` of every segment, vmapped: ``res(z)`` is the segment's (3T,) position
+    residuals flown from the initial state z with its session's effects."""
+    changes = _spin_changes(model, specs)
+
+    def one(xi, t0, tau, pos, mask, spin, s):
+        fx = model.effects + effects_of(specs, consts, u, s)
+        return fn(_segment_function(model, fx, spin, t0, tau, pos, mask, changes), xi)
+
+    return jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
+
+
 def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
     """(S, 6) initial states of every segment after ``iterations`` Gauss-Newton steps from ``x``
     (effects' parameters held fixed; no gradient flows through the result).
@@ -185,14 +192,10 @@ def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
             ``spin`` (S, 3), ``session`` (S,).
         x: (S, 6) initial states to start from.
     """
-    changes = _spin_changes(model, specs)
-    u = jax.lax.stop_gradient(u)
+    def steps(res, xi):
+        return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *difference_jacobian(res, z)), xi)
 
-    def one(xi, t0, tau, pos, mask, spin, s):
-        fx = model.effects + effects_of(specs, consts, u, s)
-        return _gauss_newton(model, fx, xi, spin, t0, tau, pos, mask, changes, iterations)
-
-    return jax.lax.stop_gradient(jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"]))
+    return jax.lax.stop_gradient(_over_segments(model, specs, consts, jax.lax.stop_gradient(u), fl, x, steps))
 
 
 def flight_jacobians(model, specs, consts, u, fl: dict, x):
@@ -200,27 +203,14 @@ def flight_jacobians(model, specs, consts, u, fl: dict, x):
     (effects' parameters held fixed, no gradient; arguments as :func:`flight_states`), by forward
     differences (:func:`difference_jacobian`): seven flights, so a descent reuses one for several
     steps."""
-    changes = _spin_changes(model, specs)
-    u = jax.lax.stop_gradient(u)
-
-    def one(xi, t0, tau, pos, mask, spin, s):
-        fx = model.effects + effects_of(specs, consts, u, s)
-        return difference_jacobian(_segment_function(model, fx, spin, t0, tau, pos, mask, changes), xi)
-
-    r, jac = jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
-    return jax.lax.stop_gradient(r), jax.lax.stop_gradient(jac)
+    return jax.lax.stop_gradient(_over_segments(model, specs, consts, jax.lax.stop_gradient(u), fl, x,
+                                                difference_jacobian))
 
 
 def flight_errors(model, specs, consts, u, fl: dict, x):
     """(S, T, 3) position residuals of every segment flown from the states ``x`` (differentiable in
     ``u``; see :func:`flight_states` for the arguments)."""
-    changes = _spin_changes(model, specs)
-
-    def one(xi, t0, tau, pos, mask, spin, s):
-        fx = model.effects + effects_of(specs, consts, u, s)
-        return _segment_residual(model, fx, xi, spin, t0, tau, pos, mask, changes)
-
-    return jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
+    return _over_segments(model, specs, consts, u, fl, x, lambda res, xi: res(xi)).reshape(fl["pos"].shape)
 
 
 # ---------------------------------------------------------------------------------------------- contacts
