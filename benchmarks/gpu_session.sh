@@ -4,21 +4,22 @@
 #
 #   OUT=/some/folder bash benchmarks/gpu_session.sh
 #
-# 1. peers.py, flight + table at 65,536 / 262,144 / 1,048,576 balls: the kernel (reference path),
-#    kernel_fused, the plain scan, numba_cuda (full geometry) and numba_cuda_lean (the lean loop),
-#    the numba CPU loops up to 65,536 balls; one JSON and its plot.
+# 1. peers.py, flight + table at 262,144 / 1,048,576 balls: the kernel (reference path),
+#    kernel_fused, numba_cuda (full geometry) and numba_cuda_lean (the lean loop); one JSON and its plot.
 # 2. env_throughput.py: env-steps/s of the default ReturnBall task at 65,536 and 262,144 environments
-#    (its best batch: 65,536 was the larger of the two sizes measured on an H100 before, 13.9 M
-#    env-steps/s, against 1.2 M at 4,096).
+#    (262,144 was its best batch on an H100: 20.5 M env-steps/s at 61ba2cf, 14.8 M at be0ffe5).
 # 3. ttsim train ppo on the default config for 40 s (checked after each chunk, compilation included):
 #    env-steps per second of training.
 #
 # Every step runs under its own `timeout` with its log in OUT, and a step whose imports fail in the
 # check before is skipped with the reason in session.log, so one failure does not cost the others. OUT receives at
 # most 8 files, flat: session.log, peers.log, peers_gpu.json, peers_gpu.png, env_throughput.log,
-# env_throughput_gpu.json, ppo.log, ppo_metrics.json. The time limits add up to 600 s, a lent machine's
-# limit per command: on an H100 at d0605a4 the peers step needed more than 280 s (each kernel
-# configuration compiles in 27-44 s) and the environment's 262,144 batch was still compiling at 100 s.
+# env_throughput_gpu.json, ppo.log, ppo_metrics.json. The time limits add up to 580 s, inside a lent
+# machine's 600 s per command, and that is not enough for all three: on an H100 at be0ffe5 the
+# reference kernel compiled in 56 s and the fused path in 34 s per batch, the environment's step in
+# 65-75 s per batch and PPO's update in more than a minute, so every step hit its limit. Give each
+# step a call of its own on the same warm machine: GPU_SESSION_STEPS picks them (default
+# "peers env ppo"), e.g. GPU_SESSION_STEPS=env OUT=... bash benchmarks/gpu_session.sh.
 #
 # The package is used from this checkout (PYTHONPATH), nothing is installed. Pure-Python packages the
 # machine's interpreter lacks (gymnasium and jaxopt were missing on a lent H100) are taken from
@@ -46,10 +47,13 @@ if [ "${GPU_SESSION_QUICK:-0}" = 1 ]; then
     PPO_SECONDS=10
     T_CHECK=120 T_PEERS=600 T_ENV=300 T_PPO=600
 else
-    PEERS_ARGS=(--batches 65536,262144,1048576 --budget 2e8 --repeats 3 --max-batch-numba 65536)
+    # the GPU peers only (the numba CPU loops and the plain scan add minutes of compilation and
+    # nothing to the GPU's ratios); 65,536 balls was neither side's best batch on an H100 before
+    PEERS_ARGS=(--batches 262144,1048576 --budget 2e8 --repeats 3 --max-batch-numba 0 --max-batch-plain 0
+                --agree-balls 64)
     ENV_ARGS=(--envs 65536 262144 --steps 50 --repeats 3)
     PPO_SECONDS=40
-    T_CHECK=30 T_PEERS=320 T_ENV=160 T_PPO=90
+    T_CHECK=30 T_PEERS=250 T_ENV=170 T_PPO=130
 fi
 
 say() { echo "[$(date +%T)] $*" | tee -a "$LOG"; }
@@ -109,20 +113,21 @@ for step, modules in (("peers", ("benchmarks.peers",)), ("env", ("benchmarks.env
 EOF
 say "import check: exit $?"
 # a step is skipped only where the check found it cannot import (a check cut short skips nothing)
-ok() { ! grep -q "^STEP_SKIP $1:" "$LOG"; }
+STEPS=" ${GPU_SESSION_STEPS:-peers env ppo} "
+ok() { [[ "$STEPS" == *" $1 "* ]] && ! grep -q "^STEP_SKIP $1:" "$LOG"; }
 
 if ok peers; then
     step peers "$T_PEERS" "$OUT/peers.log" "$PY" benchmarks/peers.py --configs table "${PEERS_ARGS[@]}" \
         --out "$OUT/peers_gpu.json" --plot "$OUT/peers_gpu.png"
 else
-    say "peers: skipped (see the import check above)"
+    say "peers: skipped (not in GPU_SESSION_STEPS, or see the import check above)"
 fi
 
 if ok env; then
     step env_throughput "$T_ENV" "$OUT/env_throughput.log" "$PY" benchmarks/env_throughput.py "${ENV_ARGS[@]}" \
         --out "$OUT/env_throughput_gpu.json"
 else
-    say "env_throughput: skipped (see the import check above)"
+    say "env_throughput: skipped (not in GPU_SESSION_STEPS, or see the import check above)"
 fi
 
 if ok ppo; then
@@ -131,7 +136,7 @@ if ok ppo; then
     if [ -f "$run_dir/ppo/metrics.json" ]; then cp "$run_dir/ppo/metrics.json" "$OUT/ppo_metrics.json"; fi
     rm -rf "$run_dir"
 else
-    say "ppo: skipped (see the import check above)"
+    say "ppo: skipped (not in GPU_SESSION_STEPS, or see the import check above)"
 fi
 
 say "done in $SECONDS s; files: $(cd "$OUT" && ls | tr '\n' ' ')"

@@ -30,6 +30,7 @@ TABLES = {"peers-table": DEFAULT, "peers-gpu-table": REPO / "benchmarks" / "resu
           "peers-gpu-lean-table": REPO / "benchmarks" / "results" / "peers_gpu_lean.json",
           "peers-gpu-now-table": REPO / "benchmarks" / "results" / "peers_gpu_61ba2cf.json",
           "peers-gpu-d0605a4-table": REPO / "benchmarks" / "results" / "peers_gpu_d0605a4.json",
+          "peers-gpu-be0ffe5-table": REPO / "benchmarks" / "results" / "peers_gpu_be0ffe5.json",
           "peers-network-table": REPO / "benchmarks" / "results" / "peers_cpu_network.json",
           "peers-cpu-fused-table": REPO / "benchmarks" / "results" / "peers_cpu_fused_xla.json",
           "peers-cpu-fused-long-table": REPO / "benchmarks" / "results" / "peers_cpu_fused_xla_1000.json"}
