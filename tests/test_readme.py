@@ -1,12 +1,12 @@
-"""The README's API example runs as written, its two commands are the ones CI uses, it stays a front
-page whose links (and the docs pages' links) resolve, and the throughput tables of the docs and of
-benchmarks/README.md are those of the committed benchmark JSON."""
+"""The README's API example runs as written (as the start of docs/simulate.md's snippets), its
+two commands are the ones CI uses, it stays a front page whose links (and the docs pages' links)
+resolve, and the throughput tables of the docs and of benchmarks/README.md are those of the
+committed benchmark JSON."""
 
 import re
 
 from pathlib import Path
 
-import jax
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,17 +30,14 @@ def test_readme_api_example_runs():
     assert namespace["out"].events.kind.shape[0] == 1
 
 
-def test_readme_api_example_runs_with_its_gradient_traced():
-    """Every line runs as written except ``jax.grad(f)(x)``, which is traced through the whole
-    kernel (forward, rematerialisation and transpose: ``jax.eval_shape``) but not compiled; the
-    gradient's values are checked against finite differences in test_gradients.py (-m slow)."""
-    code, n = GRAD.subn(r"grad_shape = jax.eval_shape(jax.grad(\1), \2)", api_example())
-    assert n == 1, "the README example has no line jax.grad(f)(x) any more: update this test"
-    namespace = run(code)
-    assert namespace["out"].events.kind.shape[0] == 1
-    grad, model = namespace["grad_shape"], namespace["model"]
-    assert jax.tree.structure(grad) == jax.tree.structure(model)
-    assert [g.shape for g in jax.tree.leaves(grad)] == [jax.numpy.shape(m) for m in jax.tree.leaves(model)]
+def test_readme_api_example_is_the_simulate_guides_first_which_runs():
+    """The README's example is, line for line, the start of docs/simulate.md's snippets, which
+    test_docs_snippets.py runs as a reader pastes them (the gradient compiled and evaluated): one
+    run covers both pages instead of tracing the same reverse pass twice."""
+    blocks = re.findall(r"^```python\n(.*?)^```", (REPO / "docs" / "simulate.md").read_text(), re.S | re.M)
+    assert blocks and blocks[0].startswith(api_example()), (
+        "README.md's 'The API in ten lines' must be the first lines of docs/simulate.md's first snippet")
+    assert GRAD.search(api_example()), "the README example has no line jax.grad(f)(x) any more"
 
 
 def test_ci_runs_the_readme_test_command():
