@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from ttsim_jax.diagnose import stages
 from ttsim_jax.physics.linalg import spd_solve
@@ -39,11 +40,12 @@ BAND = (0.02, 1.2)
 OVERSAMPLE = 6
 
 
+@struct.dataclass
 class _Offset:
-    """An extra constant air velocity (the per-segment wind offset being estimated)."""
+    """An extra constant air velocity (the per-segment wind offset being estimated); a pytree, as
+    every effect that a flight (:func:`~ttsim_jax.diagnose.stages.flight_errors`) is flown with."""
 
-    def __init__(self, w):
-        self.w = w
+    w: jax.Array
 
     def air_velocity(self, value, **_):
         return value + self.w

@@ -92,6 +92,11 @@ def _ball(model, effects):
 
 
 # ---------------------------------------------------------------------------------------------- flight
+# A jitted function is traced once per argument shapes and its derivatives and batched forms are
+# cached on that one trace: a descent's program flies each segment up to four times (with an
+# effect that changes the spin, twice per residual; the loss and the states' Jacobian), and JAX
+# linearises a scan's body again for every pass of its fixpoint. Inlined by XLA: same program.
+@jax.jit
 def _path(model, effects, p0, v0, w0, t0, tau):
     """(T, 3) positions and spins along one padded segment (padding: zero steps)."""
     radius, mass = _ball(model, effects)
