@@ -67,7 +67,6 @@ def test_readme_is_a_front_page_and_every_relative_link_resolves():
 
 def test_throughput_tables_are_the_committed_benchmark_json():
     import importlib.util
-    import json
 
     spec = importlib.util.spec_from_file_location("readme_tables", REPO / "benchmarks" / "readme_tables.py")
     tables = importlib.util.module_from_spec(spec)
