@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The GPU measurements of the rally kernel in one run of a few minutes, for a machine lent for a
-# short time (one NVIDIA GPU, no network):
+# The GPU measurements of the rally kernel in a few minutes, for a machine lent for a short time
+# (one NVIDIA GPU, no network); one call per step where a call is limited to 600 s (below):
 #
 #   OUT=/some/folder bash benchmarks/gpu_session.sh
 #

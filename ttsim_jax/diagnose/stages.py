@@ -175,9 +175,12 @@ def _spin_changes(model, specs) -> bool:
     return any(changes_spin(s.cls) for s in specs) or any(changes_spin(e) for e in model.effects)
 
 
-def _over_segments(model, specs, consts, u, fl: dict, x, fn):
+def _over_segments(model, specs, consts, u, fl: dict, x, fn, *, held: bool = False):
     """``fn(res, x_i)`` of every segment, vmapped: ``res(z)`` is the segment's (3T,) position
-    residuals flown from the initial state z with its session's effects."""
+    residuals flown from the initial state z with its session's effects. ``held``: the effects'
+    parameters held fixed, no gradient through the result."""
+    if held:
+        return jax.lax.stop_gradient(_over_segments(model, specs, consts, jax.lax.stop_gradient(u), fl, x, fn))
     changes = _spin_changes(model, specs)
 
     def one(xi, t0, tau, pos, mask, spin, s):
@@ -200,7 +203,7 @@ def flight_states(model, specs, consts, u, fl: dict, x, iterations: int):
     def steps(res, xi):
         return jax.lax.fori_loop(0, iterations, lambda _, z: gauss_newton_update(z, *difference_jacobian(res, z)), xi)
 
-    return jax.lax.stop_gradient(_over_segments(model, specs, consts, jax.lax.stop_gradient(u), fl, x, steps))
+    return _over_segments(model, specs, consts, u, fl, x, steps, held=True)
 
 
 def flight_jacobians(model, specs, consts, u, fl: dict, x):
@@ -208,8 +211,7 @@ def flight_jacobians(model, specs, consts, u, fl: dict, x):
     (effects' parameters held fixed, no gradient; arguments as :func:`flight_states`), by forward
     differences (:func:`difference_jacobian`): seven flights, so a descent reuses one for several
     steps."""
-    return jax.lax.stop_gradient(_over_segments(model, specs, consts, jax.lax.stop_gradient(u), fl, x,
-                                                difference_jacobian))
+    return _over_segments(model, specs, consts, u, fl, x, difference_jacobian, held=True)
 
 
 def flight_errors(model, specs, consts, u, fl: dict, x):
