@@ -236,12 +236,16 @@ def test_air_density_scales_drag_magnus_and_buoyancy_in_flight_only():
     cd_thin, _ = aero_stage.coefficients(PLAIN.aero, vel, spin, radius, nu)
     cd_plain, _ = aero_stage.coefficients(PLAIN.aero, vel, spin, radius)
     assert float(cd_thin) != float(cd_plain)
-    # the fused flight kernel has no air hook: such a model flies on the reference path
+    # the fused path reads the hooked density and viscosity (a CPU's kernel body; a GPU's Triton
+    # kernel has no hooks: the reference path there)
     from ttsim_jax.kernel import fused
 
-    why = fused.unsupported(PLAIN.replace(effects=(e,)), None, integrator="rk4", policy=None, rackets_batched=False,
-                            sample=False)
-    assert "AirDensity" in why
+    dense = PLAIN.replace(effects=(e,))
+    assert fused.in_flight(dense) and not fused.in_flight(PLAIN)
+    params, _ = fused.pack(dense, 1e-3, None, jnp.float64)
+    plain, _ = fused.pack(PLAIN, 1e-3, None, jnp.float64)
+    np.testing.assert_allclose(float(params[2]), 0.8 * float(plain[2]), rtol=1e-12)  # rho_air / rho_ball
+    np.testing.assert_allclose(float(params[3]), float(nu), rtol=1e-12)
 
 
 def test_table_friction_changes_the_tangential_velocity_of_sliding_bounces_only():

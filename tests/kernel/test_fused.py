@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, per_ball_axes, rollout
+from ttsim_jax import effects as fx
 from ttsim_jax.kernel import fused
 from ttsim_jax.kernel.step import flight, may_have_event
 from ttsim_jax.physics.events import NET, RACKET, TABLE
@@ -89,16 +90,81 @@ def test_fused_equals_reference_with_per_ball_parameters_and_rackets(model):
                                                   re_cap=jnp.full(B, drag.re_cap), cd_min=jnp.full(B, drag.cd_min))),
         table=model.table.replace(e0=jnp.asarray(rng.uniform(0.85, 0.95, B))))
     axes = per_ball_axes(model, "ball.radius", "ball.mass", "aero.rho_air", "aero.drag", "table.e0")
-    assert fused.unsupported(model, axes, integrator="rk4", policy=None, rackets_batched=True, sample=False) is None
-    state, sched = init_state(shots(B, seed=5)), per_ball_rackets(N, rng)
+    _fused_matches_reference(model, batched, axes, 5, rng, apart=1e-3)
+
+
+def _fused_matches_reference(model, batched, axes, seed, rng, apart):
+    """With a racket schedule per ball, the fused path's rollout of ``batched`` is the reference
+    path's (and bounces and meets rackets); ``model``'s (the shared parameters, no effects) ends
+    more than ``apart`` [m] elsewhere: what ``batched`` changes matters."""
+    assert fused.unsupported(batched, axes, integrator="rk4", policy=None, rackets_batched=True) is None
+    state, sched = init_state(shots(B, seed=seed)), per_ball_rackets(N, rng)
     ref = rollout(batched, state, N, 1e-3, sched, model_axes=axes)
     fus = rollout(batched, state, N, 1e-3, sched, model_axes=axes, execution=Execution(fused=True))
     _assert_same_rollout(ref, fus, atol=1e-9)
     kinds = np.asarray(ref[1].events.kind)
     assert (kinds == TABLE).sum() > 40 and (kinds == RACKET).sum() > 5
-    # the parameters matter: the same shots with the shared model end elsewhere
     shared = rollout(model, state, N, 1e-3, sched, execution=Execution(fused=True))
-    assert float(jnp.max(jnp.abs(shared[0].ball.pos - fus[0].ball.pos))) > 1e-3
+    assert float(jnp.max(jnp.abs(shared[0].ball.pos - fus[0].ball.pos))) > apart
+
+
+def flight_effects(model, rng, n=B):
+    """conti2026 with every flight hook of the catalogue (spin decay, air flow with gusts, ball
+    variation, air density) and a contact-only one (table friction); the decay rate, the wind and
+    the radius are drawn per ball."""
+    effects = (fx.make("spin_decay", quadratic=2e-4).replace(rate=jnp.asarray(rng.uniform(0.5, 3.0, n))),
+               fx.make("air_flow", gust_amp=np.full((3, 3), 0.3), gust_freq=[2.0, 3.0, 5.0]).replace(
+                   wind=jnp.asarray(rng.uniform(-2.0, 2.0, (n, 3)))),
+               fx.make("ball_variation", d_mass=1e-5).replace(d_radius=jnp.asarray(rng.uniform(-5e-5, 3e-4, n))),
+               fx.make("air_density", d_rho=-0.1), fx.make("table_friction", d_mu=0.2))
+    batched = model.replace(effects=effects)
+    return batched, per_ball_axes(batched, "effects.0.rate", "effects.1.wind", "effects.2.d_radius")
+
+
+def test_fused_equals_reference_with_effects_in_flight(model):
+    """Effects acting in flight (every flight hook, time-dependent gusts, per-ball effect
+    parameters) with a racket schedule per ball, on a CPU's fused path: the kernel evaluates the
+    hooks at each RK4 stage's state and time, so the events and states are the reference path's."""
+    if jax.default_backend() == "gpu":
+        pytest.skip("effects in flight take the reference path on a GPU")
+    rng = np.random.default_rng(23)
+    batched, axes = flight_effects(model, rng)
+    assert fused.in_flight(batched) and not fused.in_flight(model)
+    _fused_matches_reference(model, batched, axes, 9, rng, apart=1e-2)
+    # a table_surface effect moves the table the kernel stops balls at: refused
+    tilted = model.replace(effects=(fx.make("table_tilt"),))
+    why = fused.unsupported(tilted, per_ball_axes(tilted), integrator="rk4", policy=None, rackets_batched=False)
+    assert "table's surface" in why and type(tilted.effects[0]).__name__ in why
+    with pytest.raises(ValueError, match="table's surface"):
+        rollout(tilted, init_state(shots(4)), 10, execution=Execution(fused=True))
+
+
+def test_fused_equals_reference_with_the_sampled_residual(model):
+    """The sampled residual on the fused path: a ball's draw is a function of the key, its step
+    and its id, so the balls' own clocks give the reference path's draws (events, post-contact
+    states, sigma), and another key gives other draws."""
+    from ttsim_jax.physics.network import ResidualConfig, init_model
+
+    net = init_model(ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=4), jax.random.key(0))
+    # not attenuated (beta 1 everywhere), corrections and sigmas of a few tenths of m/s and rad/s
+    withnet = model.replace(residual=net.replace(beta_coef=jnp.array([1.0, 0.0, 0.0], jnp.float32),
+                                                 y_scale=jnp.full(6, 0.3, jnp.float32)))
+    state, sched = init_state(shots(B, seed=4)), two_rackets(N)
+    key = jax.random.key(7)
+    ref = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=key)
+    fus = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=key, execution=Execution(fused=True))
+    _assert_same_rollout(ref, fus, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(fus[1].events.sigma), np.asarray(ref[1].events.sigma), atol=1e-9)
+    hits = np.asarray(ref[1].events.kind) == RACKET
+    assert hits.sum() > 10
+    other = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=jax.random.key(8),
+                    execution=Execution(fused=True))
+    # each ball's first racket contact (the same state before it with either key) drew anew
+    first = hits & (np.cumsum(hits, axis=1) == 1)
+    pre, pre2 = (np.asarray(r[1].events.pre.vel)[first] for r in (fus, other))
+    post, post2 = (np.asarray(r[1].events.post.vel)[first] for r in (fus, other))
+    np.testing.assert_allclose(pre2, pre, atol=1e-12)
+    assert np.all(np.abs(post - post2).max(axis=-1) > 1e-6)
 
 
 def test_kernel_flies_until_the_step_before_a_possible_event(model):

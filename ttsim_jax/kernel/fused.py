@@ -19,11 +19,14 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
-table), no effect acting on the ball's flight or on the table's surface, ball / aero / table
-parameters shared by all balls or (on a CPU) per ball, rackets as a schedule shared by all balls
-or (on a CPU) one per ball (or none), and no sampled residual. The coefficient tables are passed
-to the kernel as one small vector of scalars and interpolated with the same ramps as
-``aero._piecewise`` (arithmetic, no gather).
+table), ball / aero / table parameters shared by all balls or (on a CPU) per ball, rackets as a
+schedule shared by all balls or (on a CPU) one per ball (or none), the sampled residual (a ball's
+step k draws with the key the reference path's step k has), and effects acting in flight: the
+ball's and the air's properties (hooks without context, read as constants), and on a CPU the air's
+velocity and the spin's decay, evaluated at every RK4 stage for each ball at its own time
+(:class:`Hooks`). Not an effect that moves the table's surface (the stopping test uses the flat
+table's box). The coefficient tables are passed to the kernel as one small vector of scalars and
+interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
 the reference path's, so ``jax.grad`` through ``rollout(..., fused=True)`` differentiates the
@@ -32,15 +35,16 @@ reference path (with its rematerialisation).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
 
-from ttsim_jax.physics import aero as aero_stage
+from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KINDS, STATE_HOOKS, Layout, Reader,
+                                           coefficient_fns, in_flight, pack)
+from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN, ball_properties, take_rows
 from ttsim_jax.physics import events as ev
+from ttsim_jax.physics import hooks
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN
 from ttsim_jax.physics.numerics import component_norm
 
 # Free-flight steps per kernel launch (a ball flies about 100-300 steps between contacts).
@@ -51,259 +55,51 @@ BLOCK = 128
 # differs from the reference path's, so that the kernel never flies through a step the reference
 # would flag; a ball stopped early only costs one ordinary step.
 SLACK = 1e-3
-# Hooks that would change the flight or the table's outline (the kernel has none of them).
-_FLIGHT_HOOKS = ("ball_properties", "air_properties", "air_velocity", "spin_derivative", "table_surface")
 # The kernel stops a ball whose speed or spin nears the ordinary step's validity limits.
 _LIMIT_FRACTION = 0.99
 
 
 # --------------------------------------------------------------------------- what it covers
-def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool, sample: bool) -> str | None:
+def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) -> str | None:
     """Why a rollout cannot take the fused path, or None if it can.
 
     Arguments:
         model: the model; axes: its per-ball axes (pytree prefix of 0 / None);
         integrator: the flight integrator; policy: the racket policy or None;
-        rackets_batched: whether the racket schedule is per ball; sample: sampled residual.
+        rackets_batched: whether the racket schedule is per ball.
     """
+    gpu = jax.default_backend() == "gpu"
     if integrator != "rk4":
         return f"integrator {integrator!r} (the fused kernel is RK4)"
     if policy is not None:
         return "a racket policy (the fused kernel needs the rackets' schedule to bound where they go)"
-    if rackets_batched and jax.default_backend() == "gpu":
+    if rackets_batched and gpu:
         return "a per-ball racket schedule on a GPU (the Triton kernel reads the rackets' boxes as scalars)"
-    if sample:
-        return "a sampled residual (its draws follow the step count)"
-    if type(model.aero.drag) not in _DRAG or type(model.aero.magnus) not in _MAGNUS:
+    if type(model.aero.drag) not in DRAG_KINDS or type(model.aero.magnus) not in MAGNUS_KINDS:
         return f"coefficient models {type(model.aero.drag).__name__}/{type(model.aero.magnus).__name__}"
-    hooked = [type(e).__name__ for e in model.effects if any(hasattr(e, h) for h in _FLIGHT_HOOKS)]
-    if hooked:
-        return f"effects acting on the flight or the table's surface: {hooked}"
+    surface = [type(e).__name__ for e in model.effects if hasattr(e, "table_surface")]
+    if surface:
+        return f"effects moving the table's surface: {surface} (the kernel stops balls at the flat table's box)"
+    if gpu and model.effects and in_flight(model):
+        hooked = [type(e).__name__ for e in model.effects if any(hasattr(e, h) for h in FLIGHT_HOOKS)]
+        return f"effects acting in flight on a GPU: {hooked} (the Triton kernel has no hooks)"
     shared = axes.ball, axes.aero, axes.table
-    if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)) and \
-            jax.default_backend() == "gpu":
+    if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)) and gpu:
         return "per-ball ball, aero or table parameters on a GPU (the Triton kernel reads them as scalars)"
     return None
 
 
-# --------------------------------------------------------------------------- parameters as scalars
-@dataclass(frozen=True)
-class Layout:
-    """Where each parameter sits in the kernel's parameter vector (static: the model's structure).
-
-    Attributes:
-        drag, magnus: the coefficient model types' names; n_re, n_sp: DragTable sizes;
-        n_v: MagnusTable size; n_rackets: racket boxes; size: the vector's length (a power of 2).
-    """
-
-    drag: str
-    magnus: str
-    n_re: int
-    n_sp: int
-    n_v: int
-    n_rackets: int
-    size: int
-
-
-def _drag_leaves(p):
-    if isinstance(p, aero_stage.DragTable):
-        return [p.re_ref, p.sp, p.cd, p.re_cap, p.cd_min]
-    return [p.value]
-
-
-def _magnus_leaves(p):
-    if isinstance(p, aero_stage.MagnusTable):
-        return [p.v_ref, p.m1, p.s, p.w_b, p.a, p.b, p.c]
-    if isinstance(p, aero_stage.DurrMagnus):
-        return [p.gain, p.offset, p.cap]
-    return [p.value]
-
-
-_DRAG = {aero_stage.ConstantCoefficient: "constant", aero_stage.DragTable: "table"}
-_MAGNUS = {aero_stage.ConstantCoefficient: "constant", aero_stage.DurrMagnus: "durr", aero_stage.MagnusTable: "table"}
-
-
-def leaf_axes(model, axes):
-    """The model's structure with each leaf's per-ball axis (0 or None)."""
-    if axes is None:
-        return jax.tree.map(lambda _: None, model)
-    return jax.tree.map(lambda a, sub: jax.tree.map(lambda _: a, sub), axes, model, is_leaf=lambda x: x is None)
-
-
-def _any(*axes):
-    """0 where any of the given leaves is per ball (a value computed from them is), else None."""
-    return 0 if any(a == 0 for a in axes) else None
-
-
-def pack(model, dt, racket_boxes, dtype, axes=None):
-    """The kernel's parameters as one vector (or one column per ball) and its :class:`Layout`.
+# --------------------------------------------------------------------------- the kernel
+def _stop_test(radius, length, width, floor_z, boxes):
+    """flagged(p0, p1, v1, w1=None): a superset of the reference step's flags (table, floor, net,
+    rackets, leaving play, validity) for the step that takes a ball from p0 to (p1, v1) (and spin
+    w1, when it changes in flight), each a tuple of x, y, z components (scalars or rows).
 
     Arguments:
-        model: the model; dt: the step [s];
-        racket_boxes: (R, 2, 3) lower and upper corners of the boxes the rackets' centres sweep,
-            widened by the face, (B, R, 2, 3) one set per ball (then the result has a column per
-            ball), or None; dtype: the simulation's float dtype;
-        axes: the model's per-ball axes (pytree prefix of 0 / None) or None (all shared).
-
-    Returns:
-        (params, layout): params (size,) where every parameter is shared, else (size, B), one
-        column per ball (the kernel then reads a row of B values where it reads a scalar; only
-        :func:`_fly_xla` runs that form).
+        radius, length, width, floor_z: the ball's radius and the table's size and floor height;
+        boxes: [(lower corner, upper corner)] of the rackets' swept boxes (:func:`racket_boxes`),
+            each corner a tuple of 3 components.
     """
-    ax = leaf_axes(model, axes)
-    radius, mass = model.ball.radius, model.ball.mass
-    volume = (4.0 / 3.0) * jnp.pi * radius**3
-    ratio = model.aero.rho_air * volume / mass
-    t, a, tx, aa = model.table, model.aero, ax.table, ax.aero
-    parts = [dt, radius, ratio, a.nu, a.buoyancy, a.gravity, t.length, t.width, t.floor_z]
-    per_ball = [None, ax.ball.radius, _any(aa.rho_air, ax.ball.radius, ax.ball.mass), aa.nu, aa.buoyancy, aa.gravity,
-                tx.length, tx.width, tx.floor_z]
-    drag, magnus = a.drag, a.magnus
-    parts += _drag_leaves(drag) + _magnus_leaves(magnus)
-    per_ball += _drag_leaves(aa.drag) + _magnus_leaves(aa.magnus)
-    if racket_boxes is not None:
-        parts.append(racket_boxes)
-        per_ball.append(0 if racket_boxes.ndim == 4 else None)
-    batched = [p for p, b in zip(parts, per_ball) if b == 0]
-    if batched:
-        n = jnp.shape(batched[0])[0]
-        # a per-ball leaf (B, ...) gives one row per ball; a shared one is repeated for every ball
-        rows = [jnp.reshape(jnp.asarray(p, dtype), (n, -1)) if b == 0
-                else jnp.broadcast_to(jnp.ravel(jnp.asarray(p, dtype)), (n, jnp.size(p))) for p, b in zip(parts, per_ball)]
-        flat = jnp.concatenate(rows, axis=1).T
-    else:
-        flat = jnp.concatenate([jnp.ravel(jnp.asarray(p, dtype)) for p in parts])
-    size = 1 << max(0, int(flat.shape[0] - 1).bit_length())
-    last = lambda a: a.shape[-1]  # noqa: E731 (a per-ball table has the batch first)
-    layout = Layout(drag=_DRAG[type(drag)], magnus=_MAGNUS[type(magnus)],
-                    n_re=last(drag.re_ref) if isinstance(drag, aero_stage.DragTable) else 0,
-                    n_sp=last(drag.sp) if isinstance(drag, aero_stage.DragTable) else 0,
-                    n_v=last(magnus.v_ref) if isinstance(magnus, aero_stage.MagnusTable) else 0,
-                    n_rackets=0 if racket_boxes is None else racket_boxes.shape[-3], size=size)
-    return jnp.pad(flat, [(0, size - flat.shape[0])] + [(0, 0)] * (flat.ndim - 1)), layout
-
-
-class _Reader:
-    """Reads the parameter vector in :func:`pack`'s order, one scalar at a time (scalar loads)."""
-
-    def __init__(self, ref):
-        self.ref, self.at = ref, 0
-
-    def scalar(self):
-        self.at += 1
-        return self.ref[self.at - 1]
-
-    def many(self, n):
-        return [self.scalar() for _ in range(n)]
-
-
-def _ramps(xp, last=1.0):
-    """(start, 1 / width, upper clip) of each ramp of ``aero._ramps`` over breakpoints ``xp`` (a list
-    of scalars), computed once per launch so that the steps multiply instead of divide."""
-    return [(xp[k - 1], 1.0 / (xp[k] - xp[k - 1]), last if k == len(xp) - 1 else 1.0) for k in range(1, len(xp))]
-
-
-def _weights(x, ramps):
-    """The ramp weights s_k(x) of ``aero._ramps`` over :func:`_ramps`."""
-    return [jnp.clip((x - start) * inv, 0.0, upper) for start, inv, upper in ramps]
-
-
-def _ramp_sum(weights, fp):
-    """fp[0] + sum_k (fp[k] - fp[k-1]) s_k: ``aero._piecewise`` unrolled."""
-    out = fp[0]
-    for k, s in enumerate(weights, start=1):
-        out = out + (fp[k] - fp[k - 1]) * s
-    return out
-
-
-def _coefficient_fns(rd: _Reader, layout: Layout, radius, nu):
-    """(drag(speed, spin_rate), magnus(speed, spin_rate)) read from the parameter vector."""
-    if layout.drag == "table":
-        re_ref = rd.many(layout.n_re)
-        sp = [rd.many(layout.n_sp) for _ in range(layout.n_re)]
-        cd = [rd.many(layout.n_sp) for _ in range(layout.n_re)]
-        re_cap, cd_min = rd.scalar(), rd.scalar()
-        re_ramps = _ramps(re_ref, (re_cap - re_ref[-2]) / (re_ref[-1] - re_ref[-2]))
-        sp_ramps = [_ramps(row) for row in sp]
-        re_per_speed = 2.0 * radius / nu
-
-        def drag(speed, spin_rate):
-            ratio = spin_rate * radius / jnp.maximum(speed, 1e-6)
-            curves = [_ramp_sum(_weights(ratio, sp_ramps[k]), cd[k]) for k in range(layout.n_re)]
-            return jnp.maximum(_ramp_sum(_weights(speed * re_per_speed, re_ramps), curves), cd_min)
-    else:
-        value = rd.scalar()
-
-        def drag(speed, spin_rate):
-            return value
-
-    if layout.magnus == "table":
-        v_ramps = _ramps(rd.many(layout.n_v))
-        coef = [rd.many(layout.n_v) for _ in range(6)]  # m1, s, w_b, a, b, c
-
-        def magnus(speed, spin_rate):
-            weights = _weights(speed, v_ramps)
-            m1, s, w_b, a, b, c = (_ramp_sum(weights, col) for col in coef)
-            w = spin_rate
-            return jnp.maximum(jnp.where(w <= w_b, m1 * w + s, (a * w + b) * w + c), 0.0)
-    elif layout.magnus == "durr":
-        gain, offset, cap = rd.many(3)
-
-        def magnus(speed, spin_rate):
-            return jnp.minimum(gain * speed / jnp.maximum(spin_rate * radius, 1e-9) - offset, cap)
-    else:
-        value = rd.scalar()
-
-        def magnus(speed, spin_rate):
-            return value
-
-    return drag, magnus
-
-
-# --------------------------------------------------------------------------- the kernel
-def _kernel(layout: Layout, substeps: int, p_ref, *refs):
-    """One block of balls: up to ``substeps`` RK4 steps each, stopping before a flagged step.
-
-    Refs: 9 state components (pos, vel, spin x, y, z) and the steps each ball may take, then
-    the same 9 components out and the steps taken.
-    """
-    ins, outs = refs[:10], refs[10:]
-    rd = _Reader(p_ref)
-    dt, radius, ratio, nu, buoyancy = rd.many(5)
-    gx, gy, gz = rd.many(3)
-    length, width, floor_z = rd.many(3)
-    drag, magnus = _coefficient_fns(rd, layout, radius, nu)
-    boxes = [(rd.many(3), rd.many(3)) for _ in range(layout.n_rackets)]
-    kd = -(3.0 / (8.0 * radius)) * ratio
-    buoy = 1.0 - buoyancy * ratio
-    grav = (buoy * gx, buoy * gy, buoy * gz)
-    dtype = dt.dtype
-
-    state = tuple(r[...] for r in ins[:9])
-    budget = ins[9][...]
-    w = state[6:9]
-    spin_rate = component_norm(*w)
-
-    def accel(v):
-        speed = component_norm(*v)
-        cd, cm = drag(speed, spin_rate), magnus(speed, spin_rate)
-        c = kd * cd * speed
-        cross = (w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0])
-        return tuple(c * v[i] + cm * ratio * cross[i] + grav[i] for i in range(3))
-
-    def rk4(p, v):
-        # spin is constant in flight here (no effect defines spin_derivative)
-        a1 = accel(v)
-        v2 = tuple(v[i] + 0.5 * dt * a1[i] for i in range(3))
-        a2 = accel(v2)
-        v3 = tuple(v[i] + 0.5 * dt * a2[i] for i in range(3))
-        a3 = accel(v3)
-        v4 = tuple(v[i] + dt * a3[i] for i in range(3))
-        a4 = accel(v4)
-        p1 = tuple(p[i] + dt / 6.0 * (v[i] + 2 * v2[i] + 2 * v3[i] + v4[i]) for i in range(3))
-        v1 = tuple(v[i] + dt / 6.0 * (a1[i] + 2 * a2[i] + 2 * a3[i] + a4[i]) for i in range(3))
-        return p1, v1
-
     def meets(p0, p1, lo, hi, reach):
         """The box swept by the chord p0 -> p1, widened by ``reach``, meets the box [lo, hi]."""
         out = None
@@ -318,10 +114,8 @@ def _kernel(layout: Layout, substeps: int, p_ref, *refs):
     box = [b - SLACK for b in ev.PLAY_BOX]
     max_v2 = (_LIMIT_FRACTION * MAX_SPEED) ** 2
     max_w2 = (_LIMIT_FRACTION * MAX_SPIN) ** 2
-    spin_ok = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < max_w2
 
-    def flagged(p0, p1, v1):
-        """A superset of the reference step's flags (table, floor, net, rackets, play, validity)."""
+    def flagged(p0, p1, v1, w1=None):
         flag = meets(p0, p1, table_lo, table_hi, reach)
         flag |= p1[2] - radius - floor_z < SLACK
         flag |= (p0[0] * p1[0] <= 0.0) | (jnp.abs(p1[0]) < SLACK)
@@ -330,34 +124,146 @@ def _kernel(layout: Layout, substeps: int, p_ref, *refs):
         for i in range(3):
             flag |= jnp.abs(p1[i]) > box[i]
         finite = None
-        for c in (*p1, *v1):
+        for c in (*p1, *v1, *(w1 or ())):
             f = jnp.isfinite(c)
             finite = f if finite is None else finite & f
-        speed_ok = (v1[0] * v1[0] + v1[1] * v1[1] + v1[2] * v1[2]) < max_v2
-        return flag | ~(finite & speed_ok & spin_ok)
+        ok = finite & ((v1[0] * v1[0] + v1[1] * v1[1] + v1[2] * v1[2]) < max_v2)
+        if w1 is not None:
+            ok &= (w1[0] * w1[0] + w1[1] * w1[1] + w1[2] * w1[2]) < max_w2
+        return flag | ~ok
+
+    return flagged
+
+
+class Hooks:
+    """The effects' hooks that follow a ball's state and time in flight (``air_velocity``,
+    ``spin_derivative``), for the kernel's body on a CPU: each evaluated for every ball at once on
+    the kernel's (B,) columns, with the effects' per-ball parameters.
+
+    Arguments:
+        effects: the model's effects; axes: their per-ball axes (pytree prefix of 0 / None);
+        k: (B,) each ball's step count at the launch, t0, dt: the clock (a ball that has taken n
+            sub-steps is at t0 + (k + n) dt, the reference path's time of that step).
+    """
+
+    def __init__(self, effects, axes, k, t0, dt):
+        self.effects, self.axes, self.k, self.t0, self.dt = effects, axes, k, t0, dt
+        self.air = any(hasattr(e, "air_velocity") for e in effects)
+        self.spin = any(hasattr(e, "spin_derivative") for e in effects)
+
+    def rows(self, idx):
+        """The hooks of the balls ``idx`` (rows past the end read the last ball's)."""
+        rows = jnp.minimum(idx, self.k.shape[0] - 1)
+        return Hooks(take_rows(self.effects, self.axes, rows), self.axes, self.k[rows], self.t0, self.dt)
+
+    def time(self, n):
+        """(B,) the time of each ball after n (B,) sub-steps."""
+        return self.t0 + (self.k + n).astype(jnp.result_type(self.dt)) * self.dt
+
+    def _columns(self, hook, t, **state):
+        def one(effects, t, **state):
+            return hooks.apply(effects, hook, jnp.zeros_like(state["spin" if hook == "spin_derivative" else "pos"]),
+                               t=t, **state)
+
+        # components as rows (3, B), in and out: (B, 3) made every use a strided pass of its own
+        stacked = {name: jnp.stack(cols) for name, cols in state.items()}
+        out = jax.vmap(lambda fx, t, st: one(fx, t, **st), in_axes=(self.axes, 0, 1), out_axes=1)(
+            self.effects, t, stacked)
+        return out[0], out[1], out[2]
+
+    def air_velocity(self, p, t):
+        return self._columns("air_velocity", t, pos=p)
+
+    def spin_derivative(self, v, w, t):
+        return self._columns("spin_derivative", t, vel=v, spin=w)
+
+
+def _kernel(layout: Layout, substeps: int, p_ref, *refs, hooks: Hooks | None = None):
+    """One block of balls: up to ``substeps`` RK4 steps each, stopping before a flagged step.
+
+    Refs: 9 state components (pos, vel, spin x, y, z) and the steps each ball may take, then
+    the same 9 components out and the steps taken. ``hooks``: the effects acting on the moving
+    ball (:class:`Hooks`; only where the body runs as plain XLA), or None.
+    """
+    ins, outs = refs[:10], refs[10:]
+    rd = Reader(p_ref)
+    dt, radius, ratio, nu, buoyancy = rd.many(5)
+    gx, gy, gz = rd.many(3)
+    length, width, floor_z = rd.many(3)
+    drag, magnus = coefficient_fns(rd, layout, radius, nu)
+    boxes = [(rd.many(3), rd.many(3)) for _ in range(layout.n_rackets)]
+    kd = -(3.0 / (8.0 * radius)) * ratio
+    buoy = 1.0 - buoyancy * ratio
+    grav = (buoy * gx, buoy * gy, buoy * gz)
+    dtype = dt.dtype
+
+    state = tuple(r[...] for r in ins[:9])
+    budget = ins[9][...]
+    air = hooks is not None and hooks.air
+    turning = hooks is not None and hooks.spin  # else the spin is constant in flight
+    fixed_rate = None if turning else component_norm(*state[6:9])
+
+    def accel(p, v, w, t):
+        if air:  # drag and Magnus act on the velocity relative to the air
+            wind = hooks.air_velocity(p, t)
+            v = tuple(v[i] - wind[i] for i in range(3))
+        speed = component_norm(*v)
+        spin_rate = component_norm(*w) if turning else fixed_rate
+        cd, cm = drag(speed, spin_rate), magnus(speed, spin_rate)
+        c = kd * cd * speed
+        cross = (w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0])
+        return tuple(c * v[i] + cm * ratio * cross[i] + grav[i] for i in range(3))
+
+    def deriv(p, v, w, t):
+        """(acceleration, d(spin)/dt or None) at one RK4 stage."""
+        return accel(p, v, w, t), (hooks.spin_derivative(v, w, t) if turning else None)
+
+    def rk4(p, v, w, n):
+        t = hooks.time(n) if hooks is not None else None
+        th, t1 = (None, None) if t is None else (t + 0.5 * dt, t + dt)
+        axpy = lambda h, x, y: tuple(y[i] + h * x[i] for i in range(3))  # noqa: E731
+        a1, d1 = deriv(p, v, w, t)
+        # the stages' positions matter to the air's velocity only; the spin's to a turning ball only
+        stage = lambda h, k, y: axpy(h, k, y) if k is not None else y  # noqa: E731
+        p2, v2, w2 = stage(0.5 * dt, v if air else None, p), axpy(0.5 * dt, a1, v), stage(0.5 * dt, d1, w)
+        a2, d2 = deriv(p2, v2, w2, th)
+        p3, v3, w3 = stage(0.5 * dt, v2 if air else None, p), axpy(0.5 * dt, a2, v), stage(0.5 * dt, d2, w)
+        a3, d3 = deriv(p3, v3, w3, th)
+        p4, v4, w4 = stage(dt, v3 if air else None, p), axpy(dt, a3, v), stage(dt, d3, w)
+        a4, d4 = deriv(p4, v4, w4, t1)
+        avg = lambda y, k1, k2, k3, k4: tuple(y[i] + dt / 6.0 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i])  # noqa: E731
+                                              for i in range(3))
+        return avg(p, v, v2, v3, v4), avg(v, a1, a2, a3, a4), (avg(w, d1, d2, d3, d4) if turning else w)
+
+    w0 = state[6:9]
+    # a constant spin near the limit: the ball takes no step at all (a turning one is tested each step)
+    spin_ok = True if turning else (w0[0] * w0[0] + w0[1] * w0[1] + w0[2] * w0[2]) < (_LIMIT_FRACTION * MAX_SPIN) ** 2
+    flagged = _stop_test(radius, length, width, floor_z, boxes)
 
     def cond(carry):
         j, active = carry[0], carry[2]
         return (j < substeps) & (jnp.max(active.astype(jnp.int32)) > 0)
 
     def body(carry):
-        j, n, active, p, v = carry
-        p1, v1 = rk4(p, v)
-        go = active & ~flagged(p, p1, v1)
-        p = tuple(jnp.where(go, a, b) for a, b in zip(p1, p))
-        v = tuple(jnp.where(go, a, b) for a, b in zip(v1, v))
+        j, n, active, p, v, w = carry
+        p1, v1, w1 = rk4(p, v, w, n)
+        go = active & ~flagged(p, p1, v1, w1 if turning else None)
+        keep = lambda new, old: tuple(jnp.where(go, a, b) for a, b in zip(new, old))  # noqa: E731
+        p, v = keep(p1, p), keep(v1, v)
+        w = keep(w1, w) if turning else w
         n = n + go.astype(jnp.int32)
-        return j + 1, n, go & (n < budget), p, v
+        return j + 1, n, go & (n < budget), p, v, w
 
     zero = jnp.zeros_like(budget)
-    _, n, _, p, v = jax.lax.while_loop(cond, body, (jnp.int32(0), zero, budget > 0, state[0:3], state[3:6]))
+    init = (jnp.int32(0), zero, (budget > 0) & spin_ok, state[0:3], state[3:6], w0)
+    _, n, _, p, v, w = jax.lax.while_loop(cond, body, init)
     for ref, val in zip(outs, (*p, *v, *w)):
         ref[...] = val.astype(dtype)
     outs[9][...] = n
 
 
 def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block: int = BLOCK,
-        interpret: bool | None = None):
+        interpret: bool | None = None, hooks: Hooks | None = None):
     """Flies every ball up to ``min(substeps, budget)`` free-flight steps, stopping before a step in
     which something may happen to it.
 
@@ -368,12 +274,15 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
         interpret: None (default): the Triton kernel on a GPU, elsewhere the kernel's body as plain
             XLA over the balls that move (:func:`_fly_moving`); True: Pallas in interpret mode
             (a check of the kernel as Pallas runs it, slow); False: the Pallas kernel compiled.
+        hooks: the effects acting on the moving ball (:class:`Hooks`), or None; only without Pallas.
 
     Returns:
         (ball after the steps, (B,) int32 steps taken).
     """
     if interpret is None and jax.default_backend() != "gpu":
-        return _fly_moving(params, layout, ball, budget, substeps=substeps)
+        return _fly_moving(params, layout, ball, budget, substeps=substeps, hooks=hooks)
+    if hooks is not None:
+        raise ValueError("fly: the Pallas kernel has no hooks (effects acting in flight run the body as plain XLA)")
     from jax.experimental import pallas as pl
 
     b = budget.shape[0]
@@ -423,12 +332,12 @@ class _Slot:
         self.value = value
 
 
-def _fly_xla(params, layout: Layout, ball, budget, *, substeps: int):
+def _fly_xla(params, layout: Layout, ball, budget, *, substeps: int, hooks: Hooks | None = None):
     """:func:`fly` without Pallas: the kernel's body over all the given balls at once. XLA compiles
     a sub-step into one loop over the balls (measured on a CPU at 65,536 balls: as fast as the
     lean hand-written loop on one core; blocks of 256-4,096 balls ran 1.5-2.4x slower)."""
     outs = [_Slot() for _ in range(10)]
-    _kernel(layout, substeps, _Slot(params), *[_Slot(c) for c in _columns(ball, budget)], *outs)
+    _kernel(layout, substeps, _Slot(params), *[_Slot(c) for c in _columns(ball, budget)], *outs, hooks=hooks)
     return _from_columns(ball, [o.value for o in outs])
 
 
@@ -436,7 +345,7 @@ def _fly_xla(params, layout: Layout, ball, budget, *, substeps: int):
 GATHER_FRACTIONS = (64, 8)
 
 
-def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int):
+def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int, hooks: Hooks | None = None):
     """:func:`_fly_xla` over the balls that move only, gathered into the smallest of B / 64, B / 8
     and B rows that holds them. A ball stopped for an event falls behind the others by the rest of
     that launch, so the last launches of a rollout move few balls; without the gather each costs
@@ -451,12 +360,14 @@ def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int):
             sub = jax.tree.map(lambda a: a.at[idx].get(mode="fill", fill_value=0), ball)
             # per-ball parameters follow their balls (the padding rows, which do not fly, read the last ball's)
             p = params if params.ndim == 1 else params.at[:, idx].get(mode="clip")
-            out, n = _fly_xla(p, layout, sub, budget.at[idx].get(mode="fill", fill_value=0), substeps=substeps)
+            out, n = _fly_xla(p, layout, sub, budget.at[idx].get(mode="fill", fill_value=0), substeps=substeps,
+                              hooks=None if hooks is None else hooks.rows(idx))
             put = lambda a, v: a.at[idx].set(v, mode="drop")  # noqa: E731
             return jax.tree.map(put, ball, out), put(jnp.zeros_like(budget), n)
         return run
 
-    branches = [gathered(s) for s in sizes] + [lambda: _fly_xla(params, layout, ball, budget, substeps=substeps)]
+    branches = [gathered(s) for s in sizes] + [
+        lambda: _fly_xla(params, layout, ball, budget, substeps=substeps, hooks=hooks)]
     if len(branches) == 1:
         return branches[0]()
     count = jnp.sum(moving.astype(jnp.int32))
@@ -500,7 +411,7 @@ def _own_rows(schedule, kb, end, step0, substeps: int):
 
 def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
             rackets_batched: bool = False, substeps: int = SUBSTEPS, block: int = BLOCK,
-            interpret: bool | None = None):
+            interpret: bool | None = None, key=None):
     """Advances every ball from step ``k`` to ``k + length`` on the fused path.
 
     Each ball keeps its own step count: the kernel (:func:`fly`) flies it up to its next possible
@@ -513,14 +424,21 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
             length: steps to take (static); schedule: the rackets' (T, R, ...) schedule from step
             ``step0`` on ((T, B, R, ...) with ``rackets_batched``: one per ball, each ball's
             kernel stop tested against its own rackets' boxes), or None; t0, dt: the clock (time of
-            step k is t0 + k dt); stepper: ``step`` with its static options bound.
+            step k is t0 + k dt); stepper: ``step`` with its static options bound;
+        key: the rollout's PRNG key when the residual is sampled, else None: a ball's step k draws
+            with ``fold_in(key, k)``, the key the reference path's step k has, so its draws are
+            the same whatever the other balls do.
 
     Returns:
         (ball, alive, status, log) at step ``k + length``.
     """
     dtype = ball.pos.dtype
     end = k + length
-    radius = jnp.max(model.ball.radius)  # per ball or not: the largest widens the racket boxes most
+    phys_axes = axes.replace(residual=None)
+    # per ball or not, after effects: the largest widens the racket boxes most
+    radius = jnp.max(jax.vmap(lambda m: ball_properties(m)[0], in_axes=(phys_axes,), axis_size=alive.shape[0])(
+        model.replace(residual=None)))
+    moving_hooks = in_flight(model, STATE_HOOKS)
     last_row = None if schedule is None else schedule.pos.shape[0] - 1
 
     def body(carry):
@@ -537,7 +455,8 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
                 boxes = racket_boxes(schedule.pos, schedule.vel, schedule.face, (rows >= lo) & (rows < hi), dt,
                                      radius)
         params, layout = pack(model, dt, boxes, dtype, axes)
-        ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret)
+        hooks = Hooks(model.effects, phys_axes.effects, kb, t0, dt) if moving_hooks else None
+        ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret, hooks=hooks)
         kb = kb + n
         on = kb < end
         t = t0 + kb.astype(dtype) * dt
@@ -548,8 +467,9 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
                 rackets = jax.tree.map(lambda a: a[row, jnp.arange(row.shape[0])], schedule)
             else:
                 rackets = jax.tree.map(lambda a: a[row], schedule)
+        keys = None if key is None else jax.vmap(lambda kk: jax.random.fold_in(key, kk))(kb)
         ball, alive_new, status, log = stepper(model, axes, ball, alive & on, status, ball_id, log, rackets, t, dt,
-                                               rackets_batched=schedule is not None, key=None)
+                                               rackets_batched=schedule is not None, key=keys)
         alive = jnp.where(on, alive_new, alive)
         return ball, alive, status, log, jnp.where(on & alive, kb + 1, end)
 

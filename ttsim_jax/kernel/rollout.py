@@ -22,6 +22,7 @@ from flax import struct
 from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.execution import Execution, with_options
+from ttsim_jax.kernel.fused_params import leaf_axes
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
@@ -124,7 +125,7 @@ def _resolve_axes(model: Model, model_axes):
 
 def _check_per_ball(model, axes, batch):
     leaves, treedef = jax.tree_util.tree_flatten_with_path(model)
-    flat_axes = fused_path.leaf_axes(model, axes)
+    flat_axes = leaf_axes(model, axes)
     # flattened along the model's own structure: a field that is None in the model (no leaf) must
     # not shift the axes of the leaves after it
     for (path, leaf), ax in zip(leaves, treedef.flatten_up_to(flat_axes)):
@@ -276,7 +277,7 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
             ball, alive, status, log = fused_path.advance(model, axes, carry.ball, carry.alive, carry.status,
                                                           ball_id, carry.log, carry.step, n, schedule, step0, t0,
                                                           dt, stepper, rackets_batched=rackets_batched,
-                                                          substeps=fused)
+                                                          substeps=fused, key=key if sample else None)
             return Carry(ball, alive, status, log, carry.step + n)
 
         def chunk(carry, _):
@@ -458,8 +459,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     if not isinstance(until_events, int) or not 0 <= until_events <= max_events:
         raise ValueError(f"until_events must be an int in [0, max_events={max_events}], got {until_events!r}")
     if fused:
-        why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched,
-                                     sample=sample_residual)
+        why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched)
         if why is None and until_events:
             why = "until_events"
         if why is not None and fused is True:

@@ -382,7 +382,12 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
                     first = jax.random.normal(ball_key, (6,), dtype)
                     return jnp.where(i == 0, first, jax.random.normal(jax.random.fold_in(ball_key, i), (6,), dtype))
 
-                eps = jax.vmap(lambda j: draw(jax.random.fold_in(key, j)))(ball_id[safe[sub_safe]])
+                # one key for the step, or one per ball (the fused path, where the balls' clocks differ)
+                typed = jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                own = jnp.ndim(key) > (0 if typed else 1)
+                keys = key[safe[sub_safe]] if own else key
+                eps = jax.vmap(lambda kk, j: draw(jax.random.fold_in(kk, j)), in_axes=(0 if own else None, 0))(
+                    keys, ball_id[safe[sub_safe]])
             out = _residual_rows(net, res_axes, x[sub_safe, :model.residual.config.n_inputs], eps)
             if net_rows is not None:
                 out = {k: jnp.zeros((n,) + v.shape[1:], v.dtype).at[sub].set(v, mode="drop") for k, v in out.items()}
@@ -458,7 +463,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         t, dt: time at the start of the step ((), or (B,) when the balls' clocks differ, as in the
             fused path) and step length [s].
         integrator: flight integrator (static); capacity: contact buffer rows (static).
-        key, sample: the step's PRNG key and whether to sample the residual from its predicted std.
+        key, sample: the step's PRNG key ((B,) keys, one per ball, when the balls' clocks differ) and
+            whether to sample the residual from its predicted std.
         reference: run the exact detection for every ball (static): the straightforward step the
             lean one is tested against.
         buffering: how the flagged balls reach the contact models (static; same results):
