@@ -83,9 +83,9 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
     if gpu and model.effects and in_flight(model):
         hooked = [type(e).__name__ for e in model.effects if any(hasattr(e, h) for h in FLIGHT_HOOKS)]
         return f"effects acting in flight on a GPU: {hooked} (the Triton kernel has no hooks)"
-    shared = axes.ball, axes.aero, axes.table
+    shared = axes.ball, axes.aero, axes.table, axes.effects
     if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)) and gpu:
-        return "per-ball ball, aero or table parameters on a GPU (the Triton kernel reads them as scalars)"
+        return "per-ball ball, aero, table or effect parameters on a GPU (the Triton kernel reads them as scalars)"
     return None
 
 
