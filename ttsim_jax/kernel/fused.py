@@ -80,7 +80,7 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
     surface = [type(e).__name__ for e in model.effects if hasattr(e, "table_surface")]
     if surface:
         return f"effects moving the table's surface: {surface} (the kernel stops balls at the flat table's box)"
-    if gpu and model.effects and in_flight(model):
+    if gpu and in_flight(model):
         hooked = [type(e).__name__ for e in model.effects if any(hasattr(e, h) for h in FLIGHT_HOOKS)]
         return f"effects acting in flight on a GPU: {hooked} (the Triton kernel has no hooks)"
     shared = axes.ball, axes.aero, axes.table, axes.effects
