@@ -22,15 +22,15 @@ from ttsim_jax.physics import hooks
 
 # Hooks that change the flight: those without context give constants the kernel reads from its
 # parameters (:func:`pack`); those that follow the ball's state and time are evaluated in the kernel
-# (:class:`Hooks`, on a CPU).
+# (:class:`ttsim_jax.kernel.fused.Hooks`, on a CPU).
 CONSTANT_HOOKS = ("ball_properties", "air_properties")
 STATE_HOOKS = ("air_velocity", "spin_derivative")
 FLIGHT_HOOKS = CONSTANT_HOOKS + STATE_HOOKS
 
 
-def in_flight(model, hooks=FLIGHT_HOOKS) -> bool:
-    """Whether an effect of ``model`` defines one of ``hooks`` (by default: acts in flight)."""
-    return any(hasattr(e, h) for e in model.effects for h in hooks)
+def in_flight(model, points=FLIGHT_HOOKS) -> bool:
+    """Whether an effect of ``model`` defines one of the hook ``points`` (by default: acts in flight)."""
+    return any(hasattr(e, h) for e in model.effects for h in points)
 
 
 # --------------------------------------------------------------------------- parameters as scalars
