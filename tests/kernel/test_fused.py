@@ -285,7 +285,7 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
 def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
     """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and without a
-    racket schedule per ball, on a GPU always; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
+    racket schedule per ball or an effect moving the air, on a GPU always; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
     import importlib
 
     R = importlib.import_module("ttsim_jax.kernel.rollout")
@@ -293,6 +293,7 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
     if jax.default_backend() == "cpu":
         assert not R.fused_pays(n - 1) and R.fused_pays(n) and R.fused_pays(1 << 20)
         assert not R.fused_pays(1 << 20, rackets_batched=True)  # measured slower (see fused_pays)
+        assert not R.fused_pays(1 << 20, air_hooks=True)
     else:
         assert R.fused_pays(1) == (jax.default_backend() == "gpu")
     taken = []
@@ -307,3 +308,8 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
         rollout(model, init_state(shots(batch)), 10, 1e-3, sched, execution=Execution(fused=choice))
     pays = lambda b, c, own: c is True or (c == "auto" and R.fused_pays(b, own))  # noqa: E731
     assert taken == [fused.SUBSTEPS if pays(*r) else 0 for r in runs], taken
+    if jax.default_backend() == "cpu":  # effects in flight: auto leaves out those that move the air
+        taken.clear()
+        for name in ("spin_decay", "air_flow"):
+            rollout(model.replace(effects=(fx.make(name),)), init_state(shots(n)), 10, 1e-3)
+        assert taken == [fused.SUBSTEPS, 0], taken

@@ -87,9 +87,7 @@ class AirFlow(Effect):
 
     def air_velocity(self, value, *, pos=None, t=0.0, **_):
         arg = 2.0 * jnp.pi * self.gust_freq * (t + self.time_origin) + self.gust_phase  # (K,)
-        s = jnp.sin(arg)
-        # the components written out: a sum over a short axis ends an elementwise loop on a CPU
-        return value + self.wind + (self.gust_amp[0] * s[0] + self.gust_amp[1] * s[1] + self.gust_amp[2] * s[2])
+        return value + self.wind + jnp.sum(self.gust_amp * jnp.sin(arg)[:, None], axis=0)
 
 
 # ---------------------------------------------------------------------- table

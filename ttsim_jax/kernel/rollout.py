@@ -370,16 +370,22 @@ def default_buffering() -> str:
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
 
-def fused_pays(batch: int, rackets_batched: bool = False) -> bool:
+def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False) -> bool:
     """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
     on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls, and not
-    with a racket schedule per ball. That the CPU's fused path covers, but it ran slower than the
-    reference path (4,096 balls, two rackets per ball: 0.14-0.20x over 10-300 steps; the
-    environment's default task 0.63x of its env-steps/s): a racket brought to its ball keeps the ball
-    inside its box, so the kernel stops it every step and the loop pays a launch's whole-batch work
-    per step (running the ordinary step on the stopped balls only was tried: no faster)."""
+    with a racket schedule per ball or an effect that moves the air (``air_velocity``). Both the
+    CPU's fused path covers, but they ran slower than the reference path. With rackets per ball
+    (4,096 balls, two rackets per ball: 0.14-0.20x over 10-300 steps; the environment's default task
+    0.63x of its env-steps/s), a racket brought to its ball keeps the ball inside its box, so the
+    kernel stops it every step and the loop pays a launch's whole-batch work per step (running the
+    ordinary step on the stopped balls only was tried: no faster). With ``air_flow`` (spin decay
+    and wind drawn per ball, 65,536 balls, 300 steps: 0.83x, ``benchmarks/fused_effects.py``) the
+    gusts' sum over their components, a reduction over a short axis, ends the kernel's loop over the
+    balls at each of its four evaluations a sub-step (written out, the fused path ran 1.55x, but the
+    rounding of the sum changed and the diagnosis of one withheld-effect case with it)."""
     backend = jax.default_backend()
-    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and not rackets_batched)
+    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and not rackets_batched
+                                and not air_hooks)
 
 
 def default_capacity(batch: int) -> int:
@@ -464,7 +470,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
-        fused = why is None and not reference and (fused is True or fused_pays(batch, batched))
+        air = any(hasattr(e, "air_velocity") for e in model.effects)
+        fused = why is None and not reference and (fused is True or fused_pays(batch, batched, air))
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
