@@ -40,8 +40,8 @@ import jax
 import jax.numpy as jnp
 
 from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KINDS, STATE_HOOKS, Layout, Reader,
-                                           coefficient_fns, in_flight, pack)
-from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN, ball_properties, take_rows
+                                           coefficient_fns, hooked_properties, in_flight, pack)
+from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN, take_rows
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics import table as table_stage
@@ -90,6 +90,11 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
 
 
 # --------------------------------------------------------------------------- the kernel
+def _spin_within(w):
+    """Whether the spin (components w) is within the kernel's share of the ordinary step's limit."""
+    return (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < (_LIMIT_FRACTION * MAX_SPIN) ** 2
+
+
 def _stop_test(radius, length, width, floor_z, boxes):
     """flagged(p0, p1, v1, w1=None): a superset of the reference step's flags (table, floor, net,
     rackets, leaving play, validity) for the step that takes a ball from p0 to (p1, v1) (and spin
@@ -113,7 +118,6 @@ def _stop_test(radius, length, width, floor_z, boxes):
     reach = radius + ev.SWEEP_MARGIN + SLACK
     box = [b - SLACK for b in ev.PLAY_BOX]
     max_v2 = (_LIMIT_FRACTION * MAX_SPEED) ** 2
-    max_w2 = (_LIMIT_FRACTION * MAX_SPIN) ** 2
 
     def flagged(p0, p1, v1, w1=None):
         flag = meets(p0, p1, table_lo, table_hi, reach)
@@ -129,7 +133,7 @@ def _stop_test(radius, length, width, floor_z, boxes):
             finite = f if finite is None else finite & f
         ok = finite & ((v1[0] * v1[0] + v1[1] * v1[1] + v1[2] * v1[2]) < max_v2)
         if w1 is not None:
-            ok &= (w1[0] * w1[0] + w1[1] * w1[1] + w1[2] * w1[2]) < max_w2
+            ok &= _spin_within(w1)
         return flag | ~ok
 
     return flagged
@@ -161,9 +165,8 @@ class Hooks:
         return self.t0 + (self.k + n).astype(jnp.result_type(self.dt)) * self.dt
 
     def _columns(self, hook, t, **state):
-        def one(effects, t, **state):
-            return hooks.apply(effects, hook, jnp.zeros_like(state["spin" if hook == "spin_derivative" else "pos"]),
-                               t=t, **state)
+        def one(effects, t, **state):  # every hook here has a 3-vector's neutral value
+            return hooks.apply(effects, hook, jnp.zeros_like(next(iter(state.values()))), t=t, **state)
 
         # components as rows (3, B), in and out: (B, 3) made every use a strided pass of its own
         stacked = {name: jnp.stack(cols) for name, cols in state.items()}
@@ -237,7 +240,7 @@ def _kernel(layout: Layout, substeps: int, p_ref, *refs, hooks: Hooks | None = N
 
     w0 = state[6:9]
     # a constant spin near the limit: the ball takes no step at all (a turning one is tested each step)
-    spin_ok = True if turning else (w0[0] * w0[0] + w0[1] * w0[1] + w0[2] * w0[2]) < (_LIMIT_FRACTION * MAX_SPIN) ** 2
+    spin_ok = True if turning else _spin_within(w0)
     flagged = _stop_test(radius, length, width, floor_z, boxes)
 
     def cond(carry):
@@ -436,8 +439,7 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
     end = k + length
     phys_axes = axes.replace(residual=None)
     # per ball or not, after effects: the largest widens the racket boxes most
-    radius = jnp.max(jax.vmap(lambda m: ball_properties(m)[0], in_axes=(phys_axes,), axis_size=alive.shape[0])(
-        model.replace(residual=None)))
+    radius = jnp.max(hooked_properties(model, axes)[0][0])
     moving_hooks = in_flight(model, STATE_HOOKS)
     last_row = None if schedule is None else schedule.pos.shape[0] - 1
 

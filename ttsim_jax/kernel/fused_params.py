@@ -82,7 +82,7 @@ def _any(*axes):
     return 0 if any(a == 0 for a in axes) else None
 
 
-def _after_hooks(model, axes):
+def hooked_properties(model, axes):
     """((radius, mass, rho_air, nu), axis): the ball's and the air's properties after the effects'
     ``ball_properties`` and ``air_properties`` hooks (constant in flight: they take no state), (B,)
     each with axis 0 where any leaf they may read is per ball, else scalars and None."""
@@ -121,7 +121,7 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
     radius, mass, rho_air, nu = model.ball.radius, model.ball.mass, a.rho_air, a.nu
     radius_ax, ratio_ax, nu_ax = ax.ball.radius, _any(aa.rho_air, ax.ball.radius, ax.ball.mass), aa.nu
     if in_flight(model, CONSTANT_HOOKS):
-        (radius, mass, rho_air, nu), each = _after_hooks(model, axes)
+        (radius, mass, rho_air, nu), each = hooked_properties(model, axes)
         radius_ax = ratio_ax = nu_ax = each
     volume = (4.0 / 3.0) * jnp.pi * radius**3
     ratio = rho_air * volume / mass

@@ -22,7 +22,7 @@ from flax import struct
 from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.execution import Execution, with_options
-from ttsim_jax.kernel.fused_params import leaf_axes
+from ttsim_jax.kernel.fused_params import in_flight, leaf_axes
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
@@ -470,7 +470,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
-        air = any(hasattr(e, "air_velocity") for e in model.effects)
+        air = in_flight(model, ("air_velocity",))
         fused = why is None and not reference and (fused is True or fused_pays(batch, batched, air))
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
