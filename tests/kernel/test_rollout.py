@@ -169,7 +169,9 @@ def test_until_events_freezes_each_ball_at_its_event(model, whole):
     np.testing.assert_allclose(np.asarray(o1.events.post.vel[:, 0]), np.asarray(o.events.post.vel[:, 0]),
                                atol=1e-12)
     none = full == 0
-    np.testing.assert_array_equal(np.asarray(s1.ball.pos)[none], np.asarray(s.ball.pos)[none])
+    # within rounding: the two are different programs, which XLA may fuse (and contract into
+    # multiply-adds) differently
+    np.testing.assert_allclose(np.asarray(s1.ball.pos)[none], np.asarray(s.ball.pos)[none], rtol=0, atol=1e-12)
     # a frozen ball is where its event step left it: within one step's flight of its logged event
     hit = full > 0
     gap = np.linalg.norm(np.asarray(s1.ball.pos)[hit] - np.asarray(o.events.post.pos[:, 0])[hit], axis=-1)

@@ -34,7 +34,7 @@ As in robot table tennis systems (a hitting-point predictor plus a stroke), each
    stroke's angles. Before a prediction exists, when the ball has passed the plane, and after the
    contact, the racket returns to its start position with a level face.
 
-Everything is elementwise over the batch, branch-free and closed-form (a fixed, unrolled number
+Everything is elementwise over the batch, branch-free and closed-form (a fixed number
 of fixed-point steps; no data-dependent loop).
 """
 
@@ -312,29 +312,41 @@ def _spin_acceleration(p: InterceptParams, point, v_in, spin, angle, v_racket, v
 
 def _invert(p: InterceptParams, v_in, spin, v_out):
     """(face angles (B, 2), racket velocity (B, 3)) of the stroke that turns ``v_in`` into ``v_out``
-    (the fixed-point inversion of the contact described in :func:`mirror`)."""
-    unit = lambda d: d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-6)  # noqa: E731
+    (the fixed-point inversion of the contact described in :func:`mirror`).
 
-    def tangential(n):
-        u = v_in + p.radius * jnp.cross(n, spin)
-        return u - jnp.sum(u * n, -1, keepdims=True) * n
+    Written over per-ball columns ((B,) arrays, one per component): a batch of 3-vectors made each
+    dot product and norm a reduction of its own (a pass over the batch each, some 80 per stroke),
+    and written out over slices of them, the unrolled steps were fused into one loop that
+    recomputed every earlier step once per component. The fixed-point steps are a loop of static
+    length, so each step's normal is computed once."""
+    vi, w, vo = (jnp.unstack(a, axis=-1) for a in (v_in, spin, v_out))
+    r = p.radius
+
+    def dot(a, b):
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    def unit(d):
+        size = jnp.maximum(jnp.sqrt(dot(d, d)), 1e-6)
+        return tuple(c / size for c in d)
 
     def change(n):
-        u = tangential(n)
-        grip = jnp.maximum(p.grip + p.grip_slope * jnp.linalg.norm(u, axis=-1, keepdims=True), 0.0)
-        return v_out - v_in + grip * u
+        # the face's grip acts on the tangential slip u = P (v_in + r n x spin)
+        u = (vi[0] + r * (n[1] * w[2] - n[2] * w[1]), vi[1] + r * (n[2] * w[0] - n[0] * w[2]),
+             vi[2] + r * (n[0] * w[1] - n[1] * w[0]))
+        along = dot(u, n)
+        u = tuple(a - along * b for a, b in zip(u, n))
+        grip = jnp.maximum(p.grip + p.grip_slope * jnp.sqrt(dot(u, u)), 0.0)
+        return tuple(o - i + grip * a for o, i, a in zip(vo, vi, u))
 
-    n = unit(v_out - v_in)
-    for _ in range(MIRROR_STEPS):
-        n = unit(change(n))
-    push = jnp.sum(change(n) * n, -1)
+    n = jax.lax.fori_loop(0, MIRROR_STEPS, lambda _, n: unit(change(n)), unit(tuple(o - i for o, i in zip(vo, vi))))
+    push = dot(change(n), n)
     # e1 s^2 + (1 + e0) s - push = 0, the root that tends to push / (1 + e0) as e1 -> 0
     a = 1.0 + p.e_racket
     s = 2.0 * push / (a + jnp.sqrt(jnp.maximum(a * a + 4.0 * p.e_slope * push, 0.0)))
-    speed = s + jnp.sum(v_in * n, -1)
+    speed = s + dot(vi, n)
     # rotation(angle)[:, 0] = (-cos p cos y, -cos p sin y, sin p)
-    angle = jnp.stack([jnp.arcsin(jnp.clip(n[:, 2], -1.0, 1.0)), jnp.arctan2(-n[:, 1], -n[:, 0])], -1)
-    return angle, speed[:, None] * n
+    angle = jnp.stack([jnp.arcsin(jnp.clip(n[2], -1.0, 1.0)), jnp.arctan2(-n[1], -n[0])], -1)
+    return angle, jnp.stack([speed * c for c in n], -1)
 
 
 def track(p: InterceptParams, limits, start, target, racket, prediction, ball_spin, hit, action):

@@ -16,8 +16,8 @@ acceleration limit saturates for most commands, which hides the action's effect 
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from ttsim_jax.state import Racket
@@ -73,40 +73,47 @@ def rotation(angle):
     (towards the opponent), pitch turns it upwards, yaw about z.
 
     Arguments:
-        angle: (2,) pitch, yaw [rad].
+        angle: (..., 2) pitch, yaw [rad].
 
     Returns:
-        (3, 3) rotation whose first column is the face normal.
+        (..., 3, 3) rotation whose first column is the face normal.
     """
-    cp, sp = jnp.cos(angle[0]), jnp.sin(angle[0])
-    cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
-    zero = jnp.zeros_like(cp)
-    # rz(yaw) @ ry(pitch) @ diag(-1, -1, 1) (normal -x, tip up), multiplied out: under vmap the
-    # products were batched 3 x 3 dots, slow on a CPU
-    return jnp.array([[-cy * cp, sy, cy * sp], [-sy * cp, -cy, sy * sp], [sp, zero, cp]])
+    cp, sp = jnp.cos(angle[..., 0]), jnp.sin(angle[..., 0])
+    cy, sy = jnp.cos(angle[..., 1]), jnp.sin(angle[..., 1])
+    entries = (-cy * cp, sy, cy * sp, -sy * cp, -cy, sy * sp, sp, None, cp)
+    # rz(yaw) @ ry(pitch) @ diag(-1, -1, 1) (normal -x, tip up), multiplied out, as a sum over the
+    # unit matrices: a stack of the nine entries is a concatenation, which a CPU runs on one thread,
+    # one element at a time
+    return sum(e[..., None, None] * _UNIT[i] for i, e in enumerate(entries) if e is not None)
+
+
+_UNIT = np.eye(9, dtype=np.float32).reshape(9, 3, 3)
 
 
 def angular_velocity(angle, rate):
-    """(3,) world angular velocity of :func:`rotation` for angle rates (pitch, yaw) [rad/s]."""
-    cy, sy = jnp.cos(angle[1]), jnp.sin(angle[1])
-    return rate[0] * jnp.stack([-sy, cy, jnp.zeros_like(cy)]) + rate[1] * jnp.array([0.0, 0.0, 1.0], cy.dtype)
+    """(..., 3) world angular velocity of :func:`rotation` for angles and their rates (pitch, yaw)
+    (..., 2) [rad, rad/s]."""
+    cy, sy = jnp.cos(angle[..., 1]), jnp.sin(angle[..., 1])
+    pitch, yaw = rate[..., 0], rate[..., 1]
+    return jnp.stack([-pitch * sy, pitch * cy, yaw], -1)
 
 
 def _ramp(x, v, fraction, max_accel, max_speed, bound, period, n_sub):
     """Constant-acceleration motion of one group of coordinates over a control period.
 
     Arguments:
-        x, v: (d,) position and velocity; fraction: (d,) commanded acceleration / its limit, in [-1, 1].
+        x, v: (..., d) position and velocity; fraction: (..., d) commanded acceleration / its limit, in [-1, 1].
         bound: clips positions (..., d) into the allowed region.
 
     Returns:
-        (positions at the n_sub step starts (n_sub, d), mean velocities over each step (n_sub, d),
-        end position (d,), end velocity (d,), acceleration used / its limit (d,)).
+        (positions at the n_sub step starts (n_sub, ..., d), mean velocities over each step
+        (n_sub, ..., d), end position (..., d), end velocity (..., d), acceleration used / its
+        limit (..., d)).
     """
     v = jnp.clip(v, -max_speed, max_speed)
     accel = jnp.clip(fraction * max_accel, (-max_speed - v) / period, (max_speed - v) / period)
     h = period / n_sub
-    t = jnp.arange(n_sub, dtype=x.dtype)[:, None] * h
+    t = (jnp.arange(n_sub, dtype=x.dtype) * h).reshape((n_sub,) + (1,) * x.ndim)
     pos = bound(x + v * t + 0.5 * accel * t * t)
     end = x + v * period + 0.5 * accel * period * period
     held = bound(end)
@@ -117,29 +124,28 @@ def _ramp(x, v, fraction, max_accel, max_speed, bound, period, n_sub):
 
 
 def command(limits: RacketLimits, state: RacketState, action, period, n_sub: int):
-    """Applies one control command to one racket.
+    """Applies one control command to one racket, or to a batch of them.
 
     Arguments:
-        limits: :class:`RacketLimits`; state: :class:`RacketState` with (3,) / (2,) fields.
-        action: (5,) in [-1, 1]: acceleration of the face centre as fractions of ``max_accel`` (3),
+        limits: :class:`RacketLimits`; state: :class:`RacketState` with (..., 3) / (..., 2) fields.
+        action: (..., 5) in [-1, 1]: acceleration of the face centre as fractions of ``max_accel`` (3),
             then the angles' accelerations as fractions of ``max_angle_accel`` (2); non-finite
             entries count as 0, others are clipped to [-1, 1].
         period: control period [s]; n_sub: physics steps in it (static).
 
     Returns:
-        (new :class:`RacketState`, :class:`Racket` schedule with (n_sub, 1, ...) fields, effort:
+        (new :class:`RacketState`, :class:`Racket` schedule with (n_sub, ..., 1, ...) fields (time
+        first: the kernel's order, so that a batch's schedule needs no transposition), effort (...):
         mean squared acceleration as a fraction of its limit).
     """
     a = jnp.clip(jnp.where(jnp.isfinite(action), action, 0.0), -1.0, 1.0).astype(state.pos.dtype)
-    pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[:3], limits.max_accel, limits.max_speed,
+    pos, vel, end_p, end_v, eff_p = _ramp(state.pos, state.vel, a[..., :3], limits.max_accel, limits.max_speed,
                                           lambda p: clip_workspace(limits, p), period, n_sub)
-    ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[3:5], limits.max_angle_accel,
+    ang, rate, end_a, end_r, eff_a = _ramp(state.angle, state.rate, a[..., 3:5], limits.max_angle_accel,
                                            limits.max_rate, lambda a: jnp.clip(a, limits.angle_lo, limits.angle_hi),
                                            period, n_sub)
-    rot = jax.vmap(rotation)(ang)
-    omega = jax.vmap(angular_velocity)(ang, rate)
-    face = jnp.broadcast_to(limits.face, (n_sub, 2))
-    schedule = Racket(pos=pos[:, None], rot=rot[:, None], vel=vel[:, None], ang_vel=omega[:, None],
-                      face=face[:, None])
-    effort = jnp.mean(jnp.concatenate([eff_p, eff_a]) ** 2)
+    face = jnp.broadcast_to(limits.face, ang.shape)
+    schedule = Racket(pos=pos[..., None, :], rot=rotation(ang)[..., None, :, :], vel=vel[..., None, :],
+                      ang_vel=angular_velocity(ang, rate)[..., None, :], face=face[..., None, :])
+    effort = jnp.mean(jnp.concatenate([eff_p, eff_a], -1) ** 2, -1)
     return RacketState(pos=end_p, vel=end_v, angle=end_a, rate=end_r), schedule, effort

@@ -391,8 +391,9 @@ class ReturnBall:
                 pred = intercept.predict(params.intercept, seen.pos, seen.vel, state.progress.bounced, seen.spin)
             action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket,
                                      pred, seen.spin, state.progress.hit, action)
-        rk, schedule, effort = jax.vmap(racket_kin.command, in_axes=(None, 0, 0, None, None))(
-            params.limits, state.racket, action, self.period, self.substeps)
+        rk, schedule, effort = racket_kin.command(params.limits, state.racket, action, self.period, self.substeps)
+        # (T, B, 1, ...) as the rollout takes it, (B, T, 1, ...): the two transpositions cancel
+        schedule = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), schedule)
         model, axes = self.model_for(params, state.model_values)
         # the clock restarts each control step: the kernel's time stays small and exact
         rally = state.rally.replace(step=jnp.zeros_like(state.rally.step), t0=jnp.zeros_like(state.rally.t0))

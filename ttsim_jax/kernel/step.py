@@ -37,7 +37,7 @@ from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import matvec
+from ttsim_jax.physics.numerics import dot3, matvec
 from ttsim_jax.state import Ball, Racket
 
 # Beyond these a state is flagged invalid and frozen (m/s, rad/s, m).
@@ -98,10 +98,14 @@ def settle(model: Model, ball: Ball, free: Ball) -> Ball:
 
 def is_valid(ball: Ball):
     """Whether a state is finite and within the sane range (else it is flagged INVALID)."""
-    finite = jnp.all(jnp.isfinite(ball.as_array()))
-    clean = jax.tree.map(lambda a: jnp.where(finite, a, 0.0), ball)
-    sane = ((jnp.sum(clean.vel * clean.vel) < MAX_SPEED**2) & (jnp.sum(clean.spin * clean.spin) < MAX_SPIN**2)
-            & (jnp.max(jnp.abs(clean.pos)) < MAX_DISTANCE))
+    # elementwise over the components, no reduction: each reduction over a short axis was a pass
+    # over the batch of its own in every step (the checks tolerate the order of the sums)
+    finite = reduce(jnp.logical_and, [jnp.isfinite(c) for a in (ball.pos, ball.vel, ball.spin)
+                                      for c in jnp.unstack(a, axis=-1)])
+    clean = jax.tree.map(lambda a: jnp.where(finite[..., None], a, 0.0), ball)
+    far = reduce(jnp.maximum, [jnp.abs(c) for c in jnp.unstack(clean.pos, axis=-1)])
+    sane = ((dot3(clean.vel, clean.vel) < MAX_SPEED**2) & (dot3(clean.spin, clean.spin) < MAX_SPIN**2)
+            & (far < MAX_DISTANCE))
     return finite & sane
 
 

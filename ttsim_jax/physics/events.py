@@ -27,6 +27,8 @@ holds its contacts in time order (a net crossing, then a bounce a fraction of a 
 
 from __future__ import annotations
 
+from functools import reduce
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -162,7 +164,8 @@ def table_may_hit(table, effects, radius, p0, p1):
     lo, hi = jnp.minimum(p0, p1) - reach, jnp.maximum(p0, p1) + reach
     box_hi = jnp.stack([0.5 * table.length, 0.5 * table.width, jnp.maximum(h0, h1)])
     box_lo = jnp.stack([-0.5 * table.length, -0.5 * table.width, jnp.minimum(h0, h1) - table_stage.THICKNESS])
-    meets = jnp.all(lo <= box_hi) & jnp.all(hi >= box_lo)
+    # the components compared one by one: a reduction over three is a pass over the batch of its own
+    meets = reduce(jnp.logical_and, [lo[i] <= box_hi[i] for i in range(3)] + [hi[i] >= box_lo[i] for i in range(3)])
     return meets & (table_stage.gap(table, effects, radius, p0) >= -PENETRATION_TOLERANCE * radius)
 
 
@@ -226,19 +229,30 @@ def racket_may_hit(racket, radius, p0, v0, p1, v1, dt):
     n0 = racket.rot[:, 0]
     turn = dt * racket.ang_vel
     rel0 = p0 - racket.pos
-    h0, h1 = dot3(n0, rel0), dot3(n0 + jnp.cross(turn, n0), p1 - racket.pos - dt * racket.vel)
+    rel1 = p1 - racket.pos - dt * racket.vel
+    # the end's height along n0 + turn x n0: the cross product's term as a triple product (the
+    # cross product of batched vectors is a concatenation, an operation of its own on a CPU)
+    h0, h1 = dot3(n0, rel0), dot3(n0, rel1) + triple(turn, n0, rel1)
     reach, moved = _racket_reach(racket, radius, p0, v0, p1, v1, dt, dt)
     theta = jnp.abs(turn[0]) + jnp.abs(turn[1]) + jnp.abs(turn[2])
     margin = SWEEP_MARGIN + theta * (0.25 * moved + theta * (reach + moved + SWEEP_MARGIN))
     band = (jnp.minimum(h0, h1) - margin <= radius) & (jnp.maximum(h0, h1) + margin >= -radius)
-    return band & (jnp.sum(rel0 * rel0) <= reach * reach)
+    return band & (dot3(rel0, rel0) <= reach * reach)
+
+
+def triple(a, b, c):
+    """a . (b x c) of (..., 3) vectors, as elementwise arithmetic."""
+    a0, a1, a2 = jnp.unstack(a, axis=-1)
+    b0, b1, b2 = jnp.unstack(b, axis=-1)
+    c0, c1, c2 = jnp.unstack(c, axis=-1)
+    return a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
 
 
 def _racket_reach(racket, radius, p0, v0, p1, v1, dt, span):
     """(reach, moved): :func:`racket_within_reach`'s bound on the distance from the face centre, and
     the part of it that bounds the ball's displacement relative to the centre."""
     moved = safe_norm(p1 - p0) + dt * (safe_norm(v0) + safe_norm(v1)) / 3.0 + span * safe_norm(racket.vel)
-    return jnp.max(racket.face) + radius + moved + 1e-3, moved
+    return jnp.maximum(racket.face[..., 0], racket.face[..., 1]) + radius + moved + 1e-3, moved
 
 
 def racket_within_reach(racket, radius, p0, v0, p1, v1, dt, span):
@@ -254,7 +268,7 @@ def racket_within_reach(racket, radius, p0, v0, p1, v1, dt, span):
     """
     reach, _ = _racket_reach(racket, radius, p0, v0, p1, v1, dt, span)
     rel0 = p0 - racket.pos
-    return jnp.sum(rel0 * rel0) <= reach * reach
+    return dot3(rel0, rel0) <= reach * reach
 
 
 def net_candidate(table, radius, p0, v0, p1, v1, dt):
@@ -286,8 +300,7 @@ def floor_candidate(table, radius, p0, v0, p1, v1, dt):
 
 
 def out_of_play(pos):
-    box = jnp.asarray(PLAY_BOX, pos.dtype)
-    return jnp.any(jnp.abs(pos) > box)
+    return reduce(jnp.logical_or, [jnp.abs(pos[..., i]) > PLAY_BOX[i] for i in range(3)])
 
 
 def earliest(candidates: list[tuple[int, Candidate]]):

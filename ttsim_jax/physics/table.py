@@ -128,9 +128,13 @@ def box_distance(table: TableParams, effects, pos):
     sign = jnp.where(rel >= 0.0, 1.0, -1.0).astype(pos.dtype)
     beyond = jnp.maximum(d, 0.0)
     outside = safe_norm(beyond)
-    n_in = sign * (jnp.arange(3) == jnp.argmax(d)).astype(pos.dtype)
+    # the largest component and its axis (the first of equals) without a reduction: over a short
+    # axis a reduction is a pass over the batch of its own
+    d0, d1, d2 = jnp.unstack(d, axis=-1)
+    first, second = (d0 >= d1) & (d0 >= d2), (d0 < d1) & (d1 >= d2)
+    n_in = sign * jnp.stack([first, second, ~first & ~second], axis=-1).astype(pos.dtype)
     normal = safe_unit(beyond * sign, n_in)
-    dist = outside + jnp.minimum(jnp.max(d), 0.0)
+    dist = outside + jnp.minimum(jnp.maximum(jnp.maximum(d0, d1), d2), 0.0)
     top = (d[0] <= 0.0) & (d[1] <= 0.0) & (rel[2] >= 0.0)
     return jnp.where(top, pos[2] - height, dist), jnp.where(top, top_normal, normal)
 
