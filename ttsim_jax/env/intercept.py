@@ -48,6 +48,7 @@ from ttsim_jax.env.racket import clip_workspace, rotation
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
+from ttsim_jax.physics.numerics import safe_norm
 from ttsim_jax.state import Racket
 
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
@@ -250,7 +251,7 @@ def arc_velocity(d, tau, g, drag, extra=None):
     (Taylor series below x = 0.01, where the closed forms lose digits); drag 0 gives the parabola's
     ``d / tau + (0, 0, g tau / 2)``.
     """
-    x = drag * jnp.linalg.norm(d, axis=-1, keepdims=True)
+    x = drag * safe_norm(d, keepdims=True)
     small = x < 1e-2
     xs = jnp.where(small, 1.0, x)
     f1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)

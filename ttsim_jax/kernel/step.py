@@ -144,7 +144,7 @@ def may_hit(model: Model, ball: Ball, free: Ball, rackets: Racket | None, dt, sp
     fixed = [ev.table_may_hit(model.table, model.effects, radius, p0, p1),
              # sustained contact: it slides in :func:`settle` and may come to rest
              table_stage.touching(model.table, model.effects, radius, p0, v0),
-             ev.floor_may_hit(model.table, radius, p1), ev.net_may_hit(p0, p1)]
+             ev.floor_may_hit(model.table, radius, p1), ev.net_may_hit(model.table, radius, p0, v0, p1, v1, dt)]
     if rackets is None:
         return fixed, None
     if span is None:
