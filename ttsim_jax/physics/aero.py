@@ -258,9 +258,15 @@ def acceleration(aero: AeroParams, radius, mass, pos, vel, spin, t, effects=()):
     air = hooks.apply(effects, "air_velocity", jnp.zeros_like(vel), pos=pos, t=t)
     v_rel = vel - air
     cd, cm = coefficients(aero, v_rel, spin, radius, nu)
-    drag = -(3.0 / (8.0 * radius)) * cd * ratio * safe_norm(v_rel) * v_rel
-    magnus = cm * ratio * jnp.cross(spin, v_rel)
-    return drag + magnus + (1.0 - aero.buoyancy * ratio) * aero.gravity
+    # over the components, as three columns under vmap: with (B, 3) arrays (and the cross
+    # product's concatenation), XLA's loop over a batch recomputed the shared terms per component
+    c = -(3.0 / (8.0 * radius)) * cd * ratio * safe_norm(v_rel)
+    m = cm * ratio
+    fall = 1.0 - aero.buoyancy * ratio
+    (v0, v1, v2), (w0, w1, w2) = jnp.unstack(v_rel, axis=-1), jnp.unstack(spin, axis=-1)
+    g0, g1, g2 = jnp.unstack(jnp.asarray(aero.gravity, v_rel.dtype), axis=-1)
+    return jnp.stack([c * v0 + m * (w1 * v2 - w2 * v1) + fall * g0, c * v1 + m * (w2 * v0 - w0 * v2) + fall * g1,
+                      c * v2 + m * (w0 * v1 - w1 * v0) + fall * g2], -1)
 
 
 # --------------------------------------------------------------------------- integrators
