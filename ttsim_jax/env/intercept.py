@@ -48,7 +48,7 @@ from ttsim_jax.env.racket import clip_workspace, rotation
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import safe_norm
+from ttsim_jax.physics.numerics import component_norm, safe_norm
 from ttsim_jax.state import Racket
 
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
@@ -327,7 +327,7 @@ def _invert(p: InterceptParams, v_in, spin, v_out):
         return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
     def unit(d):
-        size = jnp.maximum(jnp.sqrt(dot(d, d)), 1e-6)
+        size = jnp.maximum(component_norm(*d), 1e-6)
         return tuple(c / size for c in d)
 
     def change(n):
@@ -336,7 +336,7 @@ def _invert(p: InterceptParams, v_in, spin, v_out):
              vi[2] + r * (n[0] * w[1] - n[1] * w[0]))
         along = dot(u, n)
         u = tuple(a - along * b for a, b in zip(u, n))
-        grip = jnp.maximum(p.grip + p.grip_slope * jnp.sqrt(dot(u, u)), 0.0)
+        grip = jnp.maximum(p.grip + p.grip_slope * component_norm(*u), 0.0)
         return tuple(o - i + grip * a for o, i, a in zip(vo, vi, u))
 
     n = jax.lax.fori_loop(0, MIRROR_STEPS, lambda _, n: unit(change(n)), unit(tuple(o - i for o, i in zip(vo, vi))))

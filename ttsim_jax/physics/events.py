@@ -35,7 +35,7 @@ from flax import struct
 
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import component_norm, dot3, safe_divide, safe_norm
+from ttsim_jax.physics.numerics import component_norm, dot3, safe_divide, safe_norm, triple
 
 NONE, TABLE, RACKET, NET, FLOOR, OUT, INVALID, REST = range(8)
 KIND_NAMES = ("none", "table", "racket", "net", "floor", "out", "invalid", "rest")
@@ -238,14 +238,6 @@ def racket_may_hit(racket, radius, p0, v0, p1, v1, dt):
     margin = SWEEP_MARGIN + theta * (0.25 * moved + theta * (reach + moved + SWEEP_MARGIN))
     band = (jnp.minimum(h0, h1) - margin <= radius) & (jnp.maximum(h0, h1) + margin >= -radius)
     return band & (dot3(rel0, rel0) <= reach * reach)
-
-
-def triple(a, b, c):
-    """a . (b x c) of (..., 3) vectors, as elementwise arithmetic."""
-    a0, a1, a2 = jnp.unstack(a, axis=-1)
-    b0, b1, b2 = jnp.unstack(b, axis=-1)
-    c0, c1, c2 = jnp.unstack(c, axis=-1)
-    return a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
 
 
 def _racket_reach(racket, radius, p0, v0, p1, v1, dt, span):

@@ -41,6 +41,14 @@ def dot3(a, b):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
+def triple(a, b, c):
+    """The triple product a . (b x c) of (..., 3) vectors, as elementwise arithmetic (a batched
+    cross product is a concatenation, an operation of its own on a CPU; see :func:`dot3`)."""
+    a0, a1, a2 = jnp.unstack(a, axis=-1)
+    b0, b1, b2 = jnp.unstack(b, axis=-1)
+    c0, c1, c2 = jnp.unstack(c, axis=-1)
+    return a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
+
 def matvec(m, v):
     """``m @ v`` for (..., 3, 3) and (..., 3), as elementwise arithmetic: under vmap a 3 x 3
     product is a batched dot, an operation of its own on a CPU (slow for a batch of tiny ones)
