@@ -102,19 +102,23 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path) -> Path:
+def save_figure(fig, path, *, tight: bool = True) -> Path:
     """Writes a figure as PNG (its folder made if missing) and closes it.
 
     Arguments:
         fig: the matplotlib figure.
         path: the PNG file to write.
+        tight: fit the panels' spacing to their labels (``tight_layout``: a draw of its own, a
+            second or more for a grid of dozens of panels; pass False where the caller set the
+            spacing).
 
     Returns:
         The path written.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
+    if tight:
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
     return path

@@ -27,6 +27,7 @@ import numpy as np
 
 from ttsim_jax.diagnose import stages
 from ttsim_jax.diagnose.specs import spec
+from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.physics.dimensions import TABLE_HALF_LENGTH, TABLE_HALF_WIDTH
 
 #: Grid step of the scanned centres [m] and the scanned widths [m].
@@ -61,7 +62,7 @@ def _slope_jacobian(model, c: dict):
     return jax.jacfwd(errors)(jnp.zeros(2, jnp.float32))
 
 
-_jacobian = jax.jit(_slope_jacobian)
+_jacobian = stored_jit(_slope_jacobian)
 
 
 def _gaussian_gradient(xy, center, width):

@@ -23,8 +23,11 @@ mean squared error counts robustly (:func:`_mse`): a few segments that the segme
 err fifty times more than the rest and would otherwise pull every fit towards themselves. The whole descent
 (``steps`` Adam steps, a cosine-decayed step size, one warm-started Gauss-Newton step of each
 flight segment's initial state per step) is one ``lax.scan`` in one jitted call, the data padded to
-one capacity per phase. The states' Jacobian costs seven flights (forward differences:
-:func:`~ttsim_jax.diagnose.stages.difference_jacobian`), so a fresh one is taken only every
+one capacity per phase. The descent flies only the training segments (:func:`flight_split`); the
+others' initial states are fitted once at the end (:data:`~ttsim_jax.diagnose.stages.GN_START`
+Gauss-Newton steps from the model's), with the effects found. The states' Jacobian costs seven
+flights (forward differences: :func:`~ttsim_jax.diagnose.stages.difference_jacobian`), so a fresh
+one is taken only every
 :data:`JACOBIAN_EVERY` steps and in the final ones; the steps between reuse it with the latest
 residuals (chord steps, which reach the same optimum).
 
@@ -61,8 +64,16 @@ from ttsim_jax.diagnose import bumps, gusts, onsets, stages
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.defaults import MIN_REDUCTION
 from ttsim_jax.diagnose.phases import Phases, pad_rows
-from ttsim_jax.diagnose.specs import (FREE, HOOK_PHASES, PHASES, START_TYPICAL, Spec,  # noqa: F401 (public here too)
-                                      phases_of, spec)
+from ttsim_jax.diagnose.specs import (  # noqa: F401 (public here too)
+    FREE,
+    HOOK_PHASES,
+    PHASES,
+    START_TYPICAL,
+    Spec,
+    phases_of,
+    spec,
+)
+from ttsim_jax.files.programs import stored_jit
 
 #: Effects fitted in two descents: after the first, a function of (problem, model, specs, consts, u,
 #: flight states, index) gives the effect's spec and per-session starts for a second one (or None
@@ -256,7 +267,7 @@ def _evaluate_impl(model, consts, u, data, x, specs, phases, iterations):
     return _errors(model, specs, consts, u, data, x, phases, iterations)
 
 
-_evaluate = jax.jit(_evaluate_impl, static_argnames=("specs", "phases", "iterations"))
+_evaluate = stored_jit(_evaluate_impl, static_argnames=("specs", "phases", "iterations"))
 
 
 def evaluate(model, specs, consts, u, pb: Problem, iterations: int = 2, phases=None):
@@ -266,9 +277,16 @@ def evaluate(model, specs, consts, u, pb: Problem, iterations: int = 2, phases=N
     return _evaluate(model.replace(name=""), consts, u, pb.data, pb.x0, tuple(specs), phases, iterations)
 
 
-def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases, steps, ridge):
+def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, split, specs, phases, steps, ridge):
     schedule = optax.cosine_decay_schedule(lr, steps, alpha=0.05)
     opt = optax.adam(schedule)
+    if "flight" in phases:
+        # the descent flies the training segments only (the others weigh nothing in the loss); the
+        # held-out ones get their states at the end, fitted from the model's with the effects found
+        train, valid, rest = split
+        whole, x_whole = data["flight"], x0
+        data = dict(data, flight=dict(jax.tree.map(lambda a: a[train], whole), train=whole["train"][train] * valid))
+        x0 = x_whole[train]
 
     def loss(u, x):
         errs, _ = _errors(model, specs, consts, u, data, x, phases, 0)
@@ -304,10 +322,34 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, specs, phases
         jac0 = jnp.zeros((segments, 3 * samples, x0.shape[1]), x0.dtype)
     n = steps + (FINAL_GN if "flight" in phases else 1)
     (u, _, x, _, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, jac0, zeros), jnp.arange(n))
+    if "flight" in phases:
+        others = jax.tree.map(lambda a: a[rest], whole)
+        x_rest = stages.flight_states(model, specs, consts, u, others, x_whole[rest], stages.GN_START)
+        e_rest = stages.flight_errors(model, specs, consts, u, others, x_rest)
+        # the others first: with no held-out segment, ``rest`` repeats a training row
+        x = x_whole.at[rest].set(x_rest).at[train].set(x)
+        errors = dict(errors, flight=jnp.zeros(whole["pos"].shape, dtype).at[rest].set(e_rest.astype(dtype))
+                      .at[train].set(errors["flight"]))
     return u, history[:steps], errors, x
 
 
-_fit = jax.jit(_fit_impl, static_argnames=("specs", "phases", "steps", "ridge"))
+def flight_split(pb: Problem, multiple: int = 8) -> tuple | None:
+    """(training rows, 1 for a real training row (0 for padding), the other rows) of the flight
+    segments, each padded to a multiple of ``multiple`` by repeating its last row (a padded row is
+    flown but weighs nothing; a repeated row ends with the same values as its original)."""
+    if "flight" not in pb.data:
+        return None
+    is_train = np.asarray(pb.data["flight"]["train"]) > 0
+    train, rest = np.flatnonzero(is_train), np.flatnonzero(~is_train)
+    train = train if len(train) else np.zeros(1, np.int64)  # no training segment: one that weighs nothing
+    valid = np.zeros(pad_rows(len(train), multiple), np.float32)
+    valid[:len(train)] = is_train[train]
+    pad = lambda rows: rows[np.minimum(np.arange(pad_rows(len(rows), multiple)), len(rows) - 1)]  # noqa: E731
+    rest = rest if len(rest) else train[:1]
+    return jnp.asarray(pad(train), jnp.int32), jnp.asarray(valid), jnp.asarray(pad(rest), jnp.int32)
+
+
+_fit = stored_jit(_fit_impl, static_argnames=("specs", "phases", "steps", "ridge"))
 
 
 # ---------------------------------------------------------------------------------------------- candidates
@@ -367,11 +409,12 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
     norm = {p: jnp.asarray(pb.norm[p], jnp.float32) for p in phases}
     weight = {p: jnp.asarray(1.0 if p in scored else 0.0, jnp.float32) for p in phases}
     free = tuple(jnp.asarray(1.0 if s.name in names else 0.0, jnp.float32) for s in specs)
+    split = flight_split(pb)
 
     def descend(specs, consts):
         c32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), consts)
         return _fit(model.replace(name=""), c32, initial_u(specs, pb.n_sessions), pb.data, pb.x0, norm,
-                    jnp.asarray(lr, jnp.float32), free, weight, specs, phases, steps, ridge)
+                    jnp.asarray(lr, jnp.float32), free, weight, split, specs, phases, steps, ridge)
 
     u, history, errors, x = descend(specs, consts)
     for i, s in enumerate(specs):

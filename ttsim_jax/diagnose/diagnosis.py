@@ -33,11 +33,25 @@ import numpy as np
 
 from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose import ambiguity, candidates, residuals, where
-from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
+from ttsim_jax.diagnose.defaults import (
+    LEARNING_RATE,
+    MAX_SEGMENTS,
+    QUICK,
+    STEPS,
+    TEST_FRACTION,
+)
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.phases import collect
-from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS, UNITS,  # noqa: F401 (public here too)
-                                        gap_shares, implausible, interchangeable, open_gaps, verdict)
+from ttsim_jax.diagnose.verdict import (  # noqa: F401 (public here too)
+    EXPLAINED_SHARE,
+    IMPLAUSIBLE_SESSIONS,
+    UNITS,
+    gap_shares,
+    implausible,
+    interchangeable,
+    open_gaps,
+    verdict,
+)
 from ttsim_jax.errors import UserError
 
 
@@ -102,15 +116,27 @@ def _components(ph, phase, errors):
     return e[: len(getattr(ph, phase)), :3]
 
 
-def _landing(ds, model, fit, radius):
+def _landing_before_after(ds, model, best, fit, radius):
+    """The landing rollouts of the model, and of the model plus the accepted effects ``best`` (a
+    fitted candidate, or None): (landing stage of the model, the after-effects landing errors or
+    None, the cases or None when the landing stage was skipped).
+
+    The model runs with the accepted effects attached at their neutral values, which reproduce it
+    exactly (``tests/effects``): the two rollouts then share one compiled program, where the model
+    alone and the model with effects would each trace and load a rally kernel of their own."""
     from ttsim_jax.evaluate.stages import EvaluateSettings, landing_cases, landing_stage
 
     st = EvaluateSettings(fit=fit)
-    res = landing_stage(ds, [("model", model)], st)
+    models = [("model", model)]
+    if best is not None:
+        fitted = _with_effects(model, best)
+        extra = fitted.effects[len(model.effects):]
+        neutral = tuple(type(e).neutral(dtype=model.ball.radius.dtype) for e in extra)
+        models = [("model", model.replace(effects=tuple(model.effects) + neutral)), ("after", fitted)]
+    res = landing_stage(ds, models, st)
     if "skipped" in res:
-        return res, None
-    cases = landing_cases(ds, st, radius)
-    return res, cases
+        return res, None, None
+    return res, res["error"].get("after"), landing_cases(ds, st, radius)
 
 
 def _with_effects(model, cand) -> object:
@@ -170,22 +196,13 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     lap("model errors")
     if keep is not None:
         keep["problem"] = pb
-    tick("landing rollouts" if settings.landing else "noise floor and bounds", 1)
+    tick("noise floor and bounds", 1)
     out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
     out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
 
-    # where, on every item
+    # where, on every item (the landing's after the candidates: see _landing_before_after)
     items = {p: _items(ph, pb, p, pb.base[p], radius) for p in pb.phases}
-    landing, cases = (None, None)
-    if settings.landing:
-        landing, cases = _landing(ds, model, settings.fit, radius)
-        if cases is not None:
-            items["landing"] = where.landing_items(cases, landing["error"]["model"], radius)
-        else:
-            out["skipped"]["landing"] = landing["skipped"]
-        lap("landing rollouts")
-    tick("noise floor and bounds" if settings.landing else "noise floor and bounds (no landing)", 1)
     out["floor"] = floors(ds, ph, pb, model, settings.fit, settings.seed)
     lap("noise floor")
     floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
@@ -240,7 +257,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         best = significant[0]
         out["combined"] = _candidate_json(best, 1)
     lap("ranking and forward selection")
-    tick("landing after the effects" if landing is not None and cases is not None else "verdict", 1)
+    tick("landing rollouts" if settings.landing else "verdict", 1)
     arrays = {f"before_{p}": _items(ph, pb, p, pb.base[p], radius, _test_rows(pb, p))["error"] for p in pb.phases}
     out["before_after"] = {}
     if best is not None:
@@ -249,19 +266,25 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             before, after = _items(ph, pb, p, pb.base[p], radius, rows), _items(ph, pb, p, e, radius, rows)
             out["before_after"][p] = dict(where.compare(before, after, settings.seed), heldout=best.heldout[p])
             arrays[f"after_{p}"] = after["error"]
-    if landing is not None and cases is not None:
-        before = landing["error"]["model"]
-        arrays["before_landing"] = before[np.isfinite(before)]
-        entry = dict(before_median=float(np.nanmedian(before)), n=int(np.isfinite(before).sum()))
-        if best is not None:
-            res, _ = _landing(ds, _with_effects(model, best), settings.fit, radius)
-            after = res["error"]["model"]
-            ok = np.isfinite(before) & np.isfinite(after)
-            fall = 100.0 * (1.0 - np.median(after[ok]) / np.median(before[ok])) if ok.any() else math.nan
-            entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
-            arrays["after_landing"] = after[np.isfinite(after)]
-        out["landing"] = entry
-        lap("landing after the effects")
+    if settings.landing:
+        landing, after, cases = _landing_before_after(ds, model, best, settings.fit, radius)
+        if cases is None:
+            out["skipped"]["landing"] = landing["skipped"]
+            out["no_data"] = no_data(out["skipped"], settings.landing)
+        else:
+            it = where.landing_items(cases, landing["error"]["model"], radius)
+            out["where"]["landing"] = where.summarise(it, settings.seed, floor_of.get("landing"))
+            out["dependence"]["landing"] = residuals.dependence(it, None)
+            before = landing["error"]["model"]
+            arrays["before_landing"] = before[np.isfinite(before)]
+            entry = dict(before_median=float(np.nanmedian(before)), n=int(np.isfinite(before).sum()))
+            if after is not None:
+                ok = np.isfinite(before) & np.isfinite(after)
+                fall = 100.0 * (1.0 - np.median(after[ok]) / np.median(before[ok])) if ok.any() else math.nan
+                entry.update(after_median=float(np.nanmedian(after)), reduction_median_pct=fall)
+                arrays["after_landing"] = after[np.isfinite(after)]
+            out["landing"] = entry
+        lap("landing rollouts")
     tick("verdict", 1)
     out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
                              [c for c in ranked if c.spec.name in out["implausible"]])

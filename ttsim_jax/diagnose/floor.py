@@ -69,6 +69,7 @@ import jax
 import numpy as np
 
 from ttsim_jax.diagnose.bootstrap import DRAWS, group_weights
+from ttsim_jax.files.programs import stored_jit
 
 #: Standard deviation of a Gaussian over its median absolute value.
 MAD_SCALE = 1.4826
@@ -253,7 +254,7 @@ def _jacobians_impl(model, c, phase):
     return jax.vmap(one)(c)
 
 
-_jacobians = jax.jit(_jacobians_impl, static_argnames=("phase",))
+_jacobians = stored_jit(_jacobians_impl, static_argnames=("phase",))
 
 
 def error_jacobians(model, data: dict, phase: str) -> tuple[np.ndarray, np.ndarray]:

@@ -25,6 +25,7 @@ import numpy as np
 from flax import struct
 
 from ttsim_jax.diagnose import stages
+from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.physics.linalg import spd_solve
 
 #: Least fall of the per-segment offsets' chi-square for a gust component to be kept: its 6
@@ -79,7 +80,7 @@ def _winds_impl(model, consts, u, fl, x, specs):
     return jax.vmap(one)(x, fl["t0"], fl["tau"], fl["pos"], fl["mask"], fl["spin"], fl["session"])
 
 
-_winds = jax.jit(_winds_impl, static_argnames=("specs",))
+_winds = stored_jit(_winds_impl, static_argnames=("specs",))
 
 
 def segment_winds(model, specs, consts, u, fl: dict, x):

@@ -19,13 +19,13 @@ onset, width and depth of both kinds.
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.diagnose import stages
+from ttsim_jax.files.programs import stored_jit
 
 #: Scanned (onsets, widths) [m/s] per contact kind: table impacts of rallies are about 1-8 m/s
 #: normal to the table, racket impacts about 2-25 m/s normal to the face.
@@ -44,7 +44,7 @@ SCALES = {"table_onset": 0.5, "table_width": 0.5, "table_depth": 0.03,
           "racket_onset": 1.5, "racket_width": 2.0, "racket_depth": 0.05}
 
 
-@functools.partial(jax.jit, static_argnames=("sp", "phase"))
+@stored_jit(static_argnames=("sp", "phase"))
 def _grid_errors(model, sp, const, c, phase, values):
     """(G, N, 6) errors of the contacts ``c`` for each of G parameter sets ``values`` {param: (G,)}."""
     def one(v):

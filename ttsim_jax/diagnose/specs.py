@@ -35,15 +35,16 @@ HOOK_PHASES = {
 #: the gusts' frequencies are not found by descent, so the first descent fits the steady wind
 #: and the gusts follow in a second (:data:`~ttsim_jax.diagnose.candidates.REFINE`); the onsets of
 #: buckling are fitted too; the bumps keep their typical centres and widths; the air density at
-#: twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m). The
-#: gusts are free from the first descent on at step 0 (held where they start): the second frees
-#: the same parameters (:data:`ttsim_jax.diagnose.gusts.SCALES`, in its order), so both descents
-#: run one compiled program.
+#: twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m). What a
+#: second descent frees (the ``SCALES`` of :mod:`~ttsim_jax.diagnose.gusts`,
+#: :mod:`~ttsim_jax.diagnose.bumps` and :mod:`~ttsim_jax.diagnose.onsets`) is free from the first
+#: descent on at step 0 (held where it starts), so both descents run one compiled program.
 FREE = {
     "air_density": {"d_rho": 0.1},
     "air_flow": {"wind": 0.2, "gust_amp": 0.0, "gust_phase": 0.0, "gust_freq": 0.0},
-    "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0},
-    "table_unevenness": {"amplitude": 0.0015, "center": 0.3},
+    "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0,
+                 "table_width": 0.0, "racket_width": 0.0},
+    "table_unevenness": {"amplitude": 0.0015, "center": 0.3, "width": 0.0},
 }
 #: Parameters that start at their typical value (the others at neutral).
 START_TYPICAL = {"table_unevenness": ("center", "width")}
@@ -93,4 +94,10 @@ def spec(name: str, pooled: bool = False) -> tuple[Spec, dict]:
     start = {k: np.broadcast_to(np.asarray(p.typical if k in typical else p.neutral, np.float64), p.shape).copy()
              for k, p in cls.PARAMS.items()}
     scale = {k: np.float64(free.get(k, 0.0)) for k in cls.PARAMS}
-    return Spec(name, cls, tuple(free), cls.SCOPE == "session" and not pooled), dict(start=start, scale=scale)
+    return Spec(name, cls, free_order(cls, free), cls.SCOPE == "session" and not pooled), dict(start=start, scale=scale)
+
+
+def free_order(cls, names) -> tuple:
+    """The parameter names ``names`` in the effect class's order: a spec is a static argument of the
+    compiled fit, so two descents that free the same parameters must name them alike."""
+    return tuple(k for k in cls.PARAMS if k in names)

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ttsim_jax.diagnose.specs import free_order
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics.aero import flight_step
 from ttsim_jax.physics.linalg import spd_solve
@@ -74,7 +75,7 @@ def second_descent(sp, start: dict, scales: dict) -> tuple:
     """(spec, consts) of a candidate's second descent (a ``REFINE`` stage): the parameters of
     ``scales`` free at those step scales, from ``start`` ({param: value}); the others held there."""
     scale = {k: np.float64(scales.get(k, 0.0)) for k in sp.cls.PARAMS}
-    return dataclasses.replace(sp, free=tuple(k for k in scales if k in sp.cls.PARAMS)), dict(start=start, scale=scale)
+    return dataclasses.replace(sp, free=free_order(sp.cls, scales)), dict(start=start, scale=scale)
 
 
 def effects_of(specs, consts, u, session):

@@ -13,6 +13,9 @@ import sys
 import threading
 from pathlib import Path
 
+#: Compile time [s] above which a program is kept in the compilation cache (JAX's default: 1 s).
+MIN_COMPILE_S = 0.1
+
 
 def cache_root() -> Path:
     """``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache/ttsim_jax``); not created here."""
@@ -48,6 +51,10 @@ def enable_compilation_cache() -> str | None:
     except OSError:  # a read-only home: compile every time, as without the cache
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    if jax.config.jax_persistent_cache_min_compile_time_secs == 1.0:  # JAX's default, not the user's choice
+        # JAX keeps only programs that took a second to compile; a diagnosis or a fit also compiles
+        # dozens of small ones (0.1-0.4 s each), seconds in all that a run again would spend anew
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     return str(folder)
 
 
