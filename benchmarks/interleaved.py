@@ -10,8 +10,9 @@ and the median per tree.
         benchmarks/env_throughput.py --envs 4096 --repeats 3
 
 Each tree runs its own copy of the benchmark script (a path relative to the trees' roots), with
-``PYTHONPATH`` at that tree's root: a script that puts its own repository first on ``sys.path``
-(``peers.py`` does) then still imports its tree's package. Its ``--out`` is added here.
+``PYTHONPATH`` at that tree's root and the tree's root as its working folder: a script that puts
+its own repository first on ``sys.path`` (``peers.py`` does), or starts ``python -m ttsim_jax.cli``
+(``diagnose_sample.py`` does), then still imports its tree's package. Its ``--out`` is added here.
 ``--metric`` names the key read from each entry of the JSON's ``results`` (the median over all
 of them when there are several, e.g. one per batch: pass one batch).
 """
@@ -37,7 +38,9 @@ def run_once(tree: Path, script: list, metric: str, log) -> float:
         env = dict(os.environ, PYTHONPATH=str(tree.resolve()))
         cmd = [sys.executable, str((tree / script[0]).resolve()), *script[1:], "--out", str(out)]
         log(f"[{time.strftime('%H:%M:%S')}] {tree}: {' '.join(cmd[1:])}")
-        subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
+        # from the tree's root: a child the benchmark starts as `python -m` or `-c` puts its working
+        # folder first on sys.path, ahead of PYTHONPATH, and would import the caller's package
+        subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, cwd=tree.resolve())
         values = [r[metric] for r in json.loads(out.read_text())["results"]]
     return float(statistics.median(values))
 

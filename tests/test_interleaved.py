@@ -9,17 +9,20 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 FAKE = '''
-import argparse, json, pathlib
+import argparse, json, pathlib, subprocess, sys
 import fakepkg
 p = argparse.ArgumentParser()
 p.add_argument("--out")
 a = p.parse_args()
+# a child process, as diagnose_sample.py starts the CLI: it must import the same tree's package
+child = float(subprocess.check_output([sys.executable, "-c", "import fakepkg; print(fakepkg.RATE)"]))
+assert child == fakepkg.RATE, (child, fakepkg.RATE)
 pathlib.Path(a.out).write_text(json.dumps({"results": [{"rate": fakepkg.RATE}, {"rate": fakepkg.RATE + 2.0}]}))
 '''
 
 
 def test_interleaved_runs_each_tree_and_takes_medians(tmp_path):
-    for name, rate in (("old", 10.0), ("new", 30.0)):
+    for name, rate in (("old", 10.0), ("new", 30.0), ("caller", 99.0)):
         pkg = tmp_path / name / "fakepkg"
         pkg.mkdir(parents=True)
         (pkg / "__init__.py").write_text(f"RATE = {rate}\n")
@@ -28,7 +31,7 @@ def test_interleaved_runs_each_tree_and_takes_medians(tmp_path):
     out = tmp_path / "ab.json"
     subprocess.run([sys.executable, str(REPO / "benchmarks" / "interleaved.py"), "--old", str(tmp_path / "old"),
                     "--new", str(tmp_path / "new"), "--rounds", "2", "--metric", "rate", "--out", str(out), "--",
-                    "benchmarks/bench.py"], check=True, capture_output=True, text=True)
+                    "benchmarks/bench.py"], check=True, capture_output=True, text=True, cwd=tmp_path / "caller")
     got = json.loads(out.read_text())
     # each run: the median of its two results (rate, rate + 2)
     assert got["runs"] == {"old": [11.0, 11.0], "new": [31.0, 31.0]}
