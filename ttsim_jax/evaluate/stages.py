@@ -43,6 +43,7 @@ import numpy as np
 
 from ttsim_jax.data.contact_states import (SKIP_REASONS, ContactFit, ObservationIndex, estimate_contact,
                                           fit_contact_state)
+from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.fit.network_evaluation import contact_errors
 from ttsim_jax.fit.racket_arrays import contact_arrays
 
@@ -389,6 +390,20 @@ def _schedule(cases: dict, n_steps: int, dt: float, dtype):
     return Racket(pos=as_j(pos), rot=as_j(rot), vel=as_j(vel), ang_vel=as_j(ang), face=as_j(face))
 
 
+@stored_jit(static_argnames=("n_steps",))
+def _landing_rollout(model, ball, schedule, dt, n_steps: int) -> dict:
+    """The rollouts of :func:`simulate_landing` from ``ball``: their event logs and trajectories. A
+    program kept on disk (:func:`~ttsim_jax.files.programs.stored_jit`): tracing the rally kernel
+    with its racket takes seconds, once per process otherwise."""
+    from ttsim_jax import Execution, init_state, rollout
+
+    state = init_state(ball, jnp.zeros((), ball.pos.dtype))
+    _, out = rollout(model, state, n_steps, dt, schedule, max_events=4, record_every=1,
+                     execution=Execution(remat=False))
+    return dict(kind=out.events.kind, time=out.events.time, pre_pos=out.events.pre.pos, trajectory=out.trajectory.pos,
+                times=out.times)
+
+
 def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np.ndarray, np.ndarray]:
     """Rolls the model out from each case's pre-contact state and finds where it reaches the table plane.
 
@@ -401,7 +416,6 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
         (landing (N, 2) [m], NaN where the ball was not hit or did not reach the plane within the
         horizon; hit (N,) bool, whether the simulated ball met the racket).
     """
-    from ttsim_jax import Execution, init_state, rollout
     from ttsim_jax.kernel.step import ball_properties
     from ttsim_jax.physics.events import RACKET, TABLE
     from ttsim_jax.state import Ball
@@ -420,14 +434,13 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
         # built on the same relative clock.
         rel = dict(sub, t_contact=sub["t_contact"] - sub["t0"], t0=np.zeros(b))
         ball = Ball(*(jnp.asarray(sub["ball"][:, k:k + 3], dtype) for k in (0, 3, 6)))
-        state = init_state(ball, jnp.zeros((), dtype))
-        _, out = rollout(model, state, n_steps, settings.dt, _schedule(rel, n_steps, settings.dt, dtype),
-                         max_events=4, record_every=1, execution=Execution(remat=False))
-        kind = np.asarray(out.events.kind)
-        etime = np.asarray(out.events.time, np.float64)
-        epos = np.asarray(out.events.pre.pos, np.float64)
-        traj = np.asarray(out.trajectory.pos, np.float64)
-        times = np.asarray(out.times, np.float64)
+        schedule = _schedule(rel, n_steps, settings.dt, dtype)
+        out = _landing_rollout(model, ball, schedule, jnp.asarray(settings.dt, dtype), n_steps=n_steps)
+        kind = np.asarray(out["kind"])
+        etime = np.asarray(out["time"], np.float64)
+        epos = np.asarray(out["pre_pos"], np.float64)
+        traj = np.asarray(out["trajectory"], np.float64)
+        times = np.asarray(out["times"], np.float64)
         for j in range(min(b, n - lo)):
             r = np.flatnonzero(kind[j] == RACKET)
             if not len(r):
