@@ -3,6 +3,8 @@ same function (as in a new process) loads the stored program instead of tracing,
 results, and traces anew whenever a static argument, a shape, the package source or the stored file
 changes; under a transformation, or with the compilation cache off, it is plain jax.jit."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,7 +52,7 @@ def test_a_stored_program_is_loaded_not_traced_and_matches_jit(cache):
     first = stored_jit(_step, static_argnames=("n",))
     _same(first(x, pair, n=3), want)
     assert TRACES == [3]
-    assert len(list((cache / "programs").glob("*.stablehlo"))) == 1
+    assert len(list((cache / "programs").rglob("*.stablehlo"))) == 1
     again = stored_jit(_step, static_argnames=("n",))  # a new process's wrapper
     _same(again(x, pair, n=3), want)
     _same(again(x, pair, n=3), want)
@@ -64,7 +66,7 @@ def test_a_stored_program_is_loaded_not_traced_and_matches_jit(cache):
 def test_an_edited_package_or_a_damaged_file_is_traced_again(cache, monkeypatch):
     x, pair = _args()
     want = stored_jit(_step, static_argnames=("n",))(x, pair, n=2)
-    for path in (cache / "programs").glob("*.stablehlo"):
+    for path in (cache / "programs").rglob("*.stablehlo"):
         path.write_bytes(b"not a program")
     _same(stored_jit(_step, static_argnames=("n",))(x, pair, n=2), want)
     assert TRACES == [2, 2]
@@ -86,3 +88,18 @@ def test_plain_jit_under_a_transformation_and_with_the_cache_off(cache):
     jax.config.update("jax_compilation_cache_dir", None)
     _same(fn(x, pair, n=2), jax.jit(_step, static_argnames=("n",))(x, pair, n=2))
     assert programs.folder() is None and not (cache / "programs").exists()
+
+
+def test_only_the_latest_source_versions_are_kept(cache, monkeypatch):
+    x, pair = _args()
+    versions = cache / "programs"
+    for i in range(programs.KEEP_VERSIONS + 2):  # older versions' programs, oldest first
+        old = versions / f"old{i}"
+        old.mkdir(parents=True)
+        (old / "k.stablehlo").write_bytes(b"x")
+        os.utime(old, (1e9 + i, 1e9 + i))
+    monkeypatch.setattr(programs, "source_hash", lambda: "the current version")
+    stored_jit(_step, static_argnames=("n",))(x, pair, n=2)
+    kept = sorted(p.name for p in versions.iterdir())
+    newest = [f"old{i}" for i in range(programs.KEEP_VERSIONS + 2)][-(programs.KEEP_VERSIONS - 1):]
+    assert kept == sorted(newest + ["the current version"[:16]]), kept

@@ -4,13 +4,15 @@ JAX's compilation cache (:func:`~ttsim_jax.files.cache.enable_compilation_cache`
 compilation, but every process still traces and lowers each program to find it there: for a
 diagnosis of the bundled sample that was about 15 s of a 45 s run, the descents' programs alone
 1-2.5 s each. :func:`stored_jit` wraps a function like ``jax.jit`` and keeps each traced program
-(``jax.export``'s serialized StableHLO) in ``<compilation cache>/programs``; a later process
-with the same package source, JAX version, static arguments, argument structure, shapes and dtypes
-loads it instead of tracing, and the compilation cache then supplies the executable.
+(``jax.export``'s serialized StableHLO) in ``<compilation cache>/programs/<source hash>`` (the
+:data:`KEEP_VERSIONS` latest source versions are kept); a later process with the same package
+source, library versions, static arguments, argument structure, shapes and dtypes loads it
+instead of tracing, and the compilation cache then supplies the executable.
 
 What a program depends on is in its key: a hash of every source file of the package (so an edited
-package never runs a stale program), the JAX and jaxlib versions, the backend, the function's
-name, the static arguments' ``repr`` and the arguments' tree structure and abstract values. The
+package never runs a stale program) and of the versions of :data:`TRACED_LIBRARIES`, the backend,
+the numeric configuration (x64, precision, promotion), the function's name, the static
+arguments' ``repr`` and the arguments' tree structure and abstract values. The
 stored files are written atomically; one that cannot be read is traced again. Called under a JAX
 transformation (a tracer among the arguments) or with the compilation cache off, the wrapper is
 plain ``jax.jit``. The folder must be trusted, as the compilation cache's: JAX runs what it loads.
@@ -29,6 +31,8 @@ from ttsim_jax.files.atomic import atomic_write
 _PACKAGE = Path(__file__).resolve().parents[1]
 
 
+#: Source versions (package and libraries) whose programs are kept; older ones are removed.
+KEEP_VERSIONS = 4
 #: Libraries whose code runs while a program is traced: their versions are part of its key.
 TRACED_LIBRARIES = ("jax", "jaxlib", "flax", "optax", "numpy")
 
@@ -53,13 +57,27 @@ def source_hash() -> str:
 
 
 def folder() -> Path | None:
-    """Where traced programs are kept: ``programs`` in the compilation cache's folder (JAX's own
-    entries there are files ``*-cache``; deleting the folder deletes both), or None while the
-    compilation cache is off."""
+    """Where this package source's traced programs are kept: ``programs/<source hash>`` in the
+    compilation cache's folder (JAX's own entries there are files ``*-cache``; deleting the folder
+    deletes both), or None while the compilation cache is off."""
     import jax
 
     cache = jax.config.jax_compilation_cache_dir
-    return Path(cache) / "programs" if cache else None
+    return Path(cache) / "programs" / source_hash()[:16] if cache else None
+
+
+def _prune(where: Path) -> None:
+    """Removes the programs of all but the :data:`KEEP_VERSIONS` most recently made source versions
+    (an edited package's programs are never loaded again; this bounds the folder)."""
+    import shutil
+
+    try:
+        versions = sorted((p for p in where.parent.iterdir() if p.is_dir() and p != where),
+                          key=lambda p: p.stat().st_mtime, reverse=True)
+    except OSError:
+        return
+    for old in versions[KEEP_VERSIONS - 1:]:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def stored_jit(fn=None, *, static_argnames=()):
@@ -133,7 +151,9 @@ def _export(where: Path, key: str, fn, tree, leaves, static):
     structure = out_tree[0]
     try:
         skeleton = pickle.dumps(jax.tree_util.tree_unflatten(structure, [0] * structure.num_leaves))
-        where.mkdir(parents=True, exist_ok=True)
+        if not where.is_dir():
+            where.mkdir(parents=True, exist_ok=True)
+            _prune(where)
         atomic_write(where / f"{key}.tree", skeleton)
         atomic_write(where / f"{key}.stablehlo", bytes(exported.serialize()))
     except (OSError, pickle.PicklingError, TypeError, AttributeError):
