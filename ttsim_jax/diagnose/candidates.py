@@ -64,15 +64,8 @@ from ttsim_jax.diagnose import bumps, gusts, onsets, stages
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.defaults import MIN_REDUCTION
 from ttsim_jax.diagnose.phases import Phases, pad_rows
-from ttsim_jax.diagnose.specs import (  # noqa: F401 (public here too)
-    FREE,
-    HOOK_PHASES,
-    PHASES,
-    START_TYPICAL,
-    Spec,
-    phases_of,
-    spec,
-)
+from ttsim_jax.diagnose.specs import (FREE, HOOK_PHASES, PHASES, START_TYPICAL, Spec,  # noqa: F401 (public here too)
+                                      phases_of, spec)
 from ttsim_jax.files.programs import stored_jit
 
 #: Effects fitted in two descents: after the first, a function of (problem, model, specs, consts, u,
@@ -323,12 +316,11 @@ def _fit_impl(model, consts, u0, data, x0, norm, lr, free, weight, split, specs,
     n = steps + (FINAL_GN if "flight" in phases else 1)
     (u, _, x, _, errors), history = jax.lax.scan(body, (u0, opt.init(u0), x0, jac0, zeros), jnp.arange(n))
     if "flight" in phases:
-        others = jax.tree.map(lambda a: a[rest], whole)
-        x_rest = stages.flight_states(model, specs, consts, u, others, x_whole[rest], stages.GN_START)
-        e_rest = stages.flight_errors(model, specs, consts, u, others, x_rest)
+        others = {"flight": jax.tree.map(lambda a: a[rest], whole)}
+        e_rest, x_rest = _errors(model, specs, consts, u, others, x_whole[rest], ("flight",), stages.GN_START)
         # the others first: with no held-out segment, ``rest`` repeats a training row
         x = x_whole.at[rest].set(x_rest).at[train].set(x)
-        errors = dict(errors, flight=jnp.zeros(whole["pos"].shape, dtype).at[rest].set(e_rest.astype(dtype))
+        errors = dict(errors, flight=jnp.zeros(whole["pos"].shape, dtype).at[rest].set(e_rest["flight"].astype(dtype))
                       .at[train].set(errors["flight"]))
     return u, history[:steps], errors, x
 

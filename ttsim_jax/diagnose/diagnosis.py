@@ -33,25 +33,11 @@ import numpy as np
 
 from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose import ambiguity, candidates, residuals, where
-from ttsim_jax.diagnose.defaults import (
-    LEARNING_RATE,
-    MAX_SEGMENTS,
-    QUICK,
-    STEPS,
-    TEST_FRACTION,
-)
+from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.phases import collect
-from ttsim_jax.diagnose.verdict import (  # noqa: F401 (public here too)
-    EXPLAINED_SHARE,
-    IMPLAUSIBLE_SESSIONS,
-    UNITS,
-    gap_shares,
-    implausible,
-    interchangeable,
-    open_gaps,
-    verdict,
-)
+from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS, UNITS,  # noqa: F401 (public here too)
+                                        gap_shares, implausible, interchangeable, open_gaps, verdict)
 from ttsim_jax.errors import UserError
 
 
@@ -207,7 +193,6 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     lap("noise floor")
     floor_of = {p: f["floor"] for p, f in out["floor"].items() if isinstance(f, dict)}
     out["where"] = {p: where.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
-    out["no_data"] = no_data(out["skipped"], settings.landing)
     out["dependence"] = {p: residuals.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
     out["record"] = residuals.record_sizes(ds, ph, model)
@@ -270,7 +255,6 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         landing, after, cases = _landing_before_after(ds, model, best, settings.fit, radius)
         if cases is None:
             out["skipped"]["landing"] = landing["skipped"]
-            out["no_data"] = no_data(out["skipped"], settings.landing)
         else:
             it = where.landing_items(cases, landing["error"]["model"], radius)
             out["where"]["landing"] = where.summarise(it, settings.seed, floor_of.get("landing"))
@@ -285,6 +269,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
                 arrays["after_landing"] = after[np.isfinite(after)]
             out["landing"] = entry
         lap("landing rollouts")
+    out["no_data"] = no_data(out["skipped"], settings.landing)
     tick("verdict", 1)
     out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
                              [c for c in ranked if c.spec.name in out["implausible"]])

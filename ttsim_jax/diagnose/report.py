@@ -69,11 +69,11 @@ def plot_where(where: dict, path, columns: int = 4) -> Path:
                                    Patch(color="#d62728", alpha=0.8, label="flagged (vs mean or floor)"),
                                    plt.Line2D([], [], color="grey", ls="--", label="phase mean")],
                           loc="upper left", fontsize=7, framealpha=0.8)
-    # fixed spacing in inches (each row's rotated bin labels and title) for any number of rows:
-    # tight_layout would draw the whole grid once more to measure it
+    # fixed spacing for any number of rows (tight_layout would draw the whole grid once more to
+    # measure it): margins in inches, and half a panel's height between rows for the rotated bin
+    # labels and the next row's titles
     height = fig.get_figheight()
-    fig.subplots_adjust(left=0.05, right=0.99, wspace=0.3, top=1.0 - 0.35 / height, bottom=0.75 / height,
-                        hspace=1.15 / 2.9 * 1.25)
+    fig.subplots_adjust(left=0.05, right=0.99, wspace=0.3, top=1.0 - 0.35 / height, bottom=0.75 / height, hspace=0.5)
     return save_figure(fig, path, tight=False)
 
 

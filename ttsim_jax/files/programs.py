@@ -97,7 +97,7 @@ def stored_jit(fn=None, *, static_argnames=()):
     import jax
 
     jitted = jax.jit(fn, static_argnames=static_argnames)
-    loaded = {}  # key -> (callable over the leaves, output structure)
+    loaded = {}  # (folder, key) -> (callable over the leaves, output structure)
     name = f"{fn.__module__}.{fn.__qualname__}"
     signature = inspect.signature(fn)
 
@@ -114,11 +114,12 @@ def stored_jit(fn=None, *, static_argnames=()):
         avals = [(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
         flags = (jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision,
                  jax.config.jax_numpy_dtype_promotion, jax.config.jax_numpy_rank_promotion)
-        key = hashlib.sha256(repr((source_hash(), jax.default_backend(), flags, name, str(tree), avals,
+        # the source version is the folder's name (folder()), not part of the key
+        key = hashlib.sha256(repr((jax.default_backend(), flags, name, str(tree), avals,
                                    sorted((k, repr(v)) for k, v in static.items()))).encode()).hexdigest()[:40]
-        if key not in loaded:
-            loaded[key] = _load(where, key) or _export(where, key, fn, tree, leaves, static)
-        run, out_tree = loaded[key]
+        if (where, key) not in loaded:
+            loaded[where, key] = _load(where, key) or _export(where, key, fn, tree, leaves, static)
+        run, out_tree = loaded[where, key]
         return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
     call.jitted = jitted
