@@ -1,6 +1,7 @@
 """The fused path against the reference path where the fused path flies the reference flight step
-(effects acting in flight, per-ball effect parameters) and where it samples the residual, alternated
-in one process (JSON out). This is what ``fused="auto"`` decides on for these models.
+(effects acting in flight, per-ball effect parameters), where it samples the residual and where a
+racket policy moves the rackets (two tracking rackets, per-ball table and air parameters),
+alternated in one process (JSON out). This is what ``fused="auto"`` decides on for these models.
 
     python benchmarks/fused_effects.py --batch 65536 --steps 300 --out benchmarks/results/fused_effects_cpu.json
 """
@@ -29,18 +30,22 @@ from ttsim_jax import Execution, effects as fx, init_state, load_model, rollout 
 from ttsim_jax.fit.network_config import load_residual_config  # noqa: E402
 from ttsim_jax.kernel import per_ball_axes  # noqa: E402
 from ttsim_jax.physics.network import init_model  # noqa: E402
+from ttsim_jax.policies import tracking_rackets  # noqa: E402
 
 
 def cases(b: int, rng) -> dict:
-    """name -> (model, model_axes, sample_residual): the models the comparison runs."""
+    """name -> (model, model_axes, sample_residual, racket): the rollouts the comparison runs."""
     base = load_model(peers.MODEL, dtype=jnp.float32)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     effects = (fx.make("spin_decay", dtype=jnp.float32).replace(rate=f32(rng.uniform(0.0, 0.3, b))),
                fx.make("air_flow", dtype=jnp.float32).replace(wind=f32(rng.uniform(-0.5, 0.5, (b, 3)))))
     hooked = base.replace(effects=effects)
     net = init_model(load_residual_config(REPO / "configs" / "residual" / f"{peers.MODEL}.toml"), jax.random.PRNGKey(0))
-    return {"effects_in_flight": (hooked, per_ball_axes(hooked, "effects.0.rate", "effects.1.wind"), False),
-            "sampled_residual": (base.replace(residual=net), per_ball_axes(base), True)}
+    drawn = base.replace(table=base.table.replace(e0=f32(rng.uniform(0.85, 0.95, b))),
+                         aero=base.aero.replace(rho_air=f32(rng.uniform(1.1, 1.3, b))))
+    return {"effects_in_flight": (hooked, per_ball_axes(hooked, "effects.0.rate", "effects.1.wind"), False, None),
+            "sampled_residual": (base.replace(residual=net), per_ball_axes(base), True, None),
+            "racket_policy": (drawn, per_ball_axes(drawn, "table.e0", "aero.rho_air"), False, tracking_rackets())}
 
 
 def main() -> None:
@@ -50,7 +55,8 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3, help="timed runs of each path, alternated (default: %(default)s)")
     p.add_argument("--cases", default="effects_in_flight,sampled_residual",
                    help="comma-separated: effects_in_flight (spin decay and wind, drawn per ball), "
-                        "sampled_residual (an untrained network, no rackets) (default: %(default)s)")
+                        "sampled_residual (an untrained network, no rackets), racket_policy (two tracking "
+                        "rackets, per-ball table.e0 and aero.rho_air) (default: %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     args = p.parse_args()
     b, n = args.batch, args.steps
@@ -58,11 +64,12 @@ def main() -> None:
     all_cases = cases(b, np.random.default_rng(0))
     doc = {"benchmark": "fused_effects", "batch": b, "steps": n, "cases": {}}
     for name in args.cases.split(","):
-        model, axes, sample = all_cases[name]
+        model, axes, sample, racket = all_cases[name]
 
-        def run(fused, model=model, axes=axes, sample=sample):
-            return jax.jit(lambda m, x: rollout(m, init_state(x), n, peers.DT, model_axes=axes, sample_residual=sample,
-                                                key=jax.random.PRNGKey(1), execution=Execution(fused=fused))[0].ball.pos)
+        def run(fused, model=model, axes=axes, sample=sample, racket=racket):
+            return jax.jit(lambda m, x: rollout(m, init_state(x), n, peers.DT, racket, model_axes=axes,
+                                                sample_residual=sample, key=jax.random.PRNGKey(1),
+                                                execution=Execution(fused=fused))[0].ball.pos)
 
         paths = {"fused": run(True), "reference": run(False)}
         compile_s = {}

@@ -5,8 +5,9 @@ Peers, each timed on the same shots (``ttsim_jax.shots.sample_shots``) at dt = 1
 - ``kernel``: the rally kernel (``ttsim_jax.rollout``; called only in :func:`kernel_rollout`).
 - ``kernel_fused``: the same with ``fused=True`` (``ttsim_jax.kernel.fused``: a kernel flies the
   balls many steps per launch); a Pallas kernel compiled by Triton on a GPU, its body as plain XLA
-  over the whole batch on a CPU. Flight + table only: it does not cover racket policies. Where
-  ``fused="auto"`` takes the fused path (a GPU; a CPU from 1,024 balls), ``kernel`` runs it too.
+  over the whole batch on a CPU. With the tracking rackets it stops balls at the policy's reach
+  (``RacketPolicy.reach``). Where ``fused="auto"`` takes the fused path (flight + table: a GPU; a
+  CPU from 1,024 balls; not with a racket policy), ``kernel`` runs it too.
 - ``plain_scan``: a straightforward ``lax.scan`` over steps of ``jax.vmap`` of a single-ball step
   calling the project's stages (``aero.flight_step``, ``table.table_contact``,
   ``racket.racket_contact``) with an end-of-step penetration check: no event log, no gathering,
@@ -185,16 +186,13 @@ class Peers:
         self.runs: dict = {}
         self.compile_s: dict[str, float] = {}
         self.runs["kernel"] = lambda b, n: kernel_rollout(model, b, n, DT, self.policy)
-        if self.policy is not None:
-            self.skipped["kernel_fused"] = "the fused path does not cover racket policies (tracking_rackets)"
-        else:
-            self.runs["kernel_fused"] = lambda b, n: kernel_rollout(model, b, n, DT, None, fused=True)
-            if jax.default_backend() == "gpu":  # a Triton compilation that fails is recorded, not fatal
-                try:
-                    jax.block_until_ready(self.runs["kernel_fused"](_shots(8)[0], 2))
-                except Exception as e:
-                    del self.runs["kernel_fused"]
-                    self.skipped["kernel_fused"] = f"{type(e).__name__}: {str(e)[:300]}"
+        self.runs["kernel_fused"] = lambda b, n: kernel_rollout(model, b, n, DT, self.policy, fused=True)
+        if jax.default_backend() == "gpu":  # a Triton compilation that fails is recorded, not fatal
+            try:
+                jax.block_until_ready(self.runs["kernel_fused"](_shots(8)[0], 2))
+            except Exception as e:
+                del self.runs["kernel_fused"]
+                self.skipped["kernel_fused"] = f"{type(e).__name__}: {str(e)[:300]}"
         if "plain_scan" not in self.skipped:
             self.runs["plain_scan"] = lambda b, n: plain_rollout(model, b, n, DT, self.policy)
         numba_mod, why = (None, None) if "numba" in self.skipped else _optional("numba")

@@ -12,8 +12,10 @@ import pytest
 from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, per_ball_axes, rollout
 from ttsim_jax import effects as fx
 from ttsim_jax.kernel import fused
+from ttsim_jax.kernel.plans import within_reach
 from ttsim_jax.kernel.step import flight, may_have_event
-from ttsim_jax.physics.events import NET, RACKET, TABLE
+from ttsim_jax.physics.events import INVALID, NET, RACKET, TABLE
+from ttsim_jax.policies import tracking_rackets, tracking_rackets_fn, tracking_rackets_reach
 from test_rollout import B, N, shots, two_rackets
 
 SEEDS = (0, 1)
@@ -167,6 +169,74 @@ def test_fused_equals_reference_with_the_sampled_residual(model):
     assert np.all(np.abs(post - post2).max(axis=-1) > 1e-6)
 
 
+@pytest.fixture(scope="module")
+def policy_run(model):
+    """(model, model_axes, state, reference rollout) with two tracking rackets (a policy evaluated at
+    each ball's own time, as the environment's rackets are) and per-ball table and air parameters."""
+    rng = np.random.default_rng(31)
+    batched = model.replace(table=model.table.replace(e0=jnp.asarray(rng.uniform(0.85, 0.95, B))),
+                            aero=model.aero.replace(rho_air=jnp.asarray(rng.uniform(1.0, 1.3, B))))
+    axes = per_ball_axes(model, "table.e0", "aero.rho_air")
+    state = init_state(shots(B, seed=2))
+    return batched, axes, state, rollout(batched, state, N, 1e-3, tracking_rackets(x=1.7), model_axes=axes)
+
+
+def test_fused_equals_reference_with_a_racket_policy(policy_run):
+    """The fused path stops each ball before its path meets the policy's reach and evaluates the
+    policy there, so its events and states are the reference path's; none of its balls breaks the
+    reach's promise (INVALID)."""
+    batched, axes, state, ref = policy_run
+    fus = rollout(batched, state, N, 1e-3, tracking_rackets(x=1.7), model_axes=axes, execution=Execution(fused=True))
+    _assert_same_rollout(ref, fus, atol=1e-9)
+    kinds = np.asarray(ref[1].events.kind)
+    assert (kinds == TABLE).sum() > 40 and (kinds == RACKET).sum() > 10, np.bincount(kinds.ravel())
+    assert not np.any(np.asarray(fus[0].status) == INVALID)
+
+
+def test_fused_path_flags_a_policy_that_leaves_its_reach(policy_run):
+    """A reach that does not hold the rackets (boxes 0.3 m to either side of the centre line, where
+    the rackets follow the ball to 1 m): the fused path, which flew the balls by the promise, ends
+    INVALID each ball that takes an ordinary step (the first, a bounce, a racket) away from the
+    centre line, where the reference path (which checks nothing) flies on; the balls that stay
+    near it are the reference path's."""
+    batched, axes, state, ref = policy_run
+    honest = tracking_rackets(x=1.7)
+
+    def narrow(params, dt):
+        return tracking_rackets_reach(params, dt).at[:, :, 1].multiply(0.3 / 1.077)
+
+    liar = RacketPolicy(params=honest.params, fn=tracking_rackets_fn, reach=narrow)
+    fus = rollout(batched, state, N, 1e-3, liar, model_axes=axes, execution=Execution(fused=True))
+    status, ref_status = np.asarray(fus[0].status), np.asarray(ref[0].status)
+    broken = status == INVALID
+    assert 5 < broken.sum() < B - 5 and not np.any(ref_status == INVALID), broken.sum()
+    np.testing.assert_array_equal(status[~broken], ref_status[~broken])
+    np.testing.assert_allclose(np.asarray(fus[0].ball.pos)[~broken], np.asarray(ref[0].ball.pos)[~broken], atol=1e-9)
+    # a broken ball stopped where it broke the promise: off the centre line, never further on
+    y = np.abs(np.asarray(fus[0].ball.pos)[broken, 1])
+    assert np.all(y > 0.3 - 0.077 - 0.05), y
+
+
+def test_tracking_rackets_stay_within_their_reach():
+    """:func:`tracking_rackets_reach` holds each racket's face over a step wherever the ball is and
+    whichever way it flies (the promise the fused path flies by), for random policy parameters and
+    steps; a box 1 cm smaller on any side does not."""
+    rng = np.random.default_rng(3)
+    n = 4096
+    ball = Ball(pos=jnp.asarray(rng.uniform([-4.0, -3.0, -0.5], [4.0, 3.0, 3.0], (n, 3))),
+                vel=jnp.asarray(rng.uniform(-20.0, 20.0, (n, 3))), spin=jnp.zeros((n, 3)))
+    t = jnp.asarray(rng.uniform(0.0, 2.0, n))
+    for x, swing, lift, dt in ((1.9, 4.0, 1.0, 1e-3), (1.5, 0.0, -2.0, 5e-3), (2.4, -3.0, 0.0, 2e-3)):
+        params = {k: jnp.asarray(v) for k, v in dict(x=x, swing=swing, lift=lift, tilt=-0.3).items()}
+        rackets = jax.vmap(tracking_rackets_fn, in_axes=(None, 0, 0))(params, ball, t)
+        reach = tracking_rackets_reach(params, dt)
+        assert bool(jnp.all(within_reach(rackets, reach, dt)))
+        for side in (0, 1):
+            for axis in range(3):
+                smaller = reach.at[:, side, axis].add(0.01 if side == 0 else -0.01)
+                assert not bool(jnp.all(within_reach(rackets, smaller, dt))), (x, side, axis)
+
+
 def test_kernel_flies_until_the_step_before_a_possible_event(model):
     """Balls in open air take every sub-step; a ball about to land stops before the step the
     ordinary step flags, at most a few steps early (the margins); a budget is respected."""
@@ -240,8 +310,8 @@ def test_kernel_lowers_to_triton(model):
 
 def test_fused_refuses_what_it_does_not_cover(model):
     state = init_state(shots(4))
-    policy = RacketPolicy(params=None, fn=lambda p, ball, t: None)
-    with pytest.raises(ValueError, match="racket policy"):
+    policy = RacketPolicy(params=None, fn=lambda p, ball, t: None)  # no reach: where its rackets go is unknown
+    with pytest.raises(ValueError, match="racket policy without a reach"):
         rollout(model, state, 10, racket=policy, execution=Execution(fused=True))
     with pytest.raises(ValueError, match="integrator 'rk2'"):
         rollout(model, state, 10, integrator="rk2", execution=Execution(fused=True))
@@ -285,7 +355,9 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
 def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
     """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and without a
-    racket schedule per ball or an effect moving the air, on a GPU always; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing compiles)."""
+    racket schedule per ball, a racket policy or an effect moving the air, on a GPU always but with a
+    policy; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing
+    compiles)."""
     import importlib
 
     R = importlib.import_module("ttsim_jax.kernel.rollout")
@@ -308,6 +380,12 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
         rollout(model, init_state(shots(batch)), 10, 1e-3, sched, execution=Execution(fused=choice))
     pays = lambda b, c, own: c is True or (c == "auto" and R.fused_pays(b, own))  # noqa: E731
     assert taken == [fused.SUBSTEPS if pays(*r) else 0 for r in runs], taken
+    # a racket policy: measured slower on a CPU, not measured on a GPU; taken when asked for
+    assert not R.fused_pays(1 << 20, policy=True)
+    taken.clear()
+    for choice in ("auto", True):
+        rollout(model, init_state(shots(n)), 10, 1e-3, tracking_rackets(), execution=Execution(fused=choice))
+    assert taken == [0, fused.SUBSTEPS], taken
     if jax.default_backend() == "cpu":  # effects in flight: auto leaves out those that move the air
         taken.clear()
         for name in ("spin_decay", "air_flow"):

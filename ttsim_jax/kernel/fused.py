@@ -20,7 +20,10 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
 table), ball / aero / table parameters shared by all balls or (on a CPU) per ball, rackets as a
-schedule shared by all balls or (on a CPU) one per ball (or none), the sampled residual (a ball's
+schedule shared by all balls or (on a CPU) one per ball (or none), a racket policy with a reach
+(:attr:`~ttsim_jax.kernel.plans.RacketPolicy.reach`: the kernel stops a ball before its path meets
+the boxes the policy's rackets stay in, and the ordinary step evaluates the policy for each ball at
+its own time; a ball whose rackets are found outside those boxes ends ``INVALID``), the sampled residual (a ball's
 step k draws with the key the reference path's step k has), and effects acting in flight: the
 ball's and the air's properties (hooks without context, read as constants), and on a CPU the air's
 velocity and the spin's decay, evaluated at every RK4 stage for each ball at its own time
@@ -41,6 +44,7 @@ import jax.numpy as jnp
 
 from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KINDS, STATE_HOOKS, Layout, Reader,
                                            coefficient_fns, hooked_properties, in_flight, pack)
+from ttsim_jax.kernel.plans import face_boxes, within_reach
 from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN, take_rows
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import hooks
@@ -71,8 +75,9 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
     gpu = jax.default_backend() == "gpu"
     if integrator != "rk4":
         return f"integrator {integrator!r} (the fused kernel is RK4)"
-    if policy is not None:
-        return "a racket policy (the fused kernel needs the rackets' schedule to bound where they go)"
+    if policy is not None and policy.reach is None:
+        return ("a racket policy without a reach (RacketPolicy.reach: the boxes its rackets stay in, which the "
+                "fused kernel stops balls at)")
     if rackets_batched and gpu:
         return "a per-ball racket schedule on a GPU (the Triton kernel reads the rackets' boxes as scalars)"
     if type(model.aero.drag) not in DRAG_KINDS or type(model.aero.magnus) not in MAGNUS_KINDS:
@@ -388,17 +393,34 @@ def racket_boxes(pos, vel, face, rows, dt, radius):
             (T, B) per ball; dt: step [s]; radius: ball radius [m].
 
     Returns:
-        Per racket, the corners of the box its centre spans over those steps (start and end of
-        each step), widened by its largest face semi-axis, a radius and ``SWEEP_MARGIN``; an empty
-        box (lower corner +inf) when no row is selected.
+        Per racket, the corners of the box its face spans over those steps
+        (:func:`~ttsim_jax.kernel.plans.face_boxes`) widened by :func:`_widen`; an empty box (lower
+        corner +inf) when no row is selected.
     """
     inf = jnp.asarray(jnp.inf, pos.dtype)
-    start, end = pos, pos + dt * vel
+    faces = face_boxes(pos, vel, face, dt)
     sel = rows[..., None, None]
-    lo = jnp.min(jnp.where(sel, jnp.minimum(start, end), inf), axis=0)
-    hi = jnp.max(jnp.where(sel, jnp.maximum(start, end), -inf), axis=0)
-    reach = (jnp.max(jnp.where(sel, face, 0.0), axis=(0, -1)) + radius + ev.SWEEP_MARGIN)[..., None]
-    return jnp.stack([lo - reach, hi + reach], axis=-2)
+    lo = jnp.min(jnp.where(sel, faces[..., 0, :], inf), axis=0)
+    hi = jnp.max(jnp.where(sel, faces[..., 1, :], -inf), axis=0)
+    return _widen(jnp.stack([lo, hi], axis=-2), radius)
+
+
+def _widen(boxes, radius):
+    """Boxes that hold a racket's face widened to hold the centre of every ball touching it (a
+    radius, and ``SWEEP_MARGIN`` for the path's bow off its chord)."""
+    reach = radius + ev.SWEEP_MARGIN
+    return boxes + jnp.stack([-reach, reach]).astype(boxes.dtype)[:, None]
+
+
+def _in_boxes(pos, boxes, reach):
+    """(B,) whether each ball's centre ``pos`` (B, 3) lies within ``reach`` of a box of ``boxes``
+    ((R, 2, 3) shared or (B, R, 2, 3) per ball): where the kernel's stop test flags its next step
+    whatever that step is."""
+    lo, hi = boxes[..., 0, :] - reach, boxes[..., 1, :] + reach
+    if boxes.ndim == 3:
+        lo, hi = lo[None], hi[None]
+    p = pos[:, None, :]
+    return jnp.any(jnp.all((p >= lo) & (p <= hi), axis=-1), axis=-1)
 
 
 def _own_rows(schedule, kb, end, step0, substeps: int):
@@ -413,7 +435,7 @@ def _own_rows(schedule, kb, end, step0, substeps: int):
 
 
 def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
-            rackets_batched: bool = False, substeps: int = SUBSTEPS, block: int = BLOCK,
+            policy=None, rackets_batched: bool = False, substeps: int = SUBSTEPS, block: int = BLOCK,
             interpret: bool | None = None, key=None):
     """Advances every ball from step ``k`` to ``k + length`` on the fused path.
 
@@ -428,6 +450,10 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
             ``step0`` on ((T, B, R, ...) with ``rackets_batched``: one per ball, each ball's
             kernel stop tested against its own rackets' boxes), or None; t0, dt: the clock (time of
             step k is t0 + k dt); stepper: ``step`` with its static options bound;
+        policy: a :class:`~ttsim_jax.kernel.plans.RacketPolicy` with a ``reach`` (in place of a
+            schedule), or None: the kernel stops a ball before its path meets a box of the reach;
+            the ordinary step evaluates the policy for each ball at its own time, and a ball whose
+            rackets lie outside the reach there ends ``INVALID``;
         key: the rollout's PRNG key when the residual is sampled, else None: a ball's step k draws
             with ``fold_in(key, k)``, the key the reference path's step k has, so its draws are
             the same whatever the other balls do.
@@ -442,10 +468,14 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
     radius = jnp.max(hooked_properties(model, axes)[0][0])
     moving_hooks = in_flight(model, STATE_HOOKS)
     last_row = None if schedule is None else schedule.pos.shape[0] - 1
+    reach = None
+    if policy is not None:
+        reach = jnp.asarray(policy.reach(policy.params, dt), dtype)
+        policy_boxes = _widen(reach, radius)
 
     def body(carry):
         ball, alive, status, log, kb = carry
-        boxes = None
+        boxes = None if policy is None else policy_boxes
         if schedule is not None:
             if rackets_batched:  # each ball's own next rows, its own boxes
                 boxes = racket_boxes(*_own_rows(schedule, kb, end, step0, substeps), dt, radius)
@@ -458,21 +488,31 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
                                      radius)
         params, layout = pack(model, dt, boxes, dtype, axes)
         hooks = Hooks(model.effects, phys_axes.effects, kb, t0, dt) if moving_hooks else None
-        ball, n = fly(params, layout, ball, end - kb, substeps=substeps, block=block, interpret=interpret, hooks=hooks)
+        budget = end - kb
+        if boxes is not None:  # a ball already by a racket would stop at once: it joins no launch
+            budget = jnp.where(_in_boxes(ball.pos, boxes, radius + ev.SWEEP_MARGIN + SLACK), 0, budget)
+        ball, n = fly(params, layout, ball, budget, substeps=substeps, block=block, interpret=interpret, hooks=hooks)
         kb = kb + n
         on = kb < end
         t = t0 + kb.astype(dtype) * dt
-        rackets = None
-        if schedule is not None:
+        rackets, ok = None, jnp.ones_like(alive)
+        if policy is not None:  # each ball's rackets at its own time, as the reference step k has them
+            rackets = jax.vmap(policy.fn, in_axes=(None, 0, 0))(policy.params, ball, t)
+            rackets = jax.tree.map(lambda a: a.astype(dtype), rackets)
+            # the promise the kernel flew by; SLACK: the stop test's margin beyond the boxes
+            ok = within_reach(rackets, reach, dt, tol=SLACK)
+        elif schedule is not None:
             row = jnp.clip(kb - step0, 0, last_row)
             if rackets_batched:
                 rackets = jax.tree.map(lambda a: a[row, jnp.arange(row.shape[0])], schedule)
             else:
                 rackets = jax.tree.map(lambda a: a[row], schedule)
         keys = None if key is None else jax.vmap(lambda kk: jax.random.fold_in(key, kk))(kb)
-        ball, alive_new, status, log = stepper(model, axes, ball, alive & on, status, ball_id, log, rackets, t, dt,
-                                               rackets_batched=schedule is not None, key=keys)
-        alive = jnp.where(on, alive_new, alive)
+        ball, alive_new, status, log = stepper(model, axes, ball, alive & on & ok, status, ball_id, log, rackets, t, dt,
+                                               rackets_batched=rackets is not None, key=keys)
+        broken = alive & on & ~ok
+        alive = jnp.where(on, alive_new, alive) & ~broken
+        status = jnp.where(broken, ev.INVALID, status)
         return ball, alive, status, log, jnp.where(on & alive, kb + 1, end)
 
     kb = jnp.where(alive, k, end)

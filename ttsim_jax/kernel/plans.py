@@ -23,10 +23,43 @@ class RacketPolicy:
 
     ``fn`` is static (part of the compiled program); ``params`` is a pytree argument, so new
     policy parameters never recompile.
+
+    ``reach`` (optional, static) lets the fused path (:mod:`~ttsim_jax.kernel.fused`) fly a ball
+    through many steps without evaluating the policy: ``reach(params, dt) -> (R, 2, 3)``, per racket
+    the lower and upper corners of a box that holds every point of its face over any step of
+    length ``dt``, whatever the ball and the time: the face around its centre at the step's start
+    (``pos``, a face point lying within ``max(face)`` of it) and where the step moves it
+    (``pos + dt vel``). A ball far from every box flies fused; near one it takes the ordinary step,
+    with the policy evaluated at its own time. Without ``reach`` a policy takes the reference path.
+    The fused path checks the promise wherever it evaluates the policy: a ball whose rackets lie
+    outside their boxes there ends ``INVALID`` (its rollout there cannot be trusted), where the
+    reference path, which checks nothing, would fly on.
     """
 
     params: Any
     fn: Callable = struct.field(pytree_node=False)
+    reach: Callable | None = struct.field(pytree_node=False, default=None)
+
+
+def face_boxes(pos, vel, face, dt):
+    """(..., 2, 3) the box holding every point of a racket's face over a step of ``dt``: the face
+    around its centre ``pos`` and around ``pos + dt vel`` (a face point lies within ``max(face)`` of
+    its centre). What :attr:`RacketPolicy.reach` must hold.
+
+    Arguments:
+        pos, vel: (..., 3) the centre and its velocity; face: (..., 2) the face's semi-axes [m].
+    """
+    end = pos + dt * vel
+    half = jnp.max(face, axis=-1, keepdims=True)
+    return jnp.stack([jnp.minimum(pos, end) - half, jnp.maximum(pos, end) + half], axis=-2)
+
+
+def within_reach(racket: Racket, boxes, dt, tol=0.0):
+    """(...,) bool over ``racket``'s leading axes before R: every racket's :func:`face_boxes` lies
+    inside its box of ``boxes`` ((R, 2, 3), a :attr:`RacketPolicy.reach`), within ``tol`` [m]."""
+    faces = face_boxes(racket.pos, racket.vel, racket.face, dt)
+    inside = (faces[..., 0, :] >= boxes[..., 0, :] - tol) & (faces[..., 1, :] <= boxes[..., 1, :] + tol)
+    return jnp.all(inside, axis=(-2, -1))
 
 
 def normalise_schedule(racket: Racket, n_steps: int, batch: int):

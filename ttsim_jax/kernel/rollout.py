@@ -196,11 +196,11 @@ def _rollout(model, state: RallyState, schedule, policy, dt, key, *, fused, **st
         return _run(model, state, schedule, policy, dt, key, fused=0, **static)
 
     def path(substeps):
-        return lambda m, s, sc, d, k: _run(m, s, sc, None, d, k, fused=substeps, **static)
+        return lambda m, s, sc, pol, d, k: _run(m, s, sc, pol, d, k, fused=substeps, **static)
 
     run = jax.custom_jvp(path(fused))
     run.defjvp(lambda primals, tangents: jax.jvp(path(0), primals, tangents))
-    return run(model, state, schedule, dt, key)
+    return run(model, state, schedule, policy, dt, key)
 
 
 def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
@@ -276,7 +276,7 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         def segment(carry: Carry, n):
             ball, alive, status, log = fused_path.advance(model, axes, carry.ball, carry.alive, carry.status,
                                                           ball_id, carry.log, carry.step, n, schedule, step0, t0,
-                                                          dt, stepper, rackets_batched=rackets_batched,
+                                                          dt, stepper, policy=policy, rackets_batched=rackets_batched,
                                                           substeps=fused, key=key if sample else None)
             return Carry(ball, alive, status, log, carry.step + n)
 
@@ -370,7 +370,7 @@ def default_buffering() -> str:
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
 
-def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False) -> bool:
+def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False, policy: bool = False) -> bool:
     """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
     on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls, and not
     with a racket schedule per ball or an effect that moves the air (``air_velocity``). Both the
@@ -382,8 +382,15 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     and wind drawn per ball, 65,536 balls, 300 steps: 0.83x, ``benchmarks/fused_effects.py``) the
     gusts' sum over their components, a reduction over a short axis, ends the kernel's loop over the
     balls at each of its four evaluations a sub-step (written out, the fused path ran 1.55x, but the
-    rounding of the sum changed and the diagnosis of one withheld-effect case with it)."""
+    rounding of the sum changed and the diagnosis of one withheld-effect case with it). Nor with a
+    racket policy, on any backend: its reach (:attr:`~ttsim_jax.kernel.plans.RacketPolicy.reach`)
+    spans every place the policy may put a racket, a slab across the table for the tracking
+    rackets, which every ball crosses in ordinary steps, each a whole batch's (two tracking
+    rackets, conti2026, float32, on this 2-core CPU: 0.27x the reference path's speed at 8,192
+    balls and 100 steps, 0.86x at 65,536 balls and 300 steps); not measured on a GPU."""
     backend = jax.default_backend()
+    if policy:
+        return False
     return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and not rackets_batched
                                 and not air_hooks)
 
@@ -471,7 +478,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         air = in_flight(model, ("air_velocity",))
-        fused = why is None and not reference and (fused is True or fused_pays(batch, batched, air))
+        fused = why is None and not reference and (fused is True or fused_pays(batch, batched, air, policy is not None))
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
