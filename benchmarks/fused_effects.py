@@ -1,6 +1,7 @@
 """The fused path against the reference path where the fused path flies the reference flight step
-(effects acting in flight, per-ball effect parameters), where it samples the residual and where a
-racket policy moves the rackets (two tracking rackets, per-ball table and air parameters),
+(effects acting in flight, per-ball effect parameters), where it samples the residual, where the
+table and air parameters are drawn per ball, and where a racket policy moves the rackets (two
+tracking rackets, with the same per-ball parameters),
 alternated in one process (JSON out). This is what ``fused="auto"`` decides on for these models.
 
     python benchmarks/fused_effects.py --batch 65536 --steps 300 --out benchmarks/results/fused_effects_cpu.json
@@ -45,6 +46,7 @@ def cases(b: int, rng) -> dict:
                          aero=base.aero.replace(rho_air=f32(rng.uniform(1.1, 1.3, b))))
     return {"effects_in_flight": (hooked, per_ball_axes(hooked, "effects.0.rate", "effects.1.wind"), False, None),
             "sampled_residual": (base.replace(residual=net), per_ball_axes(base), True, None),
+            "per_ball_parameters": (drawn, per_ball_axes(drawn, "table.e0", "aero.rho_air"), False, None),
             "racket_policy": (drawn, per_ball_axes(drawn, "table.e0", "aero.rho_air"), False, tracking_rackets())}
 
 
@@ -53,10 +55,11 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=65536, help="balls (default: %(default)s)")
     p.add_argument("--steps", type=int, default=300, help="steps of 1 ms per timed run (default: %(default)s)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs of each path, alternated (default: %(default)s)")
-    p.add_argument("--cases", default="effects_in_flight,sampled_residual",
+    p.add_argument("--cases", default="effects_in_flight,sampled_residual,per_ball_parameters,racket_policy",
                    help="comma-separated: effects_in_flight (spin decay and wind, drawn per ball), "
-                        "sampled_residual (an untrained network, no rackets), racket_policy (two tracking "
-                        "rackets, per-ball table.e0 and aero.rho_air) (default: %(default)s)")
+                        "sampled_residual (an untrained network, no rackets), per_ball_parameters (table.e0 "
+                        "and aero.rho_air drawn per ball, no rackets), racket_policy (the same with two "
+                        "tracking rackets) (default: %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     args = p.parse_args()
     b, n = args.batch, args.steps

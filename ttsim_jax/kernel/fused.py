@@ -194,7 +194,7 @@ def _kernel(layout: Layout, substeps: int, p_ref, *refs, hooks: Hooks | None = N
     ball (:class:`Hooks`; only where the body runs as plain XLA), or None.
     """
     ins, outs = refs[:10], refs[10:]
-    rd = Reader(p_ref)
+    rd = Reader(p_ref, layout)
     dt, radius, ratio, nu, buoyancy = rd.many(5)
     gx, gy, gz = rd.many(3)
     length, width, floor_z = rd.many(3)
@@ -367,7 +367,7 @@ def _fly_moving(params, layout: Layout, ball, budget, *, substeps: int, hooks: H
             (idx,) = jnp.nonzero(moving, size=size, fill_value=b)  # b: past the end, dropped below
             sub = jax.tree.map(lambda a: a.at[idx].get(mode="fill", fill_value=0), ball)
             # per-ball parameters follow their balls (the padding rows, which do not fly, read the last ball's)
-            p = params if params.ndim == 1 else params.at[:, idx].get(mode="clip")
+            p = params if layout.rows == () else (params[0], params[1].at[:, idx].get(mode="clip"))
             out, n = _fly_xla(p, layout, sub, budget.at[idx].get(mode="fill", fill_value=0), substeps=substeps,
                               hooks=None if hooks is None else hooks.rows(idx))
             put = lambda a, v: a.at[idx].set(v, mode="drop")  # noqa: E731

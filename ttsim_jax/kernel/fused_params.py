@@ -4,8 +4,10 @@ The kernel (:mod:`ttsim_jax.kernel.fused`) reads every parameter it needs from o
 (:func:`pack`), one scalar at a time (:class:`Reader`): the ball, the air, gravity, the table's
 outline, the drag and Magnus coefficient models (their tables interpolated with the same ramps as
 ``aero._piecewise``, arithmetic only) and the boxes the rackets sweep. A parameter that is per ball
-makes the vector a matrix with one column per ball. Effects whose hooks take no state (the ball's
-and the air's properties) enter here as the constants they give.
+is read from a matrix with one row per scalar and one column per ball, the others stay scalars (a
+per-ball air density made every coefficient table a row per ball too, and the kernel 6.6x
+slower). Effects whose hooks take no state (the ball's and the air's properties) enter here as the
+constants they give.
 """
 
 from __future__ import annotations
@@ -40,7 +42,9 @@ class Layout:
 
     Attributes:
         drag, magnus: the coefficient model types' names; n_re, n_sp: DragTable sizes;
-        n_v: MagnusTable size; n_rackets: racket boxes; size: the vector's length (a power of 2).
+        n_v: MagnusTable size; n_rackets: racket boxes; size: the vector's length (a power of 2);
+        rows: where the parameters are per ball, for each scalar of the vector its row in the
+        per-ball matrix, or -1 where it is shared (read from the vector); () when none is.
     """
 
     drag: str
@@ -50,6 +54,7 @@ class Layout:
     n_v: int
     n_rackets: int
     size: int
+    rows: tuple[int, ...] = ()
 
 
 def _drag_leaves(p):
@@ -112,9 +117,10 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
         axes: the model's per-ball axes (pytree prefix of 0 / None) or None (all shared).
 
     Returns:
-        (params, layout): params (size,) where every parameter is shared, else (size, B), one
-        column per ball (the kernel then reads a row of B values where it reads a scalar; only
-        :func:`_fly_xla` runs that form).
+        (params, layout): params (size,) where every parameter is shared, else a pair of that vector
+        (zeros in the per-ball parameters' places) and an (n, B) matrix, a row per per-ball scalar
+        and a column per ball (the kernel reads a row of B values there; only :func:`_fly_xla`
+        runs that form).
     """
     ax = leaf_axes(model, axes)
     t, a, tx, aa = model.table, model.aero, ax.table, ax.aero
@@ -133,34 +139,44 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
     if racket_boxes is not None:
         parts.append(racket_boxes)
         per_ball.append(0 if racket_boxes.ndim == 4 else None)
-    batched = [p for p, b in zip(parts, per_ball) if b == 0]
-    if batched:
-        n = jnp.shape(batched[0])[0]
-        # a per-ball leaf (B, ...) gives one row per ball; a shared one is repeated for every ball
-        rows = [jnp.reshape(jnp.asarray(p, dtype), (n, -1)) if b == 0
-                else jnp.broadcast_to(jnp.ravel(jnp.asarray(p, dtype)), (n, jnp.size(p))) for p, b in zip(parts, per_ball)]
-        flat = jnp.concatenate(rows, axis=1).T
-    else:
-        flat = jnp.concatenate([jnp.ravel(jnp.asarray(p, dtype)) for p in parts])
+    shared, matrix, rows = [], [], []
+    for p, b in zip(parts, per_ball):
+        p = jnp.asarray(p, dtype)
+        if b == 0:  # (B, ...): one row per scalar, one column per ball; its places in the vector unused
+            cols = jnp.reshape(p, (p.shape[0], -1)).T
+            first = sum(m.shape[0] for m in matrix)
+            rows += list(range(first, first + cols.shape[0]))
+            matrix.append(cols)
+            shared.append(jnp.zeros(cols.shape[0], dtype))
+        else:
+            shared.append(jnp.ravel(p))
+            rows += [-1] * shared[-1].shape[0]
+    flat = jnp.concatenate(shared)
     size = 1 << max(0, int(flat.shape[0] - 1).bit_length())
     last = lambda a: a.shape[-1]  # noqa: E731 (a per-ball table has the batch first)
     layout = Layout(drag=DRAG_KINDS[type(drag)], magnus=MAGNUS_KINDS[type(magnus)],
                     n_re=last(drag.re_ref) if isinstance(drag, aero_stage.DragTable) else 0,
                     n_sp=last(drag.sp) if isinstance(drag, aero_stage.DragTable) else 0,
                     n_v=last(magnus.v_ref) if isinstance(magnus, aero_stage.MagnusTable) else 0,
-                    n_rackets=0 if racket_boxes is None else racket_boxes.shape[-3], size=size)
-    return jnp.pad(flat, [(0, size - flat.shape[0])] + [(0, 0)] * (flat.ndim - 1)), layout
+                    n_rackets=0 if racket_boxes is None else racket_boxes.shape[-3], size=size,
+                    rows=tuple(rows) if matrix else ())
+    flat = jnp.pad(flat, (0, size - flat.shape[0]))
+    return (flat, jnp.concatenate(matrix)) if matrix else flat, layout
 
 
 class Reader:
-    """Reads the parameter vector in :func:`pack`'s order, one scalar at a time (scalar loads)."""
+    """Reads the parameters in :func:`pack`'s order, one scalar at a time (scalar loads), or a row
+    of B values where the layout has it per ball."""
 
-    def __init__(self, ref):
-        self.ref, self.at = ref, 0
+    def __init__(self, ref, layout: Layout):
+        self.ref, self.rows, self.at = ref, layout.rows, 0
 
     def scalar(self):
         self.at += 1
-        return self.ref[self.at - 1]
+        if not self.rows:
+            return self.ref[self.at - 1]
+        row = self.rows[self.at - 1]
+        return self.ref[0][self.at - 1] if row < 0 else self.ref[1][row]
 
     def many(self, n):
         return [self.scalar() for _ in range(n)]
