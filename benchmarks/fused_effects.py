@@ -50,6 +50,42 @@ def cases(b: int, rng) -> dict:
             "racket_policy": (drawn, per_ball_axes(drawn, "table.e0", "aero.rho_air"), False, tracking_rackets())}
 
 
+def compare(name: str, model, axes, sample: bool, racket, balls, n: int, repeats: int) -> dict:
+    """The fused and the reference path's rollouts of ``balls`` over ``n`` steps, compiled, then timed
+    ``repeats`` times each, alternated; their final positions compared. Returns the case's JSON."""
+    b = balls.pos.shape[0]
+
+    def run(fused):
+        return jax.jit(lambda m, x: rollout(m, init_state(x), n, peers.DT, racket, model_axes=axes,
+                                            sample_residual=sample, key=jax.random.PRNGKey(1),
+                                            execution=Execution(fused=fused))[0].ball.pos)
+
+    paths = {"fused": run(True), "reference": run(False)}
+    compile_s = {}
+    for k, fn in paths.items():
+        print(f"{name}: compiling the {k} path ...", flush=True)
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(model, balls))
+        compile_s[k] = time.perf_counter() - t0
+    runs = {k: [] for k in paths}
+    for r in range(repeats):
+        for k, fn in paths.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(model, balls))
+            runs[k].append(time.perf_counter() - t0)
+        print(f"  repeat {r + 1}/{repeats} done", flush=True)
+    rate = {k: b * n / float(np.median(v)) for k, v in runs.items()}
+    # float32: a ball that grazes an edge may take the other side of it on the other path
+    gap = np.asarray(jnp.max(jnp.abs(paths["fused"](model, balls) - paths["reference"](model, balls)), axis=-1))
+    apart = float(np.mean(gap > 1e-3))
+    print(f"{name}: fused {rate['fused']:,.0f} ball-steps/s, reference {rate['reference']:,.0f}: "
+          f"{rate['fused'] / rate['reference']:.2f}x; final positions: median difference {np.median(gap):.1e} m, "
+          f"{apart:.2%} of the balls more than 1 mm apart", flush=True)
+    return {"run_s": runs, "compile_s": compile_s, "ball_steps_per_s": rate,
+            "fused_over_reference": rate["fused"] / rate["reference"],
+            "median_position_difference_m": float(np.median(gap)), "fraction_more_than_1mm_apart": apart}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batch", type=int, default=65536, help="balls (default: %(default)s)")
@@ -68,37 +104,7 @@ def main() -> None:
     doc = {"benchmark": "fused_effects", "batch": b, "steps": n, "cases": {}}
     for name in args.cases.split(","):
         model, axes, sample, racket = all_cases[name]
-
-        def run(fused, model=model, axes=axes, sample=sample, racket=racket):
-            return jax.jit(lambda m, x: rollout(m, init_state(x), n, peers.DT, racket, model_axes=axes,
-                                                sample_residual=sample, key=jax.random.PRNGKey(1),
-                                                execution=Execution(fused=fused))[0].ball.pos)
-
-        paths = {"fused": run(True), "reference": run(False)}
-        compile_s = {}
-        for k, fn in paths.items():
-            print(f"{name}: compiling the {k} path ...", flush=True)
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(model, balls))
-            compile_s[k] = time.perf_counter() - t0
-        runs = {k: [] for k in paths}
-        for r in range(args.repeats):
-            for k, fn in paths.items():
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn(model, balls))
-                runs[k].append(time.perf_counter() - t0)
-            print(f"  repeat {r + 1}/{args.repeats} done", flush=True)
-        rate = {k: b * n / float(np.median(v)) for k, v in runs.items()}
-        # float32: a ball that grazes an edge may take the other side of it on the other path
-        gap = np.asarray(jnp.max(jnp.abs(paths["fused"](model, balls) - paths["reference"](model, balls)), axis=-1))
-        apart = float(np.mean(gap > 1e-3))
-        print(f"{name}: fused {rate['fused']:,.0f} ball-steps/s, reference {rate['reference']:,.0f}: "
-              f"{rate['fused'] / rate['reference']:.2f}x; final positions: median difference {np.median(gap):.1e} m, "
-              f"{apart:.2%} of the balls more than 1 mm apart", flush=True)
-        doc["cases"][name] = {"run_s": runs, "compile_s": compile_s, "ball_steps_per_s": rate,
-                              "fused_over_reference": rate["fused"] / rate["reference"],
-                              "median_position_difference_m": float(np.median(gap)),
-                              "fraction_more_than_1mm_apart": apart}
+        doc["cases"][name] = compare(name, model, axes, sample, racket, balls, n, args.repeats)
     doc.update(load_average=list(os.getloadavg()), device=str(jax.devices()[0]), platform=platform.platform(),
                jax=jax.__version__)
     args.out.write_text(json.dumps(doc, indent=2))

@@ -371,40 +371,42 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
 
 def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
-    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and without a
-    racket schedule per ball, a racket policy or an effect moving the air, on a GPU always but with a
-    policy; and ``rollout`` follows it (the compiled program is replaced by a recorder: nothing
-    compiles)."""
+    """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and
+    FUSED_AUTO_MIN_STEPS_CPU steps, without a racket schedule per ball, a racket policy or an
+    effect moving the air; on a GPU always but with a policy; and ``rollout`` follows it (the
+    compiled program is replaced by a recorder: nothing compiles)."""
     import importlib
 
     R = importlib.import_module("ttsim_jax.kernel.rollout")
-    n = R.FUSED_AUTO_MIN_BATCH_CPU
+    n, t = R.FUSED_AUTO_MIN_BATCH_CPU, R.FUSED_AUTO_MIN_STEPS_CPU
     if jax.default_backend() == "cpu":
         assert not R.fused_pays(n - 1) and R.fused_pays(n) and R.fused_pays(1 << 20)
+        assert R.fused_pays(n, n_steps=t) and not R.fused_pays(1 << 20, n_steps=t - 1)
         assert not R.fused_pays(1 << 20, rackets_batched=True)  # measured slower (see fused_pays)
         assert not R.fused_pays(1 << 20, air_hooks=True)
     else:
         assert R.fused_pays(1) == (jax.default_backend() == "gpu")
     taken = []
     monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
-    runs = ((n - 1, "auto", False), (n, "auto", False), (n, False, False))
+    runs = ((n - 1, t, "auto", False), (n, t, "auto", False), (n, t - 1, "auto", False), (n, 10, True, False),
+            (n, t, False, False))
     if jax.default_backend() != "gpu":  # per-ball rackets: covered on a CPU only
-        runs += ((n, "auto", True), (n, True, True))
-    for batch, choice, own in runs:
-        sched = two_rackets(10)
+        runs += ((n, t, "auto", True), (n, t, True, True))
+    for batch, steps, choice, own in runs:
+        sched = two_rackets(steps)
         if own:  # a schedule per ball
             sched = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (batch,) + a.shape), sched)
-        rollout(model, init_state(shots(batch)), 10, 1e-3, sched, execution=Execution(fused=choice))
-    pays = lambda b, c, own: c is True or (c == "auto" and R.fused_pays(b, own))  # noqa: E731
+        rollout(model, init_state(shots(batch)), steps, 1e-3, sched, execution=Execution(fused=choice))
+    pays = lambda b, s, c, own: c is True or (c == "auto" and R.fused_pays(b, own, n_steps=s))  # noqa: E731
     assert taken == [fused.SUBSTEPS if pays(*r) else 0 for r in runs], taken
     # a racket policy: measured slower on a CPU, not measured on a GPU; taken when asked for
     assert not R.fused_pays(1 << 20, policy=True)
     taken.clear()
     for choice in ("auto", True):
-        rollout(model, init_state(shots(n)), 10, 1e-3, tracking_rackets(), execution=Execution(fused=choice))
+        rollout(model, init_state(shots(n)), t, 1e-3, tracking_rackets(), execution=Execution(fused=choice))
     assert taken == [0, fused.SUBSTEPS], taken
     if jax.default_backend() == "cpu":  # effects in flight: auto leaves out those that move the air
         taken.clear()
         for name in ("spin_decay", "air_flow"):
-            rollout(model.replace(effects=(fx.make(name),)), init_state(shots(n)), 10, 1e-3)
+            rollout(model.replace(effects=(fx.make(name),)), init_state(shots(n)), t, 1e-3)
         assert taken == [fused.SUBSTEPS, 0], taken

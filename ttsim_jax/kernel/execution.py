@@ -35,7 +35,7 @@ class Execution:
             many steps per launch up to their next possible event; same results within float32
             rounding): ``"auto"`` (default: wherever it covers the rollout and pays,
             :func:`~ttsim_jax.kernel.rollout.fused_pays`: on a GPU, and on a CPU from 1,024 balls
-            without a racket schedule per ball; nowhere with a racket policy),
+            and 300 steps without a racket schedule per ball; nowhere with a racket policy),
             True (refused with the reason where it does not cover the rollout) or False (the
             reference path). The kernel is a Pallas (Triton) kernel on a GPU; on a CPU its body runs
             as plain XLA over the whole batch (benchmarks/README.md). ``jax.grad`` always

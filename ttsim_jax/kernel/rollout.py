@@ -369,10 +369,20 @@ def default_buffering() -> str:
 #: ran 1.4-1.6x faster: less than a small batch's run saves).
 FUSED_AUTO_MIN_BATCH_CPU = 1024
 
+#: Fewest steps of a rollout for which ``fused="auto"`` takes the fused path on a CPU. Since the
+#: reference step skips the event work of balls that have no event, it flies the first hundred
+#: steps of a batch of shots (free flight) faster than the kernel: flight + table, conti2026,
+#: float32, fused / reference at 1,024, 8,192 and 65,536 balls: 0.40, 0.76 and 0.71 over 100
+#: steps, 1.05, 1.14 and 1.17 over 300, 1.31, 1.42 and 1.37 over 1,000
+#: (``benchmarks/fused_auto.py``, ``benchmarks/results/fused_auto_cpu.json``).
+FUSED_AUTO_MIN_STEPS_CPU = 300
 
-def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False, policy: bool = False) -> bool:
+
+def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False, policy: bool = False,
+               n_steps: int | None = None) -> bool:
     """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
-    on this backend: on a GPU always, on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls, and not
+    over ``n_steps`` steps (None: many) on this backend: on a GPU always, on a CPU from
+    :data:`FUSED_AUTO_MIN_BATCH_CPU` balls and :data:`FUSED_AUTO_MIN_STEPS_CPU` steps, and not
     with a racket schedule per ball or an effect that moves the air (``air_velocity``). Both the
     CPU's fused path covers, but they ran slower than the reference path. With rackets per ball
     (4,096 balls, two rackets per ball: 0.14-0.20x over 10-300 steps; the environment's default task
@@ -391,8 +401,9 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     backend = jax.default_backend()
     if policy:
         return False
-    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and not rackets_batched
-                                and not air_hooks)
+    long = n_steps is None or n_steps >= FUSED_AUTO_MIN_STEPS_CPU
+    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and long
+                                and not rackets_batched and not air_hooks)
 
 
 def default_capacity(batch: int) -> int:
@@ -478,7 +489,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         air = in_flight(model, ("air_velocity",))
-        fused = why is None and not reference and (fused is True or fused_pays(batch, batched, air, policy is not None))
+        pays = fused_pays(batch, batched, air, policy is not None, n_steps)
+        fused = why is None and not reference and (fused is True or pays)
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
     if buffering is None:
