@@ -340,6 +340,24 @@ def test_start_below_the_clearance_over_the_table_is_refused():
         ReturnBall(config, 2).default_params()
 
 
+def test_sizing_params_have_the_drawn_parameters_shapes_without_drawing_the_bank(monkeypatch):
+    """What a job is sized by before it is refused (``rl.training.memory_bytes``): the parameters'
+    shapes and dtypes, without drawing or aiming the shot bank (20 s and more on a cold cache)."""
+    env = return_ball.ReturnBall(load_task_config(TASK, OVERRIDES), 4)
+
+    def no_bank(*args):
+        raise AssertionError("the shot bank was drawn")
+
+    monkeypatch.setattr(return_ball, "shot_bank", no_bank)
+    sized = env.sizing_params()
+    monkeypatch.undo()
+    drawn = env.default_params()
+    shape = lambda tree: jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), tree)  # noqa: E731
+    assert shape(sized) == shape(drawn)
+    assert sized.shots.vel.shape[0] == OVERRIDES["shots.bank"] and float(jnp.abs(drawn.shots.vel).max()) > 1.0
+    assert env.sizing_params() is drawn  # once drawn, the real ones
+
+
 def test_angular_velocity_is_the_rotation_rate():
     angle, rate, h = jnp.array([0.3, -0.4]), jnp.array([2.0, -5.0]), 1e-4
     r0, r1 = (np.asarray(racket_kin.rotation(a), np.float64) for a in (angle, angle + h * rate))

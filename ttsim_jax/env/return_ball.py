@@ -34,6 +34,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from ttsim_jax.files.cache import compile_notice, enable_compilation_cache
@@ -238,43 +239,58 @@ class ReturnBall:
     def default_params(self) -> EnvParams:
         """The task file's parameters (the shot bank is drawn, and aimed, on the first call)."""
         if self._params is None:
-            c = self.config
-            # a residual checkpoint holds float32 arrays, as the environment's model
-            model = load_model(c.model, dtype=jnp.float32, residual=c.residual.checkpoint or None)
-            try:
-                per_ball_axes(model, *self.paths)
-            except ValueError as e:
-                raise ConfigError(f"{c.source}: [randomisation] {e}") from None
-            for path in self.paths:
-                leaf = model
-                for name in path.split("."):
-                    leaf = getattr(leaf, name)
-                if not hasattr(leaf, "shape") or jnp.ndim(leaf) != 0:
-                    raise ConfigError(f"{c.source}: [randomisation] {path!r} is not a scalar model parameter")
-            shots, types = shot_bank(model.replace(residual=None), c)  # the flight has no racket: one bank
-            r = c.racket
-            f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-            limits = racket_kin.RacketLimits(
-                lo=f32(r.workspace_lo), hi=f32(r.workspace_hi), max_speed=f32(r.max_speed), max_accel=f32(r.max_accel),
-                angle_lo=f32(r.angle_lo), angle_hi=f32(r.angle_hi), max_rate=f32(r.max_angle_rate),
-                max_angle_accel=f32(r.max_angle_accel), face=f32(r.face),
-                # the playing surface is z = 0 of the world frame; the agent's half ends at length / 2
-                table_x=f32(0.5 * model.table.length), table_z=f32(r.table_clearance))
-            if float(racket_kin.clip_workspace(limits, f32(r.start))[2]) != float(f32(r.start[2])):
-                raise ConfigError(f"{c.source}: [racket] start = {list(r.start)} lies over the table below "
-                                  f"table_clearance = {r.table_clearance} (the table ends at x = "
-                                  f"{0.5 * float(model.table.length)} m)")
-            w = c.reward
-            reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
-                                                      "miss", "motion", "approach")}
-            self._params = EnvParams(
-                model=model, shots=jax.tree.map(f32, shots), shot_type=jnp.asarray(types),
-                rand_lo=f32([r[1] for r in c.randomisation]), rand_hi=f32([r[2] for r in c.randomisation]),
-                rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
-                limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
-                noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
-                target=f32(w.target_point), intercept=intercept_params(model, c))
+            self._params = self._make_params(draw=True)
         return self._params
+
+    def sizing_params(self) -> EnvParams:
+        """The task file's parameters with a blank shot bank of the configured size (zeros, not drawn
+        or aimed): their shapes are :meth:`default_params`'s, for sizing a job before it is refused
+        or built (drawing and aiming the bank takes 20 s and more on a cold cache)."""
+        if self._params is not None:
+            return self._params
+        return self._make_params(draw=False)
+
+    def _make_params(self, draw: bool) -> EnvParams:
+        c = self.config
+        # a residual checkpoint holds float32 arrays, as the environment's model
+        model = load_model(c.model, dtype=jnp.float32, residual=c.residual.checkpoint or None)
+        try:
+            per_ball_axes(model, *self.paths)
+        except ValueError as e:
+            raise ConfigError(f"{c.source}: [randomisation] {e}") from None
+        for path in self.paths:
+            leaf = model
+            for name in path.split("."):
+                leaf = getattr(leaf, name)
+            if not hasattr(leaf, "shape") or jnp.ndim(leaf) != 0:
+                raise ConfigError(f"{c.source}: [randomisation] {path!r} is not a scalar model parameter")
+        if draw:  # the flight has no racket: one bank
+            shots, types = shot_bank(model.replace(residual=None), c)
+        else:
+            blank = np.zeros((c.shots.bank, 3), np.float32)
+            shots, types = Ball(pos=blank, vel=blank, spin=blank), np.zeros(c.shots.bank, np.int32)
+        r = c.racket
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        limits = racket_kin.RacketLimits(
+            lo=f32(r.workspace_lo), hi=f32(r.workspace_hi), max_speed=f32(r.max_speed), max_accel=f32(r.max_accel),
+            angle_lo=f32(r.angle_lo), angle_hi=f32(r.angle_hi), max_rate=f32(r.max_angle_rate),
+            max_angle_accel=f32(r.max_angle_accel), face=f32(r.face),
+            # the playing surface is z = 0 of the world frame; the agent's half ends at length / 2
+            table_x=f32(0.5 * model.table.length), table_z=f32(r.table_clearance))
+        if float(racket_kin.clip_workspace(limits, f32(r.start))[2]) != float(f32(r.start[2])):
+            raise ConfigError(f"{c.source}: [racket] start = {list(r.start)} lies over the table below "
+                              f"table_clearance = {r.table_clearance} (the table ends at x = "
+                              f"{0.5 * float(model.table.length)} m)")
+        w = c.reward
+        reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
+                                                  "miss", "motion", "approach")}
+        return EnvParams(
+            model=model, shots=jax.tree.map(f32, shots), shot_type=jnp.asarray(types),
+            rand_lo=f32([r[1] for r in c.randomisation]), rand_hi=f32([r[2] for r in c.randomisation]),
+            rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
+            limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
+            noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
+            target=f32(w.target_point), intercept=intercept_params(model, c))
 
     def draw_model_values(self, key, lo, hi, normal, n: int | None = None):
         """(n, P) randomised parameter values (n: default ``num_envs``): uniform in [lo, hi], or where

@@ -38,17 +38,23 @@ def task_path(config: PPOConfig):
 def build(config: PPOConfig, num_envs: int, task=None):
     """(environment, its parameters) of a PPO config (or of another ``task``); the same environment
     object for the same task file and size within a process, so its compiled programs are reused."""
-    task = task or task_path(config)
-    env = _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs))
+    env = _task_env(config, num_envs, task)
     return env, env.default_params()
+
+
+def _task_env(config: PPOConfig, num_envs: int, task=None) -> ReturnBall:
+    task = task or task_path(config)
+    return _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs))
 
 
 def memory_bytes(config: PPOConfig, num_envs: int, task=None) -> int:
     """What training (or evaluating) ``num_envs`` environments of a config holds at once [bytes],
     from the shapes of one environment's runner (``jax.eval_shape``: nothing is allocated): the
     environment state four times (a step's inputs, outputs and the kernel's temporaries) and the
-    rollout buffer of ``num_steps`` transitions twice (the buffer and its shuffled minibatches)."""
-    env, params = build(config, 1, task)
+    rollout buffer of ``num_steps`` transitions twice (the buffer and its shuffled minibatches). The
+    shot bank is not drawn for it (:meth:`~ttsim_jax.env.return_ball.ReturnBall.sizing_params`)."""
+    env = _task_env(config, 1, task)
+    params = env.sizing_params()
     runner = jax.eval_shape(lambda k: ppo.init_runner(env, params, config, k), jax.random.PRNGKey(0))
     state = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(runner.env_state))
     transition = (env.obs_dim + 2 * env.action_dim + 6) * 4  # obs, action, its mean, reward, value, ...
