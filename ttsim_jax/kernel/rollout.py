@@ -372,8 +372,8 @@ FUSED_AUTO_MIN_BATCH_CPU = 1024
 #: Fewest steps of a rollout for which ``fused="auto"`` takes the fused path on a CPU. Since the
 #: reference step skips the event work of balls that have no event, it flies the first hundred
 #: steps of a batch of shots (free flight) faster than the kernel: flight + table, conti2026,
-#: float32, fused / reference at 1,024, 8,192 and 65,536 balls: 0.40, 0.76 and 0.71 over 100
-#: steps, 1.05, 1.14 and 1.17 over 300, 1.31, 1.42 and 1.37 over 1,000
+#: float32, the event log read, fused / reference at 1,024, 8,192 and 65,536 balls: 0.62, 0.76
+#: and 0.88 over 100 steps, 1.12, 1.21 and 1.56 over 300, 1.48, 1.66 and 1.89 over 1,000
 #: (``benchmarks/fused_auto.py``, ``benchmarks/results/fused_auto_cpu.json``).
 FUSED_AUTO_MIN_STEPS_CPU = 300
 
@@ -389,7 +389,7 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     0.63x of its env-steps/s), a racket brought to its ball keeps the ball inside its box, so the
     kernel stops it every step and the loop pays a launch's whole-batch work per step (running the
     ordinary step on the stopped balls only was tried: no faster). With ``air_flow`` (spin decay
-    and wind drawn per ball, 65,536 balls, 300 steps: 0.83x, ``benchmarks/fused_effects.py``) the
+    and wind drawn per ball, 65,536 balls, 300 steps: 0.83x, 0.44x today, ``benchmarks/fused_effects.py``) the
     gusts' sum over their components, a reduction over a short axis, ends the kernel's loop over the
     balls at each of its four evaluations a sub-step (written out, the fused path ran 1.55x, but the
     rounding of the sum changed and the diagnosis of one withheld-effect case with it). Nor with a
@@ -397,7 +397,8 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     spans every place the policy may put a racket, a slab across the table for the tracking
     rackets, which every ball crosses in ordinary steps, each a whole batch's (two tracking
     rackets, conti2026, float32, on this 2-core CPU: 0.27x the reference path's speed at 8,192
-    balls and 100 steps, 0.86x at 65,536 balls and 300 steps); not measured on a GPU."""
+    balls and 100 steps, 0.86x at 65,536 balls and 300 steps, 1.04x with per-ball table and air
+    parameters); not measured on a GPU."""
     backend = jax.default_backend()
     if policy:
         return False
