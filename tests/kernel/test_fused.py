@@ -76,9 +76,7 @@ def per_ball_rackets(n_steps, rng):
 def test_fused_equals_reference_with_per_ball_parameters_and_rackets(model):
     """Per-ball ball, air, drag-table and table parameters (what domain randomisation, the
     sensitivity studies and the diagnosis fly) and a racket schedule per ball (what the
-    environment gives its rackets) on a CPU's fused path: the reference path's events and states."""
-    if jax.default_backend() == "gpu":
-        pytest.skip("per-ball parameters and rackets take the reference path on a GPU")
+    environment gives its rackets) on the fused path: the reference path's events and states."""
     rng = np.random.default_rng(11)
     drag = model.aero.drag
     scale = jnp.asarray(rng.uniform(0.85, 1.15, B))
@@ -306,6 +304,30 @@ def test_kernel_gathers_the_moving_balls_with_the_same_result(model, moving):
     np.testing.assert_array_equal(np.asarray(out.as_array())[still], np.asarray(ball.as_array())[still])
 
 
+def test_pallas_kernel_reads_per_ball_parameters_as_the_xla_body_does(model):
+    """The Pallas kernel (run here in interpret mode, as Triton runs it on a GPU) with per-ball
+    radius, air density and drag table: each program reads its balls' rows of the per-ball
+    parameters, so the flight equals the XLA body's over the whole batch (and differs from the
+    shared model's)."""
+    b, rng = 80, np.random.default_rng(5)  # 80 balls: blocks of 32, the last one padded
+    cd = jnp.asarray(rng.uniform(0.8, 1.2, b))[:, None, None] * model.aero.drag.cd[None]
+    batched = model.replace(ball=model.ball.replace(radius=jnp.asarray(rng.uniform(0.0195, 0.0205, b))),
+                            aero=model.aero.replace(rho_air=jnp.asarray(rng.uniform(1.0, 1.3, b)),
+                                                    drag=model.aero.drag.replace(cd=cd)))
+    axes = per_ball_axes(model, "ball.radius", "aero.rho_air", "aero.drag.cd")
+    ball = shots(b, seed=6)
+    budget = jnp.full(b, 24, jnp.int32)
+    params, layout = fused.pack(batched, jnp.asarray(1e-3), None, ball.pos.dtype, axes)
+    assert isinstance(params, tuple) and params[1].shape[1] == b
+    out, n = fused.fly(params, layout, ball, budget, substeps=24, block=32, interpret=True)
+    ref, n_ref = fused._fly_xla(params, layout, ball, budget, substeps=24)
+    np.testing.assert_array_equal(np.asarray(n), np.asarray(n_ref))
+    np.testing.assert_allclose(np.asarray(out.as_array()), np.asarray(ref.as_array()), rtol=1e-12, atol=1e-12)
+    shared, shared_layout = fused.pack(model, jnp.asarray(1e-3), None, ball.pos.dtype)
+    other, _ = fused._fly_xla(shared, shared_layout, ball, budget, substeps=24)
+    assert float(jnp.max(jnp.abs(other.vel - out.vel))) > 1e-3
+
+
 def test_kernel_lowers_to_triton(model):
     """The kernel uses only what Pallas's Triton backend lowers (no GPU needed to lower; the
     compilation of the Triton IR itself happens on the GPU)."""
@@ -322,6 +344,16 @@ def test_kernel_lowers_to_triton(model):
     triton = export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")
     exp = export.export(jax.jit(fly), platforms=("cuda",), disabled_checks=[triton])(
         m32, ball, jnp.zeros(200, jnp.int32))
+    assert "__gpu$xla.gpu.triton" in exp.mlir_module()
+
+    # per-ball parameters: each program reads a block of their rows
+    def fly_each(m, ball, budget):
+        params, layout = fused.pack(m, jnp.float32(1e-3), boxes, jnp.float32, per_ball_axes(m32, "aero.rho_air"))
+        return fused.fly(params, layout, ball, budget, interpret=False)
+
+    each = m32.replace(aero=m32.aero.replace(rho_air=jnp.full(200, 1.2, jnp.float32)))
+    exp = export.export(jax.jit(fly_each), platforms=("cuda",), disabled_checks=[triton])(
+        each, ball, jnp.zeros(200, jnp.int32))
     assert "__gpu$xla.gpu.triton" in exp.mlir_module()
 
 
@@ -373,7 +405,8 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypatch):
     """``fused="auto"`` (the default): on a CPU from FUSED_AUTO_MIN_BATCH_CPU balls and
     FUSED_AUTO_MIN_STEPS_CPU steps, without a racket schedule per ball, a racket policy or an
-    effect moving the air; on a GPU always but with a policy; and ``rollout`` follows it (the
+    effect moving the air; on a GPU always but with a policy, per-ball rackets or per-ball
+    parameters; and ``rollout`` follows it (the
     compiled program is replaced by a recorder: nothing compiles)."""
     import importlib
 
@@ -384,14 +417,15 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
         assert R.fused_pays(n, n_steps=t) and not R.fused_pays(1 << 20, n_steps=t - 1)
         assert not R.fused_pays(1 << 20, rackets_batched=True)  # measured slower (see fused_pays)
         assert not R.fused_pays(1 << 20, air_hooks=True)
+        assert R.fused_pays(1 << 20, per_ball=True)
     else:
         assert R.fused_pays(1) == (jax.default_backend() == "gpu")
+        assert not R.fused_pays(1 << 20, per_ball=True) and not R.fused_pays(1 << 20, rackets_batched=True)
     taken = []
     monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
     runs = ((n - 1, t, "auto", False), (n, t, "auto", False), (n, t - 1, "auto", False), (n, 10, True, False),
             (n, t, False, False))
-    if jax.default_backend() != "gpu":  # per-ball rackets: covered on a CPU only
-        runs += ((n, t, "auto", True), (n, t, True, True))
+    runs += ((n, t, "auto", True), (n, t, True, True))  # per-ball rackets: covered, slower
     for batch, steps, choice, own in runs:
         sched = two_rackets(steps)
         if own:  # a schedule per ball

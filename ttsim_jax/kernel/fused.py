@@ -19,8 +19,9 @@ the reference path's within float32 rounding of the flight (``tests/kernel/test_
 
 What the kernel covers (:func:`unsupported` says why anything else runs the reference path): RK4,
 the drag and Magnus coefficient models of ``physics.aero`` (constant, C_D(Re, Sp) table, Dürr, C_M
-table), ball / aero / table parameters shared by all balls or (on a CPU) per ball, rackets as a
-schedule shared by all balls or (on a CPU) one per ball (or none), a racket policy with a reach
+table), ball / aero / table parameters shared by all balls or per ball (the shared ones read as
+scalars, the per-ball ones as rows: on a GPU each program reads its block of them), rackets as a
+schedule shared by all balls or one per ball (or none), a racket policy with a reach
 (:attr:`~ttsim_jax.kernel.plans.RacketPolicy.reach`: the kernel stops a ball before its path meets
 the boxes the policy's rackets stay in, and the ordinary step evaluates the policy for each ball at
 its own time; a ball whose rackets are found outside those boxes ends ``INVALID``), the sampled residual (a ball's
@@ -78,8 +79,6 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
     if policy is not None and policy.reach is None:
         return ("a racket policy without a reach (RacketPolicy.reach: the boxes its rackets stay in, which the "
                 "fused kernel stops balls at)")
-    if rackets_batched and gpu:
-        return "a per-ball racket schedule on a GPU (the Triton kernel reads the rackets' boxes as scalars)"
     if type(model.aero.drag) not in DRAG_KINDS or type(model.aero.magnus) not in MAGNUS_KINDS:
         return f"coefficient models {type(model.aero.drag).__name__}/{type(model.aero.magnus).__name__}"
     surface = [type(e).__name__ for e in model.effects if hasattr(e, "table_surface")]
@@ -88,10 +87,14 @@ def unsupported(model, axes, *, integrator: str, policy, rackets_batched: bool) 
     if gpu and in_flight(model):
         hooked = [type(e).__name__ for e in model.effects if any(hasattr(e, h) for h in FLIGHT_HOOKS)]
         return f"effects acting in flight on a GPU: {hooked} (the Triton kernel has no hooks)"
-    shared = axes.ball, axes.aero, axes.table, axes.effects
-    if any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None)) and gpu:
-        return "per-ball ball, aero, table or effect parameters on a GPU (the Triton kernel reads them as scalars)"
     return None
+
+
+def per_ball_physics(axes) -> bool:
+    """Whether any ball, aero, table or effect parameter is per ball (``axes``: the model's per-ball
+    axes, a pytree prefix of 0 / None): the kernel then reads rows of per-ball values."""
+    shared = axes.ball, axes.aero, axes.table, axes.effects
+    return any(ax is not None for ax in jax.tree.leaves(shared, is_leaf=lambda x: x is None))
 
 
 # --------------------------------------------------------------------------- the kernel
@@ -303,16 +306,25 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
     dtype = ball.pos.dtype
     lanes = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec((layout.size,), lambda i: (0,))
+    inputs, specs = [params], [whole]
+    if layout.rows:  # per-ball parameters: the shared vector, then a block of their rows per program
+        vector, matrix = params
+        inputs = [vector, jnp.pad(matrix, ((0, 0), (0, pad)), mode="edge")]
+        specs = [whole, pl.BlockSpec((matrix.shape[0], block), lambda i: (0, i))]
     out_shape = [jax.ShapeDtypeStruct((b + pad,), dtype)] * 9 + [jax.ShapeDtypeStruct((b + pad,), jnp.int32)]
     extra = {}
     if not interpret:  # Triton (the GPU default may be another Pallas backend)
         from jax.experimental.pallas import triton as plt
         params_cls = getattr(plt, "CompilerParams", None) or getattr(plt, "TritonCompilerParams")
         extra["compiler_params"] = params_cls(num_warps=4)
+    def body(*refs):
+        n = len(specs)
+        p_ref = refs[0] if n == 1 else _Pair(*refs[:n])
+        return _kernel(layout, substeps, p_ref, *refs[n:])
+
     out = pl.pallas_call(
-        lambda *refs: _kernel(layout, substeps, *refs), out_shape=out_shape, grid=(n_blocks,),
-        in_specs=[whole] + [lanes] * 10, out_specs=[lanes] * 10, interpret=interpret, name="fused_flight",
-        **extra)(params, *cols)
+        body, out_shape=out_shape, grid=(n_blocks,), in_specs=specs + [lanes] * 10, out_specs=[lanes] * 10,
+        interpret=interpret, name="fused_flight", **extra)(*inputs, *cols)
     return _from_columns(ball, [a[:b] for a in out])
 
 
@@ -325,6 +337,17 @@ def _from_columns(ball, out):
     """(ball of ``ball``'s type, steps taken) from the kernel's 10 output columns."""
     stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
     return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
+
+
+class _Pair:
+    """The kernel's parameters where some are per ball: ``[0]`` the shared vector's ref, ``[1]`` a
+    ref whose rows are the per-ball parameters over the program's balls (``fused_params.Reader``)."""
+
+    def __init__(self, vector, rows):
+        self.refs = (vector, rows)
+
+    def __getitem__(self, k):
+        return self.refs[k]
 
 
 class _Slot:

@@ -379,11 +379,13 @@ FUSED_AUTO_MIN_STEPS_CPU = 300
 
 
 def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = False, policy: bool = False,
-               n_steps: int | None = None) -> bool:
+               n_steps: int | None = None, per_ball: bool = False) -> bool:
     """Whether ``fused="auto"`` takes the fused path (where it covers the rollout) for ``batch`` balls
-    over ``n_steps`` steps (None: many) on this backend: on a GPU always, on a CPU from
-    :data:`FUSED_AUTO_MIN_BATCH_CPU` balls and :data:`FUSED_AUTO_MIN_STEPS_CPU` steps, and not
-    with a racket schedule per ball or an effect that moves the air (``air_velocity``). Both the
+    over ``n_steps`` steps (None: many) on this backend: on a GPU always but with per-ball
+    parameters (``per_ball``, which the Triton kernel reads since 2026-11-29, not measured there),
+    on a CPU from :data:`FUSED_AUTO_MIN_BATCH_CPU` balls and :data:`FUSED_AUTO_MIN_STEPS_CPU` steps;
+    nowhere with a racket schedule per ball, and on a CPU not with an effect that moves the air
+    (``air_velocity``). Both the
     CPU's fused path covers, but they ran slower than the reference path. With rackets per ball
     (4,096 balls, two rackets per ball: 0.14-0.20x over 10-300 steps; the environment's default task
     0.63x of its env-steps/s), a racket brought to its ball keeps the ball inside its box, so the
@@ -400,11 +402,12 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     balls and 100 steps, 0.86x at 65,536 balls and 300 steps, 1.04x with per-ball table and air
     parameters); not measured on a GPU."""
     backend = jax.default_backend()
-    if policy:
+    if policy or rackets_batched:
         return False
+    if backend == "gpu":
+        return not per_ball
     long = n_steps is None or n_steps >= FUSED_AUTO_MIN_STEPS_CPU
-    return backend == "gpu" or (backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and long
-                                and not rackets_batched and not air_hooks)
+    return backend == "cpu" and batch >= FUSED_AUTO_MIN_BATCH_CPU and long and not air_hooks
 
 
 def default_capacity(batch: int) -> int:
@@ -490,7 +493,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         air = in_flight(model, ("air_velocity",))
-        pays = fused_pays(batch, batched, air, policy is not None, n_steps)
+        pays = fused_pays(batch, batched, air, policy is not None, n_steps, fused_path.per_ball_physics(axes))
         fused = why is None and not reference and (fused is True or pays)
     block = default_block(batch, fused) if block_size is None else int(block_size)
     capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
