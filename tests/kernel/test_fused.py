@@ -306,9 +306,9 @@ def test_kernel_gathers_the_moving_balls_with_the_same_result(model, moving):
 
 def test_pallas_kernel_reads_per_ball_parameters_as_the_xla_body_does(model):
     """The Pallas kernel (run here in interpret mode, as Triton runs it on a GPU) with per-ball
-    radius, air density and drag table: each program reads its balls' rows of the per-ball
-    parameters, so the flight equals the XLA body's over the whole batch (and differs from the
-    shared model's)."""
+    radius, air density, drag table and racket box: each program reads its balls' rows of the
+    per-ball parameters, so the flight and the stops equal the XLA body's over the whole batch (and
+    the flight differs from the shared model's)."""
     b, rng = 80, np.random.default_rng(5)  # 80 balls: blocks of 32, the last one padded
     cd = jnp.asarray(rng.uniform(0.8, 1.2, b))[:, None, None] * model.aero.drag.cd[None]
     batched = model.replace(ball=model.ball.replace(radius=jnp.asarray(rng.uniform(0.0195, 0.0205, b))),
@@ -317,15 +317,21 @@ def test_pallas_kernel_reads_per_ball_parameters_as_the_xla_body_does(model):
     axes = per_ball_axes(model, "ball.radius", "aero.rho_air", "aero.drag.cd")
     ball = shots(b, seed=6)
     budget = jnp.full(b, 24, jnp.int32)
-    params, layout = fused.pack(batched, jnp.asarray(1e-3), None, ball.pos.dtype, axes)
+    # a racket box per ball, 5-30 cm ahead of it: some balls stop before theirs
+    ahead = ball.pos + jnp.asarray(rng.uniform(0.05, 0.3, (b, 1))) * ball.vel / jnp.linalg.norm(ball.vel, axis=1,
+                                                                                                 keepdims=True)
+    boxes = jnp.stack([ahead - 0.05, ahead + 0.05], axis=1)[:, None]  # (B, 1, 2, 3)
+    params, layout = fused.pack(batched, jnp.asarray(1e-3), boxes, ball.pos.dtype, axes)
     assert isinstance(params, tuple) and params[1].shape[1] == b
     out, n = fused.fly(params, layout, ball, budget, substeps=24, block=32, interpret=True)
     ref, n_ref = fused._fly_xla(params, layout, ball, budget, substeps=24)
     np.testing.assert_array_equal(np.asarray(n), np.asarray(n_ref))
+    assert 10 < int(np.sum(np.asarray(n) < 24)) < b - 10  # some balls stopped at their own box, others flew on
     np.testing.assert_allclose(np.asarray(out.as_array()), np.asarray(ref.as_array()), rtol=1e-12, atol=1e-12)
     shared, shared_layout = fused.pack(model, jnp.asarray(1e-3), None, ball.pos.dtype)
     other, _ = fused._fly_xla(shared, shared_layout, ball, budget, substeps=24)
-    assert float(jnp.max(jnp.abs(other.vel - out.vel))) > 1e-3
+    flew = np.asarray(n) == 24
+    assert float(jnp.max(jnp.abs(other.vel - out.vel)[flew])) > 1e-3
 
 
 def test_kernel_lowers_to_triton(model):
