@@ -24,13 +24,13 @@ scalars, the per-ball ones as rows: on a GPU each program reads its block of the
 schedule shared by all balls or one per ball (or none), a racket policy with a reach
 (:attr:`~ttsim_jax.kernel.plans.RacketPolicy.reach`: the kernel stops a ball before its path meets
 the boxes the policy's rackets stay in, and the ordinary step evaluates the policy for each ball at
-its own time; a ball whose rackets are found outside those boxes ends ``INVALID``), the sampled residual (a ball's
-step k draws with the key the reference path's step k has), and effects acting in flight: the
-ball's and the air's properties (hooks without context, read as constants), and on a CPU the air's
-velocity and the spin's decay, evaluated at every RK4 stage for each ball at its own time
-(:class:`Hooks`). Not an effect that moves the table's surface (the stopping test uses the flat
-table's box). The coefficient tables are passed to the kernel as one small vector of scalars and
-interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
+its own time; a ball whose rackets are found outside those boxes ends ``INVALID``), the sampled
+residual (a ball's step k draws with the key the reference path's step k has), and effects acting
+in flight: the ball's and the air's properties (hooks without context, read as constants), and on
+a CPU the air's velocity and the spin's decay, evaluated at every RK4 stage for each ball at its
+own time (:class:`Hooks`). Not an effect that moves the table's surface (the stopping test uses
+the flat table's box). The coefficient tables are passed to the kernel as one small vector of
+scalars and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
 the reference path's, so ``jax.grad`` through ``rollout(..., fused=True)`` differentiates the
@@ -317,6 +317,7 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
         from jax.experimental.pallas import triton as plt
         params_cls = getattr(plt, "CompilerParams", None) or getattr(plt, "TritonCompilerParams")
         extra["compiler_params"] = params_cls(num_warps=4)
+
     def body(*refs):
         n = len(specs)
         p_ref = refs[0] if n == 1 else _Pair(*refs[:n])

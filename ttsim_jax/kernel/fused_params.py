@@ -119,8 +119,8 @@ def pack(model, dt, racket_boxes, dtype, axes=None):
     Returns:
         (params, layout): params (size,) where every parameter is shared, else a pair of that vector
         (zeros in the per-ball parameters' places) and an (n, B) matrix, a row per per-ball scalar
-        and a column per ball (the kernel reads a row of B values there; only :func:`_fly_xla`
-        runs that form).
+        and a column per ball (the kernel reads a row of values there: the batch's in
+        ``fused._fly_xla``, a block's in the Triton kernel).
     """
     ax = leaf_axes(model, axes)
     t, a, tx, aa = model.table, model.aero, ax.table, ax.aero
