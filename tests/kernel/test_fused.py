@@ -368,6 +368,10 @@ def test_fused_refuses_what_it_does_not_cover(model):
     policy = RacketPolicy(params=None, fn=lambda p, ball, t: None)  # no reach: where its rackets go is unknown
     with pytest.raises(ValueError, match="racket policy without a reach"):
         rollout(model, state, 10, racket=policy, execution=Execution(fused=True))
+    # a reach of the wrong shape: refused before anything compiles, naming what it must be
+    flat = RacketPolicy(params=tracking_rackets().params, fn=tracking_rackets_fn, reach=lambda p, dt: jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"reach\(params, dt\) gives shape \(2, 3\); it must be \(2, 2, 3\)"):
+        rollout(model, state, 10, racket=flat)
     with pytest.raises(ValueError, match="integrator 'rk2'"):
         rollout(model, state, 10, integrator="rk2", execution=Execution(fused=True))
     with pytest.raises(ValueError, match="fused must be"):

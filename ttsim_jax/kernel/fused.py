@@ -103,6 +103,11 @@ def _spin_within(w):
     return (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < (_LIMIT_FRACTION * MAX_SPIN) ** 2
 
 
+def _stop_reach(radius):
+    """How far beyond a step's chord the stop test looks for the table and the rackets' boxes [m]."""
+    return radius + ev.SWEEP_MARGIN + SLACK
+
+
 def _stop_test(radius, length, width, floor_z, boxes):
     """flagged(p0, p1, v1, w1=None): a superset of the reference step's flags (table, floor, net,
     rackets, leaving play, validity) for the step that takes a ball from p0 to (p1, v1) (and spin
@@ -123,7 +128,7 @@ def _stop_test(radius, length, width, floor_z, boxes):
 
     table_lo = (-0.5 * length, -0.5 * width, -table_stage.THICKNESS)
     table_hi = (0.5 * length, 0.5 * width, 0.0)
-    reach = radius + ev.SWEEP_MARGIN + SLACK
+    reach = _stop_reach(radius)
     box = [b - SLACK for b in ev.PLAY_BOX]
     max_v2 = (_LIMIT_FRACTION * MAX_SPEED) ** 2
 
@@ -319,9 +324,8 @@ def fly(params, layout: Layout, ball, budget, *, substeps: int = SUBSTEPS, block
         extra["compiler_params"] = params_cls(num_warps=4)
 
     def body(*refs):
-        n = len(specs)
-        p_ref = refs[0] if n == 1 else _Pair(*refs[:n])
-        return _kernel(layout, substeps, p_ref, *refs[n:])
+        n = len(specs)  # with per-ball rows, (vector, rows) as pack gives them: fused_params.Reader indexes it
+        return _kernel(layout, substeps, refs[0] if n == 1 else refs[:n], *refs[n:])
 
     out = pl.pallas_call(
         body, out_shape=out_shape, grid=(n_blocks,), in_specs=specs + [lanes] * 10, out_specs=[lanes] * 10,
@@ -338,17 +342,6 @@ def _from_columns(ball, out):
     """(ball of ``ball``'s type, steps taken) from the kernel's 10 output columns."""
     stack = lambda cs: jnp.stack(cs, axis=-1)  # noqa: E731
     return type(ball)(stack(out[0:3]), stack(out[3:6]), stack(out[6:9])), out[9]
-
-
-class _Pair:
-    """The kernel's parameters where some are per ball: ``[0]`` the shared vector's ref, ``[1]`` a
-    ref whose rows are the per-ball parameters over the program's balls (``fused_params.Reader``)."""
-
-    def __init__(self, vector, rows):
-        self.refs = (vector, rows)
-
-    def __getitem__(self, k):
-        return self.refs[k]
 
 
 class _Slot:
@@ -514,7 +507,7 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
         hooks = Hooks(model.effects, phys_axes.effects, kb, t0, dt) if moving_hooks else None
         budget = end - kb
         if boxes is not None:  # a ball already by a racket would stop at once: it joins no launch
-            budget = jnp.where(_in_boxes(ball.pos, boxes, radius + ev.SWEEP_MARGIN + SLACK), 0, budget)
+            budget = jnp.where(_in_boxes(ball.pos, boxes, _stop_reach(radius)), 0, budget)
         ball, n = fly(params, layout, ball, budget, substeps=substeps, block=block, interpret=interpret, hooks=hooks)
         kb = kb + n
         on = kb < end

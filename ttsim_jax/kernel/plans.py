@@ -41,6 +41,27 @@ class RacketPolicy:
     reach: Callable | None = struct.field(pytree_node=False, default=None)
 
 
+def check_reach(policy: RacketPolicy, ball, dt) -> None:
+    """Refuses a :attr:`RacketPolicy.reach` whose boxes are not (R, 2, 3) for the R rackets the
+    policy gives (shapes only, from ``jax.eval_shape``: nothing runs), before anything compiles.
+
+    Arguments:
+        policy: the policy; ball: the rollout's (B, 3) balls; dt: the step [s] (a number or traced).
+    """
+    if policy.reach is None:
+        return
+    scalar = jax.ShapeDtypeStruct((), ball.pos.dtype)
+    one = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), ball)
+    rackets = jax.eval_shape(policy.fn, policy.params, one, scalar)
+    boxes = jax.eval_shape(policy.reach, policy.params, scalar)
+    n = rackets.pos.shape[0] if len(rackets.pos.shape) == 2 else 1
+    shape = getattr(boxes, "shape", None)
+    if shape != (n, 2, 3):
+        raise ValueError(f"RacketPolicy.reach(params, dt) gives shape {shape}; it must be ({n}, 2, 3): for each "
+                         f"of the {n} rackets the policy gives, the lower and upper corners of the box its face "
+                         "stays in")
+
+
 def face_boxes(pos, vel, face, dt):
     """(..., 2, 3) the box holding every point of a racket's face over a step of ``dt``: the face
     around its centre ``pos`` and around ``pos + dt vel`` (a face point lies within ``max(face)`` of

@@ -23,7 +23,7 @@ from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.execution import Execution, with_options
 from ttsim_jax.kernel.fused_params import in_flight, leaf_axes
-from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
+from ttsim_jax.kernel.plans import RacketPolicy, check_reach, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
 from ttsim_jax.params import Model
@@ -481,6 +481,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     schedule, policy, batched = None, None, False
     if isinstance(racket, RacketPolicy):
         policy = racket
+        check_reach(policy, ball, dt)
     elif racket is not None:
         schedule, batched = normalise_schedule(racket, n_steps, batch)
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
