@@ -398,9 +398,9 @@ def fused_pays(batch: int, rackets_batched: bool = False, air_hooks: bool = Fals
     racket policy, on any backend: its reach (:attr:`~ttsim_jax.kernel.plans.RacketPolicy.reach`)
     spans every place the policy may put a racket, a slab across the table for the tracking
     rackets, which every ball crosses in ordinary steps, each a whole batch's (two tracking
-    rackets, conti2026, float32, on this 2-core CPU: 0.27x the reference path's speed at 8,192
-    balls and 100 steps, 0.86x at 65,536 balls and 300 steps, 1.04x with per-ball table and air
-    parameters); not measured on a GPU."""
+    rackets and per-ball table and air parameters, conti2026, float32, on this 2-core CPU: 0.38x
+    the reference path's speed at 8,192 balls and 100 steps, 1.04x at 65,536 balls and 300 steps,
+    ``benchmarks/fused_effects.py``); not measured on a GPU."""
     backend = jax.default_backend()
     if policy or rackets_batched:
         return False
