@@ -217,10 +217,12 @@ def coefficient_fns(rd: Reader, layout: Layout, radius, nu):
             curves = [_ramp_sum(_weights(ratio, sp_ramps[k]), cd[k]) for k in range(layout.n_re)]
             return jnp.maximum(_ramp_sum(_weights(speed * re_per_speed, re_ramps), curves), cd_min)
     else:
-        value = rd.scalar()
+        # a name of its own: the Magnus branch below binds its constant too, and a closure reads
+        # the name when called (one shared name gave the drag Magnus's constant)
+        cd_value = rd.scalar()
 
         def drag(speed, spin_rate):
-            return value
+            return cd_value
 
     if layout.magnus == "table":
         v_ramps = _ramps(rd.many(layout.n_v))
@@ -237,9 +239,9 @@ def coefficient_fns(rd: Reader, layout: Layout, radius, nu):
         def magnus(speed, spin_rate):
             return jnp.minimum(gain * speed / jnp.maximum(spin_rate * radius, 1e-9) - offset, cap)
     else:
-        value = rd.scalar()
+        cm_value = rd.scalar()
 
         def magnus(speed, spin_rate):
-            return value
+            return cm_value
 
     return drag, magnus
