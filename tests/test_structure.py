@@ -31,9 +31,8 @@ LAYERS = (
     ("cli",),
 )
 LAYER = {name: i for i, names in enumerate(LAYERS) for name in names}
-# Old import paths kept for one release; each only re-exports from where its names moved, with a
-# DeprecationWarning, so its arrow may run up.
-SHIMS = {"ttsim_jax.data.generator", "ttsim_jax.physics.residual"}
+# Modules whose arrows may run up: none since the old import paths of 0.1.0 went.
+SHIMS: set[str] = set()
 
 
 def modules() -> dict[str, Path]:

@@ -255,24 +255,6 @@ def event_batch(ds: Dataset, *, kinds=None, pad_to: int | None = None, dtype=np.
     )
 
 
-def segments_around(ds: Dataset, event_ids) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of the segments table that end and that start at each event.
-
-    Arguments:
-        ds: dataset.
-        event_ids: (E,) event ids.
-
-    Returns:
-        (in_rows (E,), out_rows (E,)) int64, -1 where no segment ends (starts) at the event.
-    """
-    seg = ds.segments
-    ends = {int(e): i for i, e in enumerate(seg["end_event_id"]) if e >= 0}
-    starts = {int(e): i for i, e in enumerate(seg["start_event_id"]) if e >= 0}
-    ids = [int(e) for e in np.asarray(event_ids).reshape(-1)]
-    return (np.array([ends.get(e, -1) for e in ids], np.int64).reshape(-1),
-            np.array([starts.get(e, -1) for e in ids], np.int64).reshape(-1))
-
-
 def racket_contact_batch(ds: Dataset, *, pad_to: int | None = None, dtype=np.float32, validate: bool = True) -> RacketContactBatch:
     """All racket contacts, joined with their events and neighbouring segments.
 
@@ -291,9 +273,8 @@ def racket_contact_batch(ds: Dataset, *, pad_to: int | None = None, dtype=np.flo
     R = n if pad_to is None else int(pad_to)
     if R < n:
         raise ValueError(f"pad_to={pad_to} is smaller than the {n} racket contacts")
-    ev_row = {int(e): i for i, e in enumerate(ev["event_id"])}
-    rows = np.array([ev_row[int(e)] for e in rk["event_id"]], np.int64)
-    in_rows, out_rows = segments_around(ds, rk["event_id"])
+    rows = ds.event_rows(rk["event_id"])
+    in_rows, out_rows = ds.segments_around(rk["event_id"])
 
     def stack(table, names, index=None):
         a = np.stack([np.asarray(table[k], np.float64) for k in names], -1)

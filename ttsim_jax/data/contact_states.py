@@ -128,8 +128,7 @@ class ObservationIndex:
         obs = ds.observations
         self.segments = ds.segments
         self.segment_ids = np.asarray(self.segments["segment_id"], np.int64)
-        self._order = np.argsort(obs["segment_id"], kind="stable")  # keeps time order within a segment
-        self._sorted = np.asarray(obs["segment_id"])[self._order]
+        self._order, self._sorted = ds.observations_by_segment()
         self.t = np.asarray(obs["t"], np.float64)
         self.pos = ds.positions
 
@@ -218,40 +217,137 @@ def estimate_contact(index: ObservationIndex, in_row: int, out_row: int, t_conta
                                  rmse=np.array([r_in, r_out]))
 
 
-def contact_states(ds, event_ids, t_c, in_row, out_row, fit: ContactFit, skipped: dict,
-                   progress: Callable | None = None):
-    """The ball's world-frame (velocity, spin) just before and just after each contact.
+#: Kinds of event whose states :class:`Contacts` estimates (with a racket state, any kind).
+CONTACT_KINDS = ("table", "racket")
+#: The reasons :meth:`Contacts.estimate` gives, in the order they are checked; the spin's
+#: (``low_spin_conf_*``) come after the samples' and before ``bad_fit`` (:meth:`Contacts.skip_reasons`).
+_SAMPLE_REASONS = ("no_incoming_segment", "no_outgoing_segment", "few_incoming_samples", "few_outgoing_samples")
 
-    Shared by the racket (:func:`ttsim_jax.fit.racket_arrays.contact_arrays`) and table
-    (:func:`ttsim_jax.fit.table_bounces.table_bounces`) contacts: :func:`estimate_contact` for every contact (see the module docstring).
 
-    Arguments:
-        ds: the dataset.
-        event_ids, t_c: (n,) the contacts' event ids and times [s] (float64).
-        in_row, out_row: (n,) rows in ``ds.segments`` of the incoming / outgoing segment (-1: none).
-        fit: how the states are estimated.
-        skipped: reason -> list of event ids; contacts lacking what is needed are appended here
-            (reasons ``no_incoming_segment`` ... ``bad_fit`` of :data:`SKIP_REASONS`).
-        progress: optional ``progress(done, total)``, called every 100 contacts and at the end.
+@dataclasses.dataclass(frozen=True)
+class Contacts:
+    """A dataset's contacts with the ball's states on both sides estimated from the observations
+    alone (see the module docstring), one row per table or racket event: built once per dataset and
+    :class:`ContactFit` (:meth:`ttsim_jax.data.Dataset.contacts`) and read by the evaluation, the
+    fits and the diagnosis, each applying its own checks.
 
-    Returns:
-        (vel_in, spin_in, vel_out, spin_out (n, 3), rmse (n, 2), good) with ``good`` the int64
-        indices of the contacts whose states were estimated (other rows are zero).
+    Attributes:
+        fit: how the states were estimated.
+        event_id, kind, session_id: (E,) the events'; t: (E,) contact time [s] (float64);
+        pos: (E, 3) the event's ball position [m].
+        in_row, out_row: (E,) rows of the incoming and outgoing segments in ``ds.segments`` (-1: none).
+        vel_in, vel_out: (E, 3) world-frame velocity at the contact [m/s] from the polynomial fits
+            (NaN where not estimated).
+        spin_in, spin_out: (E, 3) the incoming / outgoing segment's spin [rad/s] (zeros without one);
+        spin_conf: (E, 2) their confidences (0 without one).
+        rmse: (E, 2) RMS position residual of each fit [m] (NaN where not fitted).
+        reason: (E,) the :data:`SKIP_REASONS` key of a contact whose states are not estimated, spin
+            aside (None where they are; :meth:`skip_reasons` adds the spin's).
     """
-    n = len(event_ids)
-    index = ObservationIndex(ds)
-    good = []
-    vin, win, vout, wout, rmse = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)),
-                                  np.zeros((n, 2)))
-    for i in range(n):
-        if progress is not None and (i % 100 == 0):
-            progress(i, n)
-        reason, est = estimate_contact(index, int(in_row[i]), int(out_row[i]), float(t_c[i]), fit)
-        if reason is not None:
-            skipped[reason].append(int(event_ids[i]))
-            continue
-        vin[i], win[i], vout[i], wout[i], rmse[i] = est.vel_in, est.spin_in, est.vel_out, est.spin_out, est.rmse
-        good.append(i)
-    if progress is not None:
-        progress(n, n)
-    return vin, win, vout, wout, rmse, np.asarray(good, np.int64)
+
+    fit: ContactFit
+    event_id: np.ndarray
+    kind: np.ndarray
+    session_id: np.ndarray
+    t: np.ndarray
+    pos: np.ndarray
+    in_row: np.ndarray
+    out_row: np.ndarray
+    vel_in: np.ndarray
+    vel_out: np.ndarray
+    spin_in: np.ndarray
+    spin_out: np.ndarray
+    spin_conf: np.ndarray
+    rmse: np.ndarray
+    reason: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.event_id)
+
+    @property
+    def spin_known(self) -> np.ndarray:
+        """(E, 2) bool: the incoming / outgoing spin's confidence is at least ``fit.min_spin_conf``."""
+        return self.spin_conf >= self.fit.min_spin_conf
+
+    def rows(self, event_ids) -> np.ndarray:
+        """(n,) int64 rows of ``event_ids`` here, -1 for an event that is not a contact."""
+        order = np.argsort(self.event_id, kind="stable")
+        ids = np.asarray(event_ids, np.int64).reshape(-1)
+        at = np.minimum(np.searchsorted(self.event_id[order], ids), max(len(order) - 1, 0))
+        if not len(order):
+            return np.full(len(ids), -1, np.int64)
+        return np.where(self.event_id[order[at]] == ids, order[at], -1).astype(np.int64)
+
+    def skip_reasons(self, need_spin: bool = True) -> np.ndarray:
+        """(E,) why each contact cannot be used (None: it can), with ``need_spin`` a spin confidence
+        below ``fit.min_spin_conf`` on either side skipping it too (as :func:`estimate_contact`)."""
+        out = self.reason.copy()
+        if need_spin:
+            known = self.spin_known
+            open_ = np.array([r not in _SAMPLE_REASONS for r in self.reason], bool)
+            out[open_ & ~known[:, 1]] = "low_spin_conf_out"
+            out[open_ & ~known[:, 0]] = "low_spin_conf_in"
+        return out
+
+    def states(self, event_ids, skipped: dict, need_spin: bool = True):
+        """The world-frame (velocity, spin) just before and just after the contacts ``event_ids``.
+
+        Arguments:
+            event_ids: (n,) contact event ids.
+            skipped: reason -> list of event ids; the contacts that cannot be used are appended
+                here (:meth:`skip_reasons`).
+            need_spin: as for :meth:`skip_reasons`.
+
+        Returns:
+            (vel_in, spin_in, vel_out, spin_out (n, 3), rmse (n, 2), good) with ``good`` the int64
+            indices of the contacts whose states were estimated (other rows are zero).
+        """
+        ids = np.asarray(event_ids, np.int64).reshape(-1)
+        rows = self.rows(ids)
+        if (rows < 0).any():
+            raise ValueError(f"event {int(ids[rows < 0][0])} is not a contact (kinds {CONTACT_KINDS} or a racket state)")
+        reasons = self.skip_reasons(need_spin)[rows]
+        good = np.flatnonzero(np.array([r is None for r in reasons], bool))
+        for e, r in zip(ids, reasons):
+            if r is not None:
+                skipped[r].append(int(e))
+        zeros = lambda k: np.zeros((len(ids), k))  # noqa: E731
+        vin, win, vout, wout, rmse = zeros(3), zeros(3), zeros(3), zeros(3), zeros(2)
+        g = rows[good]
+        vin[good], win[good], vout[good], wout[good] = self.vel_in[g], self.spin_in[g], self.vel_out[g], self.spin_out[g]
+        rmse[good] = self.rmse[g]
+        return vin, win, vout, wout, rmse, good.astype(np.int64)
+
+    @classmethod
+    def estimate(cls, ds, fit: ContactFit, progress: Callable | None = None) -> "Contacts":
+        """Estimates every contact of ``ds`` (:func:`estimate_contact`, spin aside); ``progress``:
+        optional ``progress(done, total)``, called every 100 contacts and at the end. Prefer
+        :meth:`ttsim_jax.data.Dataset.contacts`, which estimates them once."""
+        ev = ds.events
+        kinds = np.asarray(ev["kind"]).astype(str)
+        ids_all = np.asarray(ev["event_id"], np.int64)
+        rows = np.flatnonzero(np.isin(kinds, CONTACT_KINDS) | (ds.racket_rows(ids_all) >= 0))
+        ids = ids_all[rows]
+        in_row, out_row = ds.segments_around(ids)
+        t_c = np.asarray(ev["t"], np.float64)[rows]
+        index = ds.observation_index()
+        n = len(ids)
+        nan = lambda k: np.full((n, k), np.nan)  # noqa: E731
+        vin, vout, rmse = nan(3), nan(3), nan(2)
+        win, wout, conf = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 2))
+        reason = np.full(n, None, object)
+        for i in range(n):
+            if progress is not None and (i % 100 == 0):
+                progress(i, n)
+            if in_row[i] >= 0 and out_row[i] >= 0:
+                (win[i], conf[i, 0]), (wout[i], conf[i, 1]) = index.spin(int(in_row[i])), index.spin(int(out_row[i]))
+            why, est = estimate_contact(index, int(in_row[i]), int(out_row[i]), float(t_c[i]), fit, need_spin=False)
+            reason[i] = why
+            if est is not None:
+                vin[i], vout[i], rmse[i] = est.vel_in, est.vel_out, est.rmse
+        if progress is not None:
+            progress(n, n)
+        return cls(fit=fit, event_id=ids, kind=kinds[rows], session_id=np.asarray(ev["session_id"], np.int64)[rows],
+                   t=t_c, pos=np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1).reshape(n, 3),
+                   in_row=in_row, out_row=out_row, vel_in=vin, vel_out=vout, spin_in=win, spin_out=wout,
+                   spin_conf=conf, rmse=rmse, reason=reason)

@@ -80,6 +80,9 @@ class Dataset:
     rackets: Table
     segments: Table
     metadata: Metadata = dataclasses.field(default_factory=Metadata)
+    # indexes built on first use (:meth:`event_rows`, :meth:`segments_around`, :meth:`segment_rows`,
+    # :meth:`observation_index`, :meth:`contacts`); a replaced copy starts without them
+    _indexes: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     def table(self, name: str) -> Table:
         """The table called ``name``."""
@@ -107,6 +110,52 @@ class Dataset:
         o = self.observations
         return np.stack([o["spin_x"], o["spin_y"], o["spin_z"]], axis=-1)
 
+    def _index(self, name, build):
+        if name not in self._indexes:
+            self._indexes[name] = build()
+        return self._indexes[name]
+
+    def _lookup(self, name, keys, wanted) -> np.ndarray:
+        """Rows of ``wanted`` ids among ``keys`` (an int column), -1 where absent; the sorted keys
+        are kept under ``name``."""
+        def build():
+            keys_ = np.asarray(keys, np.int64)
+            order = np.argsort(keys_, kind="stable")
+            return order, keys_[order]
+
+        order, sorted_keys = self._index(name, build)
+        wanted = np.asarray(wanted, np.int64).reshape(-1)
+        if not len(sorted_keys):
+            return np.full(len(wanted), -1, np.int64)
+        # the last row holding an id, as a dict built over the rows would have it
+        at = np.searchsorted(sorted_keys, wanted, side="right") - 1
+        found = (at >= 0) & (sorted_keys[np.maximum(at, 0)] == wanted)
+        return np.where(found, order[np.maximum(at, 0)], -1).astype(np.int64)
+
+    def event_rows(self, event_ids) -> np.ndarray:
+        """(E,) int64 rows of the events table holding ``event_ids``, -1 for an id it does not hold."""
+        return self._lookup("event_rows", self.events["event_id"], event_ids)
+
+    def racket_rows(self, event_ids) -> np.ndarray:
+        """(E,) int64 rows of the rackets table holding the racket states of ``event_ids``, -1 for an
+        event without one."""
+        return self._lookup("racket_rows", self.rackets["event_id"], event_ids)
+
+    def segments_around(self, event_ids) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the segments table that end and that start at each event.
+
+        Arguments:
+            event_ids: (E,) event ids.
+
+        Returns:
+            (in_rows (E,), out_rows (E,)) int64, -1 where no segment ends (starts) at the event.
+        """
+        seg = self.segments
+        ends, starts = (np.asarray(seg[k], np.int64) for k in ("end_event_id", "start_event_id"))
+        # a segment without an event at that end has -1 there, which no event id is
+        return (self._lookup("segment_ends", np.where(ends >= 0, ends, -2), event_ids),
+                self._lookup("segment_starts", np.where(starts >= 0, starts, -2), event_ids))
+
     def segment_rows(self, segment_ids=None) -> list[np.ndarray]:
         """The observation rows of each segment, in time order.
 
@@ -117,11 +166,35 @@ class Dataset:
             One int array per segment (empty for a segment without observations).
         """
         ids = self.segments["segment_id"] if segment_ids is None else segment_ids
-        order = np.argsort(self.observations["segment_id"], kind="stable")  # keeps time order within a segment
-        sorted_ids = self.observations["segment_id"][order]
+        order, sorted_ids = self.observations_by_segment()
         lo = np.searchsorted(sorted_ids, ids, side="left")
         hi = np.searchsorted(sorted_ids, ids, side="right")
         return [order[a:b] for a, b in zip(lo, hi)]
+
+    def observations_by_segment(self) -> tuple[np.ndarray, np.ndarray]:
+        """(order, sorted segment ids): the observation rows sorted by segment, time order kept
+        within each, and their segment ids in that order (built once)."""
+        def build():
+            order = np.argsort(self.observations["segment_id"], kind="stable")  # keeps time order within a segment
+            return order, np.asarray(self.observations["segment_id"])[order]
+        return self._index("by_segment", build)
+
+    def observation_index(self):
+        """The observations grouped by segment, to look up a segment's samples next to a contact
+        (:class:`~ttsim_jax.data.contact_states.ObservationIndex`, built once)."""
+        from .contact_states import ObservationIndex
+
+        return self._index("observation_index", lambda: ObservationIndex(self))
+
+    def contacts(self, fit=None, progress=None):
+        """Every table and racket contact's measured states, estimated from the observations once
+        per :class:`~ttsim_jax.data.contact_states.ContactFit` (default ``ContactFit()``): the
+        :class:`~ttsim_jax.data.contact_states.Contacts` that evaluate, fit and diagnose read.
+        ``progress``: optional ``progress(done, total)`` while they are estimated."""
+        from .contact_states import ContactFit, Contacts
+
+        fit = ContactFit() if fit is None else fit
+        return self._index(("contacts", fit), lambda: Contacts.estimate(self, fit, progress))
 
     def replace(self, **changes) -> "Dataset":
         """A copy with some tables (or the metadata) replaced."""

@@ -182,7 +182,7 @@ def contact_features(x, pos, kind: str, radius: float, spin_dt=None, spin_out=No
     """Features of the pre-contact state of each contact (see the module docstring).
 
     Arguments:
-        x: (N, 8) the phase's inputs (:class:`~ttsim_jax.diagnose.phases.Contacts`: table
+        x: (N, 8) the phase's inputs (:class:`~ttsim_jax.diagnose.phases.ContactItems`: table
             (v_in, w_in, 0, 0) world frame; racket (v~, w~, d) racket frame); pos: (N, 3) contact
             point (world); kind: "table" or "racket"; radius: ball radius [m]; spin_dt: optional
             (N, 2) times from the incoming segment's mean sample to the contact and from the

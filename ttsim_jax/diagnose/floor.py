@@ -227,12 +227,9 @@ def window_factors(ds, contacts, fit) -> np.ndarray:
     """(N, 4): per contact, the incoming and outgoing velocity estimates' variance factors
     (:func:`velocity_variance`, [1/s^2]) and the incoming and outgoing spins' (:func:`mean_spin_variance_factor`),
     from the samples the estimation used (:meth:`~ttsim_jax.data.contact_states.ObservationIndex.near`)."""
-    from ttsim_jax.data.batch import segments_around
-    from ttsim_jax.data.contact_states import ObservationIndex
-
-    index = ObservationIndex(ds)
+    index = ds.observation_index()
     conf = np.asarray(ds.observations["spin_conf"], np.float64)
-    in_rows, out_rows = segments_around(ds, contacts.event_id)
+    in_rows, out_rows = ds.segments_around(contacts.event_id)
     out = np.zeros((len(contacts), 4))
     for i, (r_in, r_out, tc) in enumerate(zip(in_rows, out_rows, contacts.t)):
         for k, (row, before) in enumerate(((r_in, True), (r_out, False))):

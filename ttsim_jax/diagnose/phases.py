@@ -72,8 +72,9 @@ class Flights:
 
 
 @dataclasses.dataclass
-class Contacts:
-    """Contacts of one kind (table or racket), one row each.
+class ContactItems:
+    """The contacts of one kind (table or racket) as the diagnosis compares them, one row each
+    (from :meth:`ttsim_jax.data.Dataset.contacts`, through the evaluation's and the racket fit's checks).
 
     Attributes:
         event_id: (N,); session: (N,) session index; pos: (N, 3) contact point (world);
@@ -114,8 +115,8 @@ class Phases:
     ``skipped``. ``sessions``: the dataset's session ids in index order."""
 
     flights: Flights | None
-    table: Contacts | None
-    racket: Contacts | None
+    table: ContactItems | None
+    racket: ContactItems | None
     sessions: np.ndarray
     skipped: dict
 
@@ -177,18 +178,13 @@ def contact_times(ds, event_ids) -> dict:
     time to the contact and from the contact to the outgoing segment's (0 without one): a segment's
     spin is the mean of its samples' estimates, the spin at its mean sample time when it changes
     linearly in flight."""
-    from ttsim_jax.data.batch import segments_around
-
-    in_rows, out_rows = segments_around(ds, event_ids)
-    ev = ds.events
-    row = {int(e): i for i, e in enumerate(ev["event_id"])}
-    t_c = np.array([ev["t"][row[int(e)]] for e in event_ids], np.float64)
-    sid = np.asarray(ds.observations["segment_id"])
+    in_rows, out_rows = ds.segments_around(event_ids)
+    t_c = np.asarray(ds.events["t"], np.float64)[ds.event_rows(event_ids)]
     t_obs = np.asarray(ds.observations["t"], np.float64)
     seg_ids = np.asarray(ds.segments["segment_id"])
-    order = np.argsort(sid, kind="stable")
-    lo = np.searchsorted(sid[order], seg_ids)
-    hi = np.searchsorted(sid[order], seg_ids, side="right")
+    order, sorted_ids = ds.observations_by_segment()
+    lo = np.searchsorted(sorted_ids, seg_ids)
+    hi = np.searchsorted(sorted_ids, seg_ids, side="right")
     first = np.array([t_obs[order[a]] if b > a else np.nan for a, b in zip(lo, hi)])
     mean = np.array([t_obs[order[a:b]].mean() if b > a else np.nan for a, b in zip(lo, hi)])
     at = lambda values, rows: np.where(rows >= 0, values[np.maximum(rows, 0)], np.nan)  # noqa: E731
@@ -196,8 +192,8 @@ def contact_times(ds, event_ids) -> dict:
     return dict(t=t_c, since=t_c - at(first, in_rows), spin_dt=spin_dt)
 
 
-def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
-    """The usable table bounces (see :class:`Contacts`), or (None, reason)."""
+def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[ContactItems | None, str]:
+    """The usable table bounces (see :class:`ContactItems`), or (None, reason)."""
     from ttsim_jax.evaluate.stages import EvaluateSettings, table_stage
 
     res = table_stage(ds, [("model", model)], EvaluateSettings(fit=fit))
@@ -205,21 +201,20 @@ def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Con
         return None, res["skipped"]
     ids = res["event_id"]
     ev = ds.events
-    row = {int(e): i for i, e in enumerate(ev["event_id"])}
-    rows = np.array([row[int(e)] for e in ids])
+    rows = ds.event_rows(ids)
     pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1)
     sess = np.array([session_index[int(s)] for s in np.asarray(ev["session_id"])[rows]], np.int64)
     n = len(ids)
     x = np.concatenate([res["pre"], np.zeros((n, 2))], 1)
     times = contact_times(ds, ids)
-    return Contacts(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
+    return ContactItems(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
                     spin_in_known=res["spin_known"][:, 0], correction=np.zeros((n, 6)),
                     rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"], world_out=res["post"],
                     since=times["since"], t=times["t"], spin_dt=times["spin_dt"]), ""
 
 
-def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Contacts | None, str]:
-    """The usable racket contacts in the racket frame (see :class:`Contacts`), or (None, reason)."""
+def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[ContactItems | None, str]:
+    """The usable racket contacts in the racket frame (see :class:`ContactItems`), or (None, reason)."""
     from ttsim_jax.evaluate.stages import SKIP_REASONS, counts_text
     from ttsim_jax.fit.network_evaluation import predict
     from ttsim_jax.fit.racket_arrays import contact_arrays
@@ -234,15 +229,13 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
     if model.residual is not None:
         y, _, _ = predict(model.residual, a.x[:, :model.residual.config.n_inputs], a.y_base)
         corr = y - np.asarray(a.y_base, np.float64)
-    rk = ds.rackets
-    rrow = {int(e): i for i, e in enumerate(rk["event_id"])}
-    q = np.array([[rk[k][rrow[int(e)]] for k in ("qw", "qx", "qy", "qz")] for e in a.event_id], np.float64)
-    ev = ds.events
-    row = {int(e): i for i, e in enumerate(ev["event_id"])}
-    pos = np.array([[ev[k][row[int(e)]] for k in "xyz"] for e in a.event_id], np.float64)
+    rk, ev = ds.rackets, ds.events
+    rrows, rows = ds.racket_rows(a.event_id), ds.event_rows(a.event_id)
+    q = np.stack([np.asarray(rk[k], np.float64)[rrows] for k in ("qw", "qx", "qy", "qz")], -1).reshape(-1, 4)
+    pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1).reshape(-1, 3)
     sess = np.array([session_index[int(s)] for s in a.session_id], np.int64)
     times = contact_times(ds, a.event_id)
-    return Contacts(event_id=a.event_id, session=sess, pos=pos, x=np.asarray(a.x, np.float64),
+    return ContactItems(event_id=a.event_id, session=sess, pos=pos, x=np.asarray(a.x, np.float64),
                     y_obs=np.asarray(a.y_obs, np.float64), spin_known=np.ones(len(a), bool),
                     spin_in_known=np.ones(len(a), bool), correction=corr, rot=quat_to_matrix(q),
                     world_in=a.world_in, world_out=a.world_out, since=times["since"], t=times["t"],
@@ -294,7 +287,7 @@ def kinematic_regimes(vel, spin, radius: float) -> dict:
     return dict(speed=v, spin=w, spin_ratio=radius * w / np.maximum(v, 1e-9), spin_axis=spin_axis(vel, spin))
 
 
-def contact_regimes(c: Contacts, kind: str, radius: float) -> dict:
+def contact_regimes(c: ContactItems, kind: str, radius: float) -> dict:
     """Regime quantities of contacts (see the module docstring)."""
     out = kinematic_regimes(c.world_in[:, :3], c.world_in[:, 3:], radius)
     if kind == "table":

@@ -124,7 +124,7 @@ def missing_frames(fl) -> dict:
 
 def racket_state_error(model, c) -> dict:
     """Racket velocity bias and spread that would explain the racket-contact residuals (module
-    docstring); ``c``: the racket :class:`~ttsim_jax.diagnose.phases.Contacts`."""
+    docstring); ``c``: the racket :class:`~ttsim_jax.diagnose.phases.ContactItems`."""
     from ttsim_jax.kernel.step import ball_properties
     from ttsim_jax.physics.racket import base_response
 

@@ -41,8 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.data.contact_states import (SKIP_REASONS, ContactFit, ObservationIndex, estimate_contact,
-                                          fit_contact_state)
+from ttsim_jax.data.contact_states import SKIP_REASONS, ContactFit, fit_contact_state
 from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.fit.network_evaluation import contact_errors
 from ttsim_jax.fit.racket_arrays import contact_arrays
@@ -179,8 +178,6 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
         spin 0 where not measured), ``error`` {name: (N, 6) predicted minus measured, NaN spin
         unless both spins are measured}, ``skip_counts`` {reason: n}.
     """
-    from ttsim_jax.data.batch import segments_around
-
     ev = ds.events
     rows = np.flatnonzero((np.asarray(ev["kind"]).astype(str) == "table") & settings.keep(ev["session_id"]))
     if not len(rows):
@@ -188,32 +185,23 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
             tick()
         return dict(skipped="no table bounce (event kind 'table') in the dataset")
     ids = np.asarray(ev["event_id"], np.int64)[rows]
-    in_rows, out_rows = segments_around(ds, ids)
-    t_c = np.asarray(ev["t"], np.float64)[rows]
-    p_c = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1)
-    index = ObservationIndex(ds)
-    counts = {k: 0 for k in TABLE_SKIP_REASONS}
-    good, pre, post, spin_known = [], [], [], []
-    for i in range(len(rows)):
-        reason, est = estimate_contact(index, in_rows[i], out_rows[i], t_c[i], settings.fit, need_spin=False)
-        if reason is None and est.vel_in[2] >= 0.0:
-            reason = "not_falling"
-        if reason is None and est.vel_out[2] <= 0.0:
-            reason = "not_rising"
-        if reason is not None:
-            counts[reason] += 1
-            continue
-        good.append(i)
-        pre.append(np.concatenate([est.vel_in, est.spin_in if est.spin_known[0] else np.zeros(3)]))
-        post.append(np.concatenate([est.vel_out, est.spin_out]))
-        spin_known.append(est.spin_known)
+    c = ds.contacts(settings.fit)
+    at = c.rows(ids)
+    reasons = c.skip_reasons(need_spin=False)[at]
+    reasons[(reasons == None) & (c.vel_in[at, 2] >= 0.0)] = "not_falling"  # noqa: E711 (an object array)
+    reasons[(reasons == None) & (c.vel_out[at, 2] <= 0.0)] = "not_rising"  # noqa: E711
+    counts = {k: int(np.sum(reasons == k)) for k in TABLE_SKIP_REASONS}
     skip_counts = {k: v for k, v in counts.items() if v}
-    if not good:
+    good = np.flatnonzero(reasons == None)  # noqa: E711
+    if not len(good):
         for _ in models:
             tick()
         return dict(skipped=f"none of the {len(rows)} table bounces is usable ({counts_text(skip_counts, TABLE_SKIP_REASONS)})")
-    good = np.asarray(good)
-    pre, post, spin_known = np.asarray(pre), np.asarray(post), np.asarray(spin_known)
+    g = at[good]
+    spin_known = c.spin_known[g]
+    p_c = c.pos[at]
+    pre = np.concatenate([c.vel_in[g], np.where(spin_known[:, :1], c.spin_in[g], 0.0)], 1)
+    post = np.concatenate([c.vel_out[g], c.spin_out[g]], 1)
     error = {}
     for name, model in models:
         dtype = model.ball.radius.dtype
@@ -310,18 +298,16 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
         (N,), ``racket`` (N, 18) (position, rotation matrix (9), velocity, angular velocity), ``measured``
         (N, 2) landing point, ``skip_counts``, ``n_contacts``.
     """
-    from ttsim_jax.data.batch import segments_around
     from ttsim_jax.physics.rotations import quat_to_matrix
 
     fit = settings.fit
     rk, ev = ds.rackets, ds.events
-    ev_row = {int(e): i for i, e in enumerate(ev["event_id"])}
     ids = np.asarray(rk["event_id"], np.int64)
-    rows = np.array([ev_row[int(e)] for e in ids], np.int64)
+    rows = ds.event_rows(ids)
     sel = settings.keep(np.asarray(ev["session_id"])[rows]) if len(rows) else np.zeros(0, bool)
-    in_rows, out_rows = segments_around(ds, ids)
+    in_rows, out_rows = ds.segments_around(ids)
     kinds = np.asarray(ev["kind"]).astype(str)
-    index = ObservationIndex(ds)
+    index = ds.observation_index()
     seg = ds.segments
     counts = {k: 0 for k in LANDING_SKIP_REASONS}
     out = dict(event_id=[], t0=[], ball=[], t_contact=[], racket=[], measured=[])
@@ -346,8 +332,9 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
             counts["no_outgoing_segment"] += 1
             continue
         end = int(seg["end_event_id"][out_rows[i]])
-        if end >= 0 and kinds[ev_row[end]] == "table":
-            measured = np.array([ev["x"][ev_row[end]], ev["y"][ev_row[end]]], np.float64)
+        end_row = int(ds.event_rows([end])[0]) if end >= 0 else -1
+        if end_row >= 0 and kinds[end_row] == "table":
+            measured = np.array([ev["x"][end_row], ev["y"][end_row]], np.float64)
         else:
             o = index.rows(out_rows[i])
             cross = crossing(index.t[o], index.pos[o], radius)

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.data.contact_states import SKIP_REASONS, ContactFit, contact_states
+from ttsim_jax.data.contact_states import SKIP_REASONS, ContactFit
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.rotations import quat_to_matrix
 
@@ -165,8 +165,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     # Float values come from the tables in float64 (batch arrays follow JAX's default float,
     # float32, which cannot hold absolute times to the sub-millisecond).
     ev = ds.events
-    ev_row = {int(e): i for i, e in enumerate(ev["event_id"])}
-    rows = np.array([ev_row[int(e)] for e in event_ids], np.int64)
+    rows = ds.event_rows(event_ids)
     t_c = np.asarray(ev["t"], np.float64)[rows] if n else np.zeros(0)
     p_c = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1) if n else np.zeros((0, 3))
     sess = np.asarray(ev["session_id"], np.int64)[rows] if n else np.zeros(0, np.int64)
@@ -181,7 +180,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     stateless = np.setdiff1d(np.asarray(ev["event_id"], np.int64)[kinds == "racket"], event_ids)
     skipped["no_racket_state"] = [int(e) for e in stateless]
 
-    vin, win, vout, wout, rmse, good = contact_states(ds, event_ids, t_c, in_row, out_row, fit, skipped)
+    vin, win, vout, wout, rmse, good = ds.contacts(fit).states(event_ids, skipped)
     seg_ids = np.asarray(ds.segments["segment_id"], np.int64)
     if len(good):
         j = lambda a: jnp.asarray(a[good])  # noqa: E731

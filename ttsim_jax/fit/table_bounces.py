@@ -1,7 +1,7 @@
 """The table bounces of a dataset with their estimated pre- and post-bounce states: what the table
 fit (:mod:`ttsim_jax.fit.table`) is fitted to.
 
-The states come from the observations alone (:func:`ttsim_jax.data.contact_states.contact_states`);
+The states come from the observations alone (:meth:`ttsim_jax.data.Dataset.contacts`);
 bounces are then checked against the model's table (on the playing surface, moving down before and
 up after, fast enough horizontally for the residual to act) and those failing a check are counted by
 reason (:data:`SKIP_REASONS`).
@@ -79,18 +79,12 @@ def table_bounces(ds, model="conti2026", fit: estimation.ContactFit = estimation
     m, _ = model_and_name(model)
     if validate:
         check(ds)
-    ev, seg = ds.events, ds.segments
+    ev = ds.events
     rows = np.flatnonzero(np.asarray(ev["kind"]).astype(str) == "table")
     event_ids = np.asarray(ev["event_id"], np.int64)[rows]
-    ends = {int(e): i for i, e in enumerate(seg["end_event_id"]) if e >= 0}
-    starts = {int(e): i for i, e in enumerate(seg["start_event_id"]) if e >= 0}
-    in_row = np.array([ends.get(int(e), -1) for e in event_ids], np.int64)
-    out_row = np.array([starts.get(int(e), -1) for e in event_ids], np.int64)
-    t_c = np.asarray(ev["t"], np.float64)[rows]
     pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xy"], -1)
     skipped = {k: [] for k in SKIP_REASONS}
-    vin, win, vout, wout, _, good = estimation.contact_states(ds, event_ids, t_c, in_row, out_row, fit, skipped,
-                                                              progress=progress)
+    vin, win, vout, wout, _, good = ds.contacts(fit, progress).states(event_ids, skipped)
     half = np.array([0.5 * float(m.table.length), 0.5 * float(m.table.width)])
     finite = np.isfinite(np.concatenate([vin, win, vout, wout], 1)).all(1)
     checks = (("non_finite", ~finite),
