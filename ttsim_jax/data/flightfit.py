@@ -242,40 +242,50 @@ def _lm_step(h, g, lam):
     return step, -(2.0 * g @ step + step @ h @ step)
 
 
+def levenberg_marquardt(normal: Callable, theta0, iterations: int = ITERATIONS, tol: float = TOL):
+    """Levenberg-Marquardt from ``theta0`` over normal equations ``normal(theta) -> (cost, J^T J,
+    J^T r, aux)`` (jit- and vmap-able; under vmap the loop runs until every problem has converged).
+
+    Returns:
+        (theta, cost, J^T J, aux at theta, iterations taken).
+    """
+
+    def body(carry):
+        k, theta, step, lam, cost, h, g, aux, _ = carry
+        # The first pass has step = 0 and cost = inf: it evaluates the start and always keeps it,
+        # so the Jacobian code is traced once.
+        cand = theta + step
+        c_new, h_new, g_new, a_new = normal(cand)
+        ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
+        stalled = (c_new >= cost * (1.0 - tol)) & (k > 0)
+        pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        theta, lam, cost, h, g = pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h), \
+            pick(g_new, g)
+        aux = jax.tree.map(pick, a_new, aux)
+        nxt, predicted = _lm_step(h, g, lam)
+        # Converged: the next step is predicted to gain less than tol of the cost (deciding on the
+        # prediction, from normal equations already in hand, saves the integration that would
+        # confirm it), or a step failed to gain that much (a problem that cannot be fitted stops
+        # too: its cost tells).
+        done = (predicted < tol * cost) | stalled
+        return k + 1, theta, nxt, lam, cost, h, g, aux, done
+
+    aux0 = jax.tree.map(jnp.zeros_like, jax.eval_shape(normal, theta0)[3])
+    init = (jnp.asarray(0), theta0, jnp.zeros_like(theta0), jnp.asarray(1e-3, theta0.dtype),
+            jnp.asarray(jnp.inf, theta0.dtype), jnp.eye(theta0.shape[0], dtype=theta0.dtype), jnp.zeros_like(theta0),
+            aux0, jnp.asarray(False))
+    k, theta, _, _, cost, h, _, aux, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
+    return theta, cost, h, aux, k - 1
+
+
 def fit_one(tau, pos, mask, spin, n, air: Air, iterations: int = ITERATIONS, substeps: int = 1, tol: float = TOL):
     """Levenberg-Marquardt fit of one padded segment; see :func:`fit_batch`."""
 
     def normal(theta):
         return normal_equations(theta, tau, pos, mask, spin, n, air, substeps)
 
-    theta0 = initial_guess(tau, pos, mask)
-
-    def body(carry):
-        k, theta, step, lam, cost, h, g, vel, _ = carry
-        # The first pass has step = 0 and cost = inf: it evaluates the start and always keeps it,
-        # so the Jacobian code is traced once.
-        cand = theta + step
-        c_new, h_new, g_new, v_new = normal(cand)
-        ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
-        stalled = (c_new >= cost * (1.0 - tol)) & (k > 0)
-        pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
-        theta, lam, cost, h, g, vel = (pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost),
-                                       pick(h_new, h), pick(g_new, g), pick(v_new, vel))
-        nxt, predicted = _lm_step(h, g, lam)
-        # Converged: the next step is predicted to gain less than tol of the cost (deciding on the
-        # prediction, from normal equations already in hand, saves the integration that would
-        # confirm it), or a step failed to gain that much (a segment that cannot be fitted stops
-        # too: its RMSE tells).
-        done = (predicted < tol * cost) | stalled
-        return k + 1, theta, nxt, lam, cost, h, g, vel, done
-
-    init = (jnp.asarray(0), theta0, jnp.zeros_like(theta0), jnp.asarray(1e-3, theta0.dtype),
-            jnp.asarray(jnp.inf, theta0.dtype), jnp.eye(theta0.shape[0], dtype=theta0.dtype), jnp.zeros_like(theta0),
-            jnp.zeros_like(pos), jnp.asarray(False))
-    # Under vmap the loop runs until every segment of the batch has converged.
-    k, theta, _, _, cost, h, _, vel, _ = jax.lax.while_loop(lambda c: (c[0] <= iterations) & ~c[-1], body, init)
-
-    return dict(theta=theta, cost=cost, jtj=h, velocity=vel, iterations=k - 1)
+    theta, cost, h, vel, k = levenberg_marquardt(normal, initial_guess(tau, pos, mask), iterations, tol)
+    return dict(theta=theta, cost=cost, jtj=h, velocity=vel, iterations=k)
 
 
 def summarize(raw: dict, mask, spin) -> dict:

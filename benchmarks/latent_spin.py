@@ -1,0 +1,230 @@
+"""Latent spin (``ttsim_jax.fit.latent_spin``) against measurement, on the public data.
+
+* **SpinDOE** (Gossard et al. 2023, arXiv:2303.03879; spin measured by a dotted-ball vision
+  method), its measured spin withheld from the fit: per flight segment, the latent spin's part
+  across the direction of flight against the measured spin's part there (the angle between them and
+  the magnitude error), by the measured spin's size, by the size of its component along the
+  flight (which the positions do not show) and by segment length.
+* **MPI launcher recordings** (``intelligent-soft-robots/ball_prediction``, BSD-3-Clause; no spin
+  measured): the latent spin's top/backspin component per file against the files' names
+  (``mn5008_topspin``, ``mn5008_backspin``, ``mn5008_no_spin``), and the held-out flight error.
+* **TT3D** (arXiv:2504.10035; no spin): the held-out flight error.
+
+Held-out flight error: the latent spin and the initial state are fitted on the first
+``--fit-fraction`` of a segment's samples; the model then predicts the rest from that state, and
+the error is the RMSE over the remaining samples. Spin 0 gets the same treatment (its state fitted
+on the same first samples, spin fixed at 0), so the two differ only in the spin.
+
+Each dataset is read from ``--real`` at run time (see its SOURCES.md; cite the sources). Writes
+``OUT/latent_spin.json`` and ``OUT/latent_spin.png``; prints Markdown tables.
+
+    python benchmarks/latent_spin.py --out benchmarks/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def real_root() -> Path:
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+def segments(ds, min_samples):
+    from ttsim_jax.data.segment_batches import dataset_segments
+
+    ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
+    session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
+    return ids, times, positions, spins, conf, np.array([session_of[int(i)] for i in ids])
+
+
+def angle_deg(a, b):
+    c = np.sum(a * b, 1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def topspin_component(spin, vel):
+    """Spin along z x v_h (positive: topspin, negative: backspin) [rad/s]."""
+    h = vel * np.array([1.0, 1.0, 0.0])
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-9)
+    return np.sum(spin * np.cross(np.array([0.0, 0.0, 1.0]), h), 1)
+
+
+def held_out_rmse(model, times, positions, fraction, spin_mode):
+    """(S,) RMSE [m] over each segment's last samples, predicted from a state (and, with
+    ``spin_mode="latent"``, a spin) fitted on its first ``fraction`` of samples."""
+    import jax
+    import jax.numpy as jnp
+
+    from ttsim_jax.fit.latent_spin import fit_latent_spin
+    from ttsim_jax.physics.aero import flight_step
+
+    heads = [max(8, int(round(fraction * len(t)))) for t in times]
+    head_t = [t[:k] for t, k in zip(times, heads)]
+    head_p = [p[:k] for p, k in zip(positions, heads)]
+    if spin_mode == "latent":
+        ls = fit_latent_spin(head_t, head_p, model)
+        p0, v0, w0 = ls.p0, ls.v0, ls.spin
+    else:  # the state fitted with the spin held at 0: the latent fit with a spin prior of 1e-6 rad/s
+        ls = fit_latent_spin(head_t, head_p, model, prior_along=1e-6, prior_any=1e-6)
+        p0, v0, w0 = ls.p0, ls.v0, np.zeros_like(ls.spin)
+    step = jax.jit(lambda p, v, w, h: flight_step(model.aero, model.ball.radius, model.ball.mass, p, v, w, 0.0, h,
+                                                   model.effects))
+    out = np.full(len(times), np.nan)
+    for i, (t, p) in enumerate(zip(times, positions)):
+        if not np.isfinite(p0[i]).all() or heads[i] >= len(t):
+            continue
+        y = (jnp.asarray(p0[i]), jnp.asarray(v0[i]), jnp.asarray(w0[i]))
+        pred = [np.asarray(y[0])]
+        for k in range(1, len(t)):
+            n_sub = max(1, int(np.ceil((t[k] - t[k - 1]) / 1e-3)))
+            h = (t[k] - t[k - 1]) / n_sub
+            for _ in range(n_sub):
+                y = step(*y, h)
+            pred.append(np.asarray(y[0]))
+        err = np.asarray(pred)[heads[i]:] - p[heads[i]:]
+        out[i] = float(np.sqrt(np.mean(np.sum(err**2, 1))))
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--real", type=Path, default=real_root(), help="folder of the public data (default: %(default)s)")
+    p.add_argument("--model", default="conti2026", help="the flight model the spin is fitted under (default: %(default)s)")
+    p.add_argument("--min-samples", type=int, default=20, help="shortest segment fitted (default: %(default)s)")
+    p.add_argument("--fit-fraction", type=float, default=0.6,
+                   help="share of a segment's samples the held-out flight error fits on (default: %(default)s)")
+    p.add_argument("--max-segments", type=int, default=0, help="at most this many segments per dataset, 0: all")
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results"), help="output folder (default: %(default)s)")
+    args = p.parse_args(argv)
+    if not args.real.is_dir():
+        print(f"error: {args.real} is not a folder (the public data; --real)", file=sys.stderr)
+        return 2
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from ttsim_jax import load_model
+    from ttsim_jax.data.importers import import_source
+    from ttsim_jax.fit.latent_spin import fit_latent_spin
+
+    model = load_model(args.model)
+    results, started = {}, time.time()
+    cut = (lambda xs: xs[:args.max_segments]) if args.max_segments else (lambda xs: xs)
+
+    # ------------------------------------------------------------------ SpinDOE: spin withheld
+    print("SpinDOE: importing, fitting the latent spin ...", file=sys.stderr)
+    ds = import_source(args.real / "spindoe", "spindoe")
+    ids, times, positions, spins, conf, _ = segments(ds, args.min_samples)
+    keep = np.flatnonzero(conf >= 0.5)
+    keep = cut(keep)
+    times = [times[i] for i in keep]
+    positions = [positions[i] for i in keep]
+    measured = spins[keep]
+    t0 = time.time()
+    ls = fit_latent_spin(times, positions, model)
+    fit_s = time.time() - t0
+    along = ls.along
+    meas_obs = measured - np.sum(measured * along, 1, keepdims=True) * along
+    est = ls.observed
+    ang = angle_deg(est, meas_obs)
+    mag = np.linalg.norm(est, axis=1) / np.maximum(np.linalg.norm(meas_obs, axis=1), 1e-9) - 1.0
+    w = np.linalg.norm(measured, axis=1)
+    par = np.abs(np.sum(measured * along, 1))
+    n = np.array([len(t) for t in times])
+    ok = ls.ok
+
+    def summary(sel):
+        sel = sel & ok
+        return dict(n=int(sel.sum()), median_angle_deg=float(np.median(ang[sel])) if sel.any() else None,
+                    median_abs_magnitude_error=float(np.median(np.abs(mag[sel]))) if sel.any() else None,
+                    median_signed_magnitude_error=float(np.median(mag[sel])) if sel.any() else None)
+
+    spin_rows = {"|w| >= 100 rad/s": summary(w >= 100)}
+    for lo, hi in ((100, 200), (200, 400), (400, 5000)):
+        spin_rows[f"|w| {lo}-{hi}"] = summary((w >= lo) & (w < hi))
+    for lo, hi in ((0, 50), (50, 150), (150, 5000)):
+        spin_rows[f"|w| >= 100, along-flight part {lo}-{hi}"] = summary((w >= 100) & (par >= lo) & (par < hi))
+    for lo, hi in ((20, 40), (40, 80), (80, 400)):
+        spin_rows[f"|w| >= 100, {lo}-{hi} samples"] = summary((w >= 100) & (n >= lo) & (n < hi))
+    spin_rows["|w| >= 100 rad/s, size not flagged ambiguous"] = summary((w >= 100) & ~ls.ambiguous)
+    results["spindoe"] = dict(segments=int(len(keep)), fitted=int(ok.sum()), fit_seconds=fit_s, rows=spin_rows,
+                              ambiguous_share=float(ls.ambiguous[ok].mean()),
+                              per_segment=dict(angle_deg=ang.round(2).tolist(), magnitude_error=mag.round(4).tolist(),
+                                               spin=w.round(1).tolist(), along=par.round(1).tolist(), n=n.tolist()))
+
+    # ------------------------------------------------------------------ MPI and TT3D: no spin
+    for name, folder, source in (("mpi", "mpi_ball_prediction", "mpi"), ("tt3d", "tt3d", "tt3d")):
+        print(f"{name}: importing, fitting ...", file=sys.stderr)
+        ds = import_source(args.real / folder, source)
+        ids, times, positions, _, _, sessions = segments(ds, args.min_samples)
+        sel = cut(np.arange(len(ids)))
+        times = [times[i] for i in sel]
+        positions = [positions[i] for i in sel]
+        sessions = sessions[sel]
+        ls = fit_latent_spin(times, positions, model)
+        top = topspin_component(ls.spin, ls.v0)
+        latent = held_out_rmse(model, times, positions, args.fit_fraction, "latent")
+        zero = held_out_rmse(model, times, positions, args.fit_fraction, "zero")
+        both = np.isfinite(latent) & np.isfinite(zero)
+        row = dict(segments=int(len(times)), scored=int(both.sum()),
+                   held_out_rmse_mm=dict(latent=float(np.median(latent[both]) * 1e3),
+                                         zero=float(np.median(zero[both]) * 1e3)),
+                   reduction_pct=float(100 * (1 - np.median(latent[both]) / np.median(zero[both]))))
+        if name == "mpi":
+            names = {int(s): str(nm) for s, nm in zip(ds.sessions["session_id"], ds.sessions["name"])}
+            files = {}
+            for s in np.unique(sessions):
+                parts = names.get(int(s), "").split("/")  # "mpi/<file>/<launch>"
+                f = parts[1] if len(parts) > 1 else parts[0]
+                files.setdefault(f, []).extend(top[(sessions == s) & ls.ok].tolist())
+            row["topspin_component_by_file"] = {f: dict(n=len(v), median=float(np.median(v)) if v else None)
+                                                for f, v in files.items()}
+        results[name] = row
+
+    results["seconds"] = time.time() - started
+    results["load"] = os.getloadavg()
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "latent_spin.json").write_text(json.dumps(results, indent=1))
+
+    print("| SpinDOE, spin withheld | segments | median angle | median magnitude error |\n|---|---|---|---|")
+    for k, r in results["spindoe"]["rows"].items():
+        if r["n"]:
+            print(f"| {k} | {r['n']} | {r['median_angle_deg']:.1f} deg | {100 * r['median_abs_magnitude_error']:.0f} % |")
+    print("\n| data | segments | held-out RMSE, latent spin | spin 0 | less |\n|---|---|---|---|---|")
+    for name in ("mpi", "tt3d"):
+        r = results[name]
+        print(f"| {name} | {r['scored']} | {r['held_out_rmse_mm']['latent']:.1f} mm | {r['held_out_rmse_mm']['zero']:.1f} mm "
+              f"| {r['reduction_pct']:.0f} % |")
+    print("\nMPI, top/backspin component per file (median, rad/s):",
+          {f: r["median"] for f, r in results["mpi"]["topspin_component_by_file"].items()})
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    sp = results["spindoe"]["per_segment"]
+    a, m_, wv = np.asarray(sp["angle_deg"]), np.asarray(sp["magnitude_error"]), np.asarray(sp["spin"])
+    axes[0].scatter(wv, a, s=6)
+    axes[0].set(xscale="log", xlabel="measured |w| [rad/s]", ylabel="angle error [deg]",
+                title="SpinDOE: latent vs measured spin (across the flight)")
+    axes[1].scatter(wv, 100 * m_, s=6)
+    axes[1].axhline(0, color="k", lw=0.5)
+    axes[1].set(xscale="log", xlabel="measured |w| [rad/s]", ylabel="magnitude error [%]", ylim=(-100, 200))
+    fig.tight_layout()
+    fig.savefig(args.out / "latent_spin.png", dpi=110)
+    print(f"written to {args.out}: latent_spin.json, latent_spin.png", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""The latent spin (``ttsim_jax.fit.latent_spin``) on flights of the model's own physics, integrated
+here at 0.1 ms and sampled at 150 Hz with 2 mm of noise: the spin across the direction of flight is
+recovered, the component along it is reported as its prior's, and the intervals cover."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import load_model
+from ttsim_jax.fit.latent_spin import PRIOR_ALONG, fit_latent_spin, initial_guess
+from ttsim_jax.physics.aero import flight_step
+
+RATE, DURATION, NOISE, H = 150.0, 0.3, 0.002, 1e-4
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("conti2026")
+
+
+def flights(model, spins, seed=0):
+    """Sampled noisy positions of flights from the near end at 5-20 m/s with the given spins."""
+    rng = np.random.default_rng(seed)
+    s = len(spins)
+    p = np.stack([rng.uniform(-1.4, -1.0, s), rng.uniform(-0.3, 0.3, s), rng.uniform(0.2, 0.4, s)], -1)
+    d = np.stack([np.ones(s), rng.uniform(-0.15, 0.15, s), rng.uniform(-0.05, 0.2, s)], -1)
+    v = rng.uniform(5, 20, s)[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
+    step = jax.jit(jax.vmap(lambda p, v, w: flight_step(model.aero, model.ball.radius, model.ball.mass, p, v, w, 0.0, H)))
+    y, every, samples = (jnp.asarray(p), jnp.asarray(v), jnp.asarray(spins)), int(round(1 / (RATE * H))), []
+    for k in range(int(round(DURATION / H)) + 1):
+        if k % every == 0:
+            samples.append(np.asarray(y[0]))
+        y = step(*y)
+    pos = np.stack(samples, 1) + rng.normal(0.0, NOISE, (s, len(samples), 3))
+    t = np.arange(len(samples)) / RATE
+    return [t] * s, list(pos), v
+
+
+def across(spin, along):
+    return spin - np.sum(spin * along, 1, keepdims=True) * along
+
+
+@pytest.fixture(scope="module")
+def fitted(model):
+    """Spins across the launch velocity (top, back and side spin) of 30-600 rad/s, and a spin-free set."""
+    rng = np.random.default_rng(1)
+    s = 48
+    d = np.stack([np.ones(s), np.zeros(s), np.zeros(s)], -1)
+    axis = np.cross(d, rng.normal(size=(s, 3)))
+    spins = rng.uniform(30, 600, s)[:, None] * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    times, positions, _ = flights(model, spins)
+    return spins, fit_latent_spin(times, positions, model, noise=NOISE)
+
+
+def test_spin_across_the_flight_is_recovered(fitted):
+    spins, ls = fitted
+    assert ls.ok.all()
+    true = across(spins, ls.along)
+    est = ls.observed
+    cos = np.sum(est * true, 1) / (np.linalg.norm(est, axis=1) * np.linalg.norm(true, axis=1))
+    big = np.linalg.norm(true, axis=1) >= 100
+    assert np.median(np.degrees(np.arccos(np.clip(cos[big], -1, 1)))) < 3.0
+    ratio = np.linalg.norm(est, axis=1) / np.linalg.norm(true, axis=1)
+    assert np.median(np.abs(ratio[big] - 1)) < 0.05
+    assert np.median(ls.rmse) < 2.0 * NOISE * np.sqrt(3)  # the fit reaches the noise
+
+
+def test_intervals_cover_the_spin_across_the_flight(fitted):
+    """The intervals are about 1.5x too narrow here (median error 1.6 per-axis sigmas where a
+    Gaussian's is 1.18), and an eighth of the spins end at another size (the Magnus force barely
+    grows with the spin: see the module docstring), unflagged: what the docs say of them."""
+    spins, ls = fitted
+    err = np.linalg.norm(ls.observed - across(spins, ls.along), axis=1)
+    # |err| of a 2-D Gaussian error is below 2.45 of its per-axis sigma 95 % of the time; the
+    # stderr here is the root of the 2-D trace (sqrt(2) per-axis sigmas)
+    z = err / (ls.stderr_observed / np.sqrt(2))
+    assert 0.8 < np.median(z) < 2.5
+    assert np.mean(z <= 1.5 * 2.45) >= 0.75
+
+
+def test_the_component_along_the_flight_is_its_prior(fitted):
+    spins, ls = fitted
+    along = np.sum(ls.spin * ls.along, 1)
+    assert np.median(np.abs(along)) < 0.5 * PRIOR_ALONG  # held near the prior's mean, 0
+    sigma_along = np.sqrt(np.einsum("si,sij,sj->s", ls.along, ls.cov, ls.along))
+    assert np.median(sigma_along) > 0.5 * PRIOR_ALONG  # and as uncertain as the prior: not measured
+    assert np.median(sigma_along) > 5 * np.median(ls.stderr_observed)
+
+
+def test_no_spin_gives_a_small_spin_and_the_start_is_close(model):
+    times, positions, _ = flights(model, np.zeros((8, 3)), seed=4)
+    ls = fit_latent_spin(times, positions, model, noise=NOISE)
+    assert np.median(np.linalg.norm(ls.observed, axis=1)) < 3 * np.median(ls.stderr_observed)
+    # the start's spin (from the mean acceleration) is already of the right sign and size
+    spins = np.array([[0.0, 300.0, 0.0]] * 4)
+    times, positions, _ = flights(model, spins, seed=5)
+    t = jnp.asarray(times[0])
+    theta0, _ = initial_guess(model, t, jnp.asarray(positions[0]), jnp.ones_like(t))
+    assert 150 < float(theta0[7]) < 450
+
+
+def test_bad_settings_are_refused(model):
+    with pytest.raises(ValueError, match="must be > 0"):
+        fit_latent_spin([np.arange(10) / 100.0], [np.zeros((10, 3))], model, noise=0.0)

@@ -1,0 +1,273 @@
+"""Latent spin: a flight segment's spin estimated from its positions, jointly with its initial state.
+
+Most trackers measure no spin, yet a flight carries it: the Magnus acceleration
+C_M (rho_a / rho_b) w x v bends a 0.3 s flight at 8 m/s and 200 rad/s by tens of centimetres. Per
+segment, theta = (p0, v0, w) is fitted to the samples under the model's own flight (its drag and
+Magnus coefficient models, tables included; the spin may change in flight through the model's
+effects), by the same Levenberg-Marquardt solver as the per-segment flight fit
+(:func:`ttsim_jax.data.flightfit.levenberg_marquardt`), batched and jitted the same way.
+
+What the positions show: the two spin components across the velocity, through the Magnus force.
+The component along the velocity exerts no force (w x v = 0); it acts only through C_D(Sp) and
+C_M(|w|), weakly, so it is held to a prior, mean 0 and :data:`PRIOR_ALONG` rad/s wide, along the
+segment's mean direction of flight, and reported as such (:attr:`LatentSpin.along`,
+:attr:`LatentSpin.observed`), never as a measured 0. A weak prior on the whole spin
+(:data:`PRIOR_ANY`) keeps a straight, spin-free flight finite.
+
+Costs are in units of the position noise: the residuals are divided by ``noise`` [m], so the
+inverse of the fit's curvature is the spin's covariance when the noise is right
+(:attr:`LatentSpin.cov` scales it up by the reduced chi-square where the fit is worse than that).
+
+The start: the segment's mean acceleration from a per-axis parabola, less gravity and the model's
+drag at spin 0, is the Magnus acceleration, whose cross product with the velocity gives the spin
+across it (:func:`initial_guess`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ttsim_jax.data.flightfit import COMPILER_OPTIONS, levenberg_marquardt
+from ttsim_jax.data.segment_batches import BATCH, batches
+from ttsim_jax.physics.aero import coefficients, flight_step
+from ttsim_jax.physics.linalg import spd_solve
+
+#: Prior width of the spin component along the segment's direction of flight [rad/s]: the
+#: positions hardly constrain it.
+PRIOR_ALONG = 50.0
+#: Prior width of every spin component [rad/s] (regularises a flight whose curvature shows none).
+PRIOR_ANY = 3000.0
+#: Position noise the residuals are scaled by, unless given [m].
+NOISE = 0.002
+#: Levenberg-Marquardt iterations at most.
+ITERATIONS = 20
+#: The fit starts from the initial guess's spin scaled by each of these: under the paper's C_M the
+#: Magnus force C_M(|w|) |w| hardly grows, and at some speeds falls, above a few hundred rad/s, so
+#: a spin and one about three times its size can bend a flight alike.
+STARTS = (1.0, 3.0)
+#: Two fits whose costs (chi-square) differ by less than this, with spins across the flight whose
+#: sizes differ by more than :data:`AMBIGUOUS_RATIO`, leave the spin's size undecided.
+AMBIGUOUS_COST = 2.0
+AMBIGUOUS_RATIO = 1.25
+
+
+def _unit(v):
+    return v / jnp.maximum(jnp.linalg.norm(v), 1e-9)
+
+
+def _parabola(tau, pos, mask):
+    """(p0, v0, mean velocity, mean acceleration) of a per-axis parabola through the samples."""
+    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
+    coef = spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
+    t_mid = jnp.sum(tau * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+    return coef[0], coef[1], coef[1] + 2.0 * coef[2] * t_mid, 2.0 * coef[2]
+
+
+def initial_guess(model, tau, pos, mask):
+    """(theta0 (9,), along (3,)): the parabola's state at tau[0] with the spin across the mean
+    velocity that the mean acceleration's Magnus part implies (C_M taken at that spin, three
+    passes), and the mean direction of flight."""
+    p0, v0, v, acc = _parabola(tau, pos, mask)
+    radius, mass, aero = model.ball.radius, model.ball.mass, model.aero
+    ratio = aero.rho_air * (4.0 / 3.0) * jnp.pi * radius**3 / mass
+    speed = jnp.linalg.norm(v)
+    fall = (1.0 - aero.buoyancy * ratio) * aero.gravity
+    w = jnp.zeros(3, pos.dtype)
+    for _ in range(3):
+        cd, cm = coefficients(aero, v, w, radius)
+        drag = -(3.0 / (8.0 * radius)) * cd * ratio * speed * v
+        # a_magnus = k w x v, so v x a_magnus = k |v|^2 w_perp
+        k = jnp.maximum(cm, 0.05) * ratio
+        w = jnp.cross(v, acc - drag - fall) / (k * jnp.maximum(speed**2, 1e-6))
+    return jnp.concatenate([p0, v0, w]), _unit(v)
+
+
+def normal_equations(model, theta, tau, pos, mask, n, noise, prior):
+    """Cost, J^T J (9, 9), J^T r (9,) of the scaled position residuals plus the spin prior, and the
+    velocities (T, 3) at the sample times: the state's sensitivities to (v0, w0) ride along one
+    integration (forward mode, one RK4 step at a time), as in
+    :func:`ttsim_jax.data.flightfit.normal_equations`. ``prior``: (3, 3) precision of the spin."""
+    dtype = theta.dtype
+    dts = jnp.diff(tau)
+    eye3 = jnp.eye(3, dtype=dtype)
+    directions = jnp.eye(6, dtype=dtype)  # tangents over x = (v0, w0)
+    radius, mass, aero, effects = model.ball.radius, model.ball.mass, model.aero, model.effects
+
+    def step(y, h):
+        p, v, w = y
+        return flight_step(aero, radius, mass, p, v, w, 0.0, h, effects)
+
+    def add(sums, p, dp, i):
+        cost, jtj, jtr = sums
+        m = mask[i] / noise**2
+        r = p - pos[i]
+        block = jnp.concatenate([eye3, dp.T], axis=1)  # (3, 9): d p_i / d theta
+        return cost + m * (r @ r), jtj + m * (block.T @ block), jtr + m * (block.T @ r)
+
+    def body(carry):
+        i, y, dy, sums, vel = carry
+        h = dts[i]
+        y2, dy2 = jax.vmap(lambda d: jax.jvp(lambda y_: step(y_, h), (y,), (d,)), out_axes=(None, 0))(dy)
+        return i + 1, y2, dy2, add(sums, y2[0], dy2[0], i + 1), vel.at[i + 1].set(y2[1])
+
+    p0, v0, w0 = theta[:3], theta[3:6], theta[6:9]
+    dy0 = (jnp.zeros((6, 3), dtype), directions[:, :3], directions[:, 3:])
+    sums = add((jnp.zeros((), dtype), jnp.zeros((9, 9), dtype), jnp.zeros(9, dtype)), p0, dy0[0], 0)
+    vel = jnp.zeros((tau.shape[0], 3), dtype).at[0].set(v0)
+    *_, (cost, jtj, jtr), vel = jax.lax.while_loop(lambda c: c[0] < n - 1, body,
+                                                    (jnp.asarray(0), (p0, v0, w0), dy0, sums, vel))
+    cost = cost + w0 @ prior @ w0
+    jtj = jtj.at[6:, 6:].add(prior)
+    jtr = jtr.at[6:].add(prior @ w0)
+    return cost, jtj, jtr, vel
+
+
+def spin_prior(along, prior_along, prior_any):
+    """(..., 3, 3) precision of the spin's prior [s^2/rad^2]: ``prior_along`` wide along ``along``
+    (..., 3), ``prior_any`` wide in every direction."""
+    outer = along[..., :, None] * along[..., None, :]
+    return outer / prior_along**2 + jnp.eye(3, dtype=along.dtype) / prior_any**2
+
+
+def fit_one(model, tau, pos, mask, n, noise, prior_along, prior_any, iterations: int = ITERATIONS):
+    """The latent-spin fit of one padded segment from each of :data:`STARTS` (the start's spin
+    scaled), the best kept: dict of ``theta`` (9,), ``cost``, ``jtj``, ``along`` (3,) the unobserved
+    axis, ``velocity`` (T, 3), ``iterations``, ``ambiguous`` (another start fits as well,
+    :data:`AMBIGUOUS_COST`, with a spin of another size, :data:`AMBIGUOUS_RATIO`)."""
+    theta0, along = initial_guess(model, tau, pos, mask)
+    prior = spin_prior(along, prior_along, prior_any)
+
+    def normal(theta):
+        return normal_equations(model, theta, tau, pos, mask, n, noise, prior)
+
+    def start(scale):
+        return levenberg_marquardt(normal, theta0.at[6:].multiply(scale), iterations)
+
+    theta, cost, h, vel, k = jax.vmap(start)(jnp.asarray(STARTS, theta0.dtype))
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    best = jnp.argmin(cost)
+    size = jnp.linalg.norm(theta[:, 6:] - (theta[:, 6:] @ along)[:, None] * along, axis=1)
+    other = (cost <= cost[best] + AMBIGUOUS_COST) & (jnp.abs(jnp.log(jnp.maximum(size, 1e-9) / jnp.maximum(
+        size[best], 1e-9))) > jnp.log(AMBIGUOUS_RATIO))
+    return dict(theta=theta[best], cost=cost[best], jtj=h[best], along=along, velocity=vel[best],
+                iterations=k[best], ambiguous=jnp.any(other))
+
+
+def _fit_batch_impl(model, tau, pos, mask, n_max, noise, prior_along, prior_any, iterations):
+    return jax.vmap(lambda a, b, c: fit_one(model, a, b, c, n_max, noise, prior_along, prior_any, iterations))(
+        tau, pos, mask)
+
+
+_fit_batch = jax.jit(_fit_batch_impl, static_argnames=("iterations",), compiler_options=COMPILER_OPTIONS)
+
+
+@dataclasses.dataclass
+class LatentSpin:
+    """Latent spins of many segments (numpy, in the order the segments were given).
+
+    Attributes:
+        p0, v0: (S, 3) fitted state at each segment's first sample; spin: (S, 3) [rad/s];
+        cov: (S, 3, 3) the spin's covariance [rad^2/s^2] (from the fit's curvature, scaled by the
+            reduced chi-square where above 1);
+        along: (S, 3) unit vector of the unobserved spin axis (the direction of flight), where the
+            spin is its prior's (mean 0, :data:`PRIOR_ALONG`) plus what C_D and C_M's dependence
+            on the spin shows;
+        rmse: (S,) position RMSE of the fit [m]; n: (S,) samples; ok: (S,) the fit ran and is
+            finite (the others' values are NaN);
+        ambiguous: (S,) a spin of another size across the flight fits as well (:data:`STARTS`):
+            the positions show its direction, not its size.
+    """
+
+    p0: np.ndarray
+    v0: np.ndarray
+    spin: np.ndarray
+    cov: np.ndarray
+    along: np.ndarray
+    rmse: np.ndarray
+    n: np.ndarray
+    ok: np.ndarray
+    ambiguous: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rmse)
+
+    @property
+    def observed(self) -> np.ndarray:
+        """(S, 3) the spin's part across the direction of flight: what the positions show."""
+        return self.spin - np.sum(self.spin * self.along, 1, keepdims=True) * self.along
+
+    @property
+    def stderr_observed(self) -> np.ndarray:
+        """(S,) standard error of the observed part's size [rad/s] (the root of the covariance's
+        trace across the direction of flight)."""
+        p = np.eye(3)[None] - self.along[:, :, None] * self.along[:, None, :]
+        return np.sqrt(np.maximum(np.einsum("sij,sjk,ski->s", p, self.cov, p), 0.0))
+
+
+def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], model, *, noise: float = NOISE,
+                    prior_along: float = PRIOR_ALONG, prior_any: float = PRIOR_ANY, batch: int = BATCH,
+                    iterations: int = ITERATIONS, min_samples: int = 8, dtype=np.float64,
+                    progress: Callable | None = None) -> LatentSpin:
+    """The latent spin of every segment (see the module docstring).
+
+    Arguments:
+        times: list of (T_i,) increasing sample times [s]; positions: list of (T_i, 3) [m].
+        model: a :class:`~ttsim_jax.params.Model` (its ball, air, coefficient models and effects).
+        noise: position noise [m] the residuals are scaled by; prior_along, prior_any: prior widths
+            [rad/s] (:data:`PRIOR_ALONG`, :data:`PRIOR_ANY`).
+        batch: segments per compiled call; iterations: Levenberg-Marquardt iterations at most;
+        min_samples: shorter segments are not fitted (NaN); dtype: the fit's float type;
+        progress: optional ``progress(n_done)`` after each batch.
+
+    Returns:
+        :class:`LatentSpin`.
+    """
+    if not noise > 0 or not prior_along > 0 or not prior_any > 0:
+        raise ValueError(f"noise, prior_along and prior_any must be > 0, got {noise}, {prior_along}, {prior_any}")
+    n_seg = len(times)
+    lengths = np.array([len(t) for t in times], int)
+    nan = lambda *s: np.full((n_seg, *s), np.nan)  # noqa: E731
+    out = LatentSpin(p0=nan(3), v0=nan(3), spin=nan(3), cov=nan(3, 3), along=nan(3), rmse=nan(), n=lengths,
+                     ok=np.zeros(n_seg, bool), ambiguous=np.zeros(n_seg, bool))
+    m = jax.tree.map(lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else x,
+                     model.replace(residual=None))
+    scalar = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    done = 0
+    for idx, (tau, pos, mask, _), n_max in batches(times, positions, np.zeros((n_seg, 3)), batch, dtype,
+                                                   min_samples=min_samples):
+        raw = jax.device_get(_fit_batch(m, jnp.asarray(tau), jnp.asarray(pos), jnp.asarray(mask), jnp.asarray(n_max),
+                                        scalar(noise), scalar(prior_along), scalar(prior_any), iterations))
+        k = len(idx)
+        theta, cost, h = (np.asarray(raw[key][:k], np.float64) for key in ("theta", "cost", "jtj"))
+        count = np.asarray(mask[:k], np.float64).sum(1)
+        along = np.asarray(raw["along"][:k], np.float64)
+        prior = np.asarray(spin_prior(along, prior_along, prior_any))
+        data_cost = cost - np.einsum("si,sij,sj->s", theta[:, 6:], prior, theta[:, 6:])
+        chi2 = data_cost / np.maximum(3.0 * count - 9.0, 1.0)
+        cov = np.linalg.pinv(h)[:, 6:, 6:] * np.maximum(chi2, 1.0)[:, None, None]
+        rmse = noise * np.sqrt(np.maximum(data_cost, 0.0) / np.maximum(count, 1.0))
+        ok = np.isfinite(theta).all(1) & np.isfinite(cost) & np.isfinite(cov).all((1, 2))
+        sel = np.asarray(idx)
+        for name, value in (("p0", theta[:, :3]), ("v0", theta[:, 3:6]), ("spin", theta[:, 6:]), ("cov", cov),
+                            ("along", along), ("rmse", rmse)):
+            getattr(out, name)[sel] = np.where(ok.reshape((-1,) + (1,) * (value.ndim - 1)), value, np.nan)
+        out.ok[sel] = ok
+        out.ambiguous[sel] = np.asarray(raw["ambiguous"][:k], bool) & ok
+        done += k
+        if progress is not None:
+            progress(done)
+    return out
+
+
+def dataset_latent_spin(ds, model, *, min_samples: int = 8, **options) -> tuple[np.ndarray, LatentSpin]:
+    """(segment_ids (S,), :class:`LatentSpin`) of every segment of a dataset with at least
+    ``min_samples`` observations; ``options`` as for :func:`fit_latent_spin`."""
+    from ttsim_jax.data.segment_batches import dataset_segments
+
+    ids, times, positions, _, _ = dataset_segments(ds, min_samples)
+    return ids, fit_latent_spin(times, positions, model, min_samples=min_samples, **options)
