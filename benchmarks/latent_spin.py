@@ -4,7 +4,8 @@
   method), its measured spin withheld from the fit: per flight segment, the latent spin's part
   across the direction of flight against the measured spin's part there (the angle between them and
   the magnitude error), by the measured spin's size, by the size of its component along the
-  flight (which the positions do not show) and by segment length.
+  flight (which the positions do not show) and by segment length; and the spin check
+  (``ttsim_jax.fit.spin_check``) of the measured spin against the latent one.
 * **MPI launcher recordings** (``intelligent-soft-robots/ball_prediction``, BSD-3-Clause; no spin
   measured): the latent spin's top/backspin component per file against the files' names
   (``mn5008_topspin``, ``mn5008_backspin``, ``mn5008_no_spin``), and the held-out flight error.
@@ -114,6 +115,7 @@ def main(argv=None) -> int:
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
     from ttsim_jax.fit.latent_spin import fit_latent_spin
+    from ttsim_jax.fit.spin_check import check_spin
 
     model = load_model(args.model)
     results, started = {}, time.time()
@@ -154,9 +156,11 @@ def main(argv=None) -> int:
         spin_rows[f"|w| >= 100, along-flight part {lo}-{hi}"] = summary((w >= 100) & (par >= lo) & (par < hi))
     for lo, hi in ((20, 40), (40, 80), (80, 400)):
         spin_rows[f"|w| >= 100, {lo}-{hi} samples"] = summary((w >= 100) & (n >= lo) & (n < hi))
+    check = check_spin(measured, ls)
     spin_rows["|w| >= 100 rad/s, size not flagged ambiguous"] = summary((w >= 100) & ~ls.ambiguous)
     results["spindoe"] = dict(segments=int(len(keep)), fitted=int(ok.sum()), fit_seconds=fit_s, rows=spin_rows,
-                              ambiguous_share=float(ls.ambiguous[ok].mean()),
+                              ambiguous_share=float(ls.ambiguous[ok].mean()), spin_check=check.to_json(),
+                              spin_check_summary=check.summary(),
                               per_segment=dict(angle_deg=ang.round(2).tolist(), magnitude_error=mag.round(4).tolist(),
                                                spin=w.round(1).tolist(), along=par.round(1).tolist(), n=n.tolist()))
 
@@ -198,6 +202,7 @@ def main(argv=None) -> int:
     for k, r in results["spindoe"]["rows"].items():
         if r["n"]:
             print(f"| {k} | {r['n']} | {r['median_angle_deg']:.1f} deg | {100 * r['median_abs_magnitude_error']:.0f} % |")
+    print("\nSpinDOE " + results["spindoe"]["spin_check_summary"])
     print("\n| data | segments | held-out RMSE, latent spin | spin 0 | less |\n|---|---|---|---|---|")
     for name in ("mpi", "tt3d"):
         r = results[name]

@@ -72,6 +72,11 @@ def register(subparsers) -> None:
                         help="comma-separated subset of flight,table,racket,landing (default: all)")
     parser.add_argument("--horizon", type=positive_float, default=1.5, metavar="S",
                         help="longest landing rollout [s] (default: %(default)s)")
+    parser.add_argument("--spin", choices=("auto", "measured", "latent", "zero"), default="auto",
+                        help="flight segments' spin: 'auto' the measured one where there is one and the latent spin "
+                        "fitted from the segment's samples elsewhere; 'measured' only the segments with a measured "
+                        "spin (every segment with spin 0 when none has one); 'latent' the latent spin everywhere; "
+                        "'zero' spin 0 everywhere (default: %(default)s)")
     parser.add_argument("--float64", action="store_true", help="simulate in float64 (default: float32)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=cmd_evaluate)
@@ -98,7 +103,7 @@ def cmd_evaluate(args) -> int:
         if not sessions:
             raise UsageError(f"--split test: --test-fraction {args.test_fraction:g} of the "
                              f"sessions of {args.data} holds out none")
-    settings = EvaluateSettings(horizon=args.horizon, sessions=sessions, float64=args.float64)
+    settings = EvaluateSettings(horizon=args.horizon, sessions=sessions, float64=args.float64, spin=args.spin)
     models = args.models or DEFAULT_MODELS.split(",")
     result = evaluate_models(ds, models, settings, stages=args.stages or STAGES, progress=not args.quiet)
     paths = write_report(result, args.out, data=str(args.data))

@@ -117,8 +117,10 @@ def summarise(result: dict) -> dict:
             out["flight"] = dict(skipped=f["skipped"])
         else:
             per = _headline(f["rmse"], names, ref)
+            source = np.asarray(f.get("spin_source", np.full(len(f["segment_id"]), "measured")), str)
             out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
                                  n_without_spin=f["n_without_spin"], unit="m", models=per,
+                                 spin_sources={k: int(np.sum(source == k)) for k in ("measured", "latent", "zero")},
                                  not_finite=_not_finite(f["rmse"], f.get("spin")))
     if "table" in result:
         t = result["table"]
@@ -203,8 +205,15 @@ def _flight_md(f: dict, names: list, figures: dict) -> list:
     mm = lambda v: _num(None if v is None else 1e3 * v, ".1f")  # noqa: E731
     rows = [[n, str(m["n"]), mm(m["median"]), mm(m["p75"]), _reduction(m, "median"), _reduction(m, "p75")]
             for n, m in f["models"].items()]
-    spin = (f"segments with a measured spin ({f['n_without_spin']} without one left out)" if f["spin_measured"] else
-            "segments, none with a measured spin: every model flies with spin 0")
+    src = f.get("spin_sources") or {}
+    if src.get("latent"):
+        spin = (f"segments: {src.get('measured', 0)} with their measured spin, {src['latent']} with the latent spin "
+                "(fitted per model from the segment's own samples: their errors are in-sample, with three more "
+                f"parameters), {src.get('zero', 0)} with spin 0 (too short to fit one)")
+    elif f["spin_measured"]:
+        spin = f"segments with a measured spin ({f['n_without_spin']} without one left out)"
+    else:
+        spin = "segments, none with a measured spin: every model flies with spin 0"
     why = [f"n of {n}: {text}." for n, text in (f.get("not_finite") or {}).items()]
     return ([f"{f['n_segments']} {spin}; initial position the first observation, initial velocity fitted per "
              "segment.", ""]

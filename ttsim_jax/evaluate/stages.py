@@ -89,6 +89,9 @@ class EvaluateSettings:
         sessions: evaluate only these session ids (None: all).
         float64: load the models (names and TOML files) in float64; by default float32, the
             simulator's usual type, whatever JAX's default float is.
+        spin: where a flight segment's spin comes from (``"auto"``: the measured one where there is
+            one, the latent spin fitted from the segment's samples elsewhere; ``"measured"``,
+            ``"latent"``, ``"zero"``: see :func:`ttsim_jax.fit.flight.segment_rmse`).
     """
 
     fit: ContactFit = ContactFit()
@@ -98,6 +101,7 @@ class EvaluateSettings:
     chunk: int = 256
     sessions: tuple | None = None
     float64: bool = False
+    spin: str = "auto"
 
     def keep(self, session_ids) -> np.ndarray:
         """(N,) bool: rows whose session is evaluated."""
@@ -152,7 +156,7 @@ def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     from ttsim_jax.fit.flight import segment_rmse
 
     return segment_rmse(ds, models, min_samples=settings.min_samples, min_spin_conf=settings.fit.min_spin_conf,
-                        sessions=settings.sessions, tick=tick)
+                        sessions=settings.sessions, spin=settings.spin, tick=tick)
 
 
 # ---------------------------------------------------------------------------------------------- table

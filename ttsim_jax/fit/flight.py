@@ -20,9 +20,12 @@ import numpy as np
 
 from ttsim_jax.data.flightfit import Air, initial_guess, integrate
 from ttsim_jax.data.segment_batches import BATCH, batches, dataset_segments
+from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve
 
 ITERATIONS = 6
+#: Shortest segment whose latent spin is fitted (shorter ones fly with spin 0).
+LATENT_MIN_SAMPLES = 8
 
 
 def _rmse_one(aero, air, tau, pos, mask, spin, n, iterations, fit_position):
@@ -77,12 +80,13 @@ def flight_rmse(model, times: Sequence[np.ndarray], positions: Sequence[np.ndarr
     return out
 
 
-def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float = 0.5, sessions=None,
-                 tick: Callable = lambda: None) -> dict:
-    """Flight-segment 3-D position RMSE per model on a dataset (:func:`flight_rmse` per segment).
+#: Where a segment's spin comes from (:func:`segment_rmse`'s ``spin``).
+SPIN_SOURCES = ("auto", "measured", "latent", "zero")
 
-    Segments with a measured spin (confidence >= ``min_spin_conf``) are used when the data has
-    any; otherwise every segment is, flown with spin 0.
+
+def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float = 0.5, sessions=None,
+                 spin: str = "measured", tick: Callable = lambda: None) -> dict:
+    """Flight-segment 3-D position RMSE per model on a dataset (:func:`flight_rmse` per segment).
 
     Arguments:
         ds: a :class:`~ttsim_jax.data.Dataset`.
@@ -90,14 +94,24 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
         min_samples: segments with fewer observations are left out.
         min_spin_conf: least spin confidence of a measured spin.
         sessions: score only the segments of these session ids (None: all).
+        spin: where a segment's spin comes from: ``"measured"`` (the segments with a measured spin
+            when the data has any, the others left out; else every segment, with spin 0),
+            ``"auto"`` (the measured spin where there is one, elsewhere the latent spin of
+            :mod:`ttsim_jax.fit.latent_spin`, fitted under each model from the segment's own
+            samples; spin 0 for a segment too short to fit one), ``"latent"`` (the latent spin for
+            every segment) or ``"zero"``.
         tick: called once per model when it is scored.
 
     Returns:
         dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_measured`` (whether the
         segments have a measured spin), ``n_without_spin`` (segments left out for want of one),
-        ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position) and
-        ``spin`` (S, 3) the spins flown [rad/s].
+        ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position),
+        ``spin`` (S, 3) the measured spins (zeros where none), ``spin_source`` (S,) where each
+        segment's spin came from (``"measured"``, ``"latent"``, ``"zero"``) and ``latent_spin``
+        {name: (S, 3) the spins flown where latent}.
     """
+    if spin not in SPIN_SOURCES:
+        raise ValueError(f"spin = {spin!r}: must be one of {SPIN_SOURCES}")
     ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
     segment_sessions = np.asarray([session_of[i] for i in ids.tolist()], np.int64)
@@ -109,13 +123,30 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
         return dict(skipped=f"no flight segment with at least {min_samples} observations")
     spin_known = conf >= min_spin_conf
     with_spin = bool((keep & spin_known).any())
-    if with_spin:  # a flight flown with spin 0 for want of a measurement says little about a model
+    if spin == "measured" and with_spin:  # a flight flown with spin 0 for want of a measurement says little
         keep &= spin_known
     times = [t for t, k in zip(times, keep) if k]
     positions = [p for p, k in zip(positions, keep) if k]
-    rmse = {}
+    measured = np.where(spin_known[keep, None], spins[keep], 0.0)
+    fittable = np.array([len(t) >= LATENT_MIN_SAMPLES for t in times], bool)
+    if spin in ("measured", "zero"):
+        latent_rows = np.zeros(len(times), bool)
+    else:
+        latent_rows = fittable & (~spin_known[keep] if spin == "auto" else True)
+    source = np.where(latent_rows, "latent", np.where(spin_known[keep] & (spin in ("auto", "measured")), "measured",
+                                                       "zero")).astype("U8")
+    flown = measured if spin in ("auto", "measured") else np.zeros_like(measured)
+    rmse, latent = {}, {}
     for name, model in models:
-        rmse[name] = flight_rmse(model, times, positions, spins[keep])
+        spins_m = flown.copy()
+        if latent_rows.any():
+            rows = np.flatnonzero(latent_rows)
+            ls = fit_latent_spin([times[i] for i in rows], [positions[i] for i in rows], model,
+                                 min_samples=LATENT_MIN_SAMPLES)
+            spins_m[rows] = np.where(ls.ok[:, None], ls.spin, 0.0)
+            source[rows[~ls.ok]] = "zero"
+            latent[name] = spins_m
+        rmse[name] = flight_rmse(model, times, positions, spins_m)
         tick()
     return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse,
-                spin=np.asarray(spins, np.float64).reshape(-1, 3)[keep])
+                spin=measured, spin_source=source, latent_spin=latent)

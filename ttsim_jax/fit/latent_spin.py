@@ -131,7 +131,8 @@ def spin_prior(along, prior_along, prior_any):
     """(..., 3, 3) precision of the spin's prior [s^2/rad^2]: ``prior_along`` wide along ``along``
     (..., 3), ``prior_any`` wide in every direction."""
     outer = along[..., :, None] * along[..., None, :]
-    return outer / prior_along**2 + jnp.eye(3, dtype=along.dtype) / prior_any**2
+    eye = jnp.eye(3, dtype=along.dtype) if isinstance(along, jax.Array) else np.eye(3)  # numpy on the host
+    return outer / prior_along**2 + eye / prior_any**2
 
 
 def fit_one(model, tau, pos, mask, n, noise, prior_along, prior_any, iterations: int = ITERATIONS):
@@ -211,7 +212,7 @@ class LatentSpin:
 
 def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], model, *, noise: float = NOISE,
                     prior_along: float = PRIOR_ALONG, prior_any: float = PRIOR_ANY, batch: int = BATCH,
-                    iterations: int = ITERATIONS, min_samples: int = 8, dtype=np.float64,
+                    iterations: int = ITERATIONS, min_samples: int = 8, dtype=None,
                     progress: Callable | None = None) -> LatentSpin:
     """The latent spin of every segment (see the module docstring).
 
@@ -221,7 +222,8 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
         noise: position noise [m] the residuals are scaled by; prior_along, prior_any: prior widths
             [rad/s] (:data:`PRIOR_ALONG`, :data:`PRIOR_ANY`).
         batch: segments per compiled call; iterations: Levenberg-Marquardt iterations at most;
-        min_samples: shorter segments are not fitted (NaN); dtype: the fit's float type;
+        min_samples: shorter segments are not fitted (NaN); dtype: the fit's float type (default
+            JAX's: float32, float64 with ``jax_enable_x64``);
         progress: optional ``progress(n_done)`` after each batch.
 
     Returns:
@@ -229,6 +231,7 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
     """
     if not noise > 0 or not prior_along > 0 or not prior_any > 0:
         raise ValueError(f"noise, prior_along and prior_any must be > 0, got {noise}, {prior_along}, {prior_any}")
+    dtype = jnp.zeros(()).dtype if dtype is None else np.dtype(dtype)
     n_seg = len(times)
     lengths = np.array([len(t) for t in times], int)
     nan = lambda *s: np.full((n_seg, *s), np.nan)  # noqa: E731
@@ -246,7 +249,7 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
         theta, cost, h = (np.asarray(raw[key][:k], np.float64) for key in ("theta", "cost", "jtj"))
         count = np.asarray(mask[:k], np.float64).sum(1)
         along = np.asarray(raw["along"][:k], np.float64)
-        prior = np.asarray(spin_prior(along, prior_along, prior_any))
+        prior = spin_prior(along, prior_along, prior_any)
         data_cost = cost - np.einsum("si,sij,sj->s", theta[:, 6:], prior, theta[:, 6:])
         chi2 = data_cost / np.maximum(3.0 * count - 9.0, 1.0)
         cov = np.linalg.pinv(h)[:, 6:, 6:] * np.maximum(chi2, 1.0)[:, None, None]
