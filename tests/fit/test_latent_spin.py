@@ -105,3 +105,27 @@ def test_no_spin_gives_a_small_spin_and_the_start_is_close(model):
 def test_bad_settings_are_refused(model):
     with pytest.raises(ValueError, match="must be > 0"):
         fit_latent_spin([np.arange(10) / 100.0], [np.zeros((10, 3))], model, noise=0.0)
+
+
+def test_segment_rmse_flies_the_latent_spin_where_a_record_has_none(model):
+    """A dataset of spinning flights recorded without spin: with ``spin="auto"`` every segment is
+    flown with its latent spin and fits to the noise; with ``"zero"`` it is not; ``"measured"``
+    (nothing measured) flies them with spin 0 too."""
+    from ttsim_jax.data import Dataset
+    from ttsim_jax.fit.flight import segment_rmse
+
+    spins = np.array([[0.0, 300.0, 0.0], [0.0, -250.0, 80.0], [0.0, 150.0, -200.0], [0.0, 0.0, 0.0]])
+    times, positions, _ = flights(model, spins, seed=9)
+    sid = np.repeat(np.arange(len(times)), len(times[0]))
+    t = np.concatenate([tt + 10.0 * k for k, tt in enumerate(times)])
+    ds = Dataset.from_arrays(sid, t, np.concatenate(positions))
+    assert len(ds.segments["segment_id"]) == len(times)
+    out = {mode: segment_rmse(ds, [("m", model)], spin=mode) for mode in ("auto", "zero", "measured", "latent")}
+    assert list(out["auto"]["spin_source"]) == ["latent"] * 4 and list(out["zero"]["spin_source"]) == ["zero"] * 4
+    assert list(out["measured"]["spin_source"]) == ["zero"] * 4
+    auto, zero = out["auto"]["rmse"]["m"], out["zero"]["rmse"]["m"]
+    assert (auto < 2.0 * NOISE * np.sqrt(3)).all()
+    assert (zero[:3] > 3 * auto[:3]).all()  # the spinning ones
+    np.testing.assert_allclose(out["latent"]["rmse"]["m"], auto)
+    with pytest.raises(ValueError, match="spin = 'maybe'"):
+        segment_rmse(ds, [("m", model)], spin="maybe")
