@@ -30,6 +30,8 @@ from typing import Callable
 
 import numpy as np
 
+from .tables import id_index, rows_of
+
 #: Why a contact is not used: the estimation's reasons here, and those of the checks the racket
 #: arrays make on the estimates in the racket frame (no_racket_state, off_face, not_approaching,
 #: not_leaving, non_finite).
@@ -271,12 +273,7 @@ class Contacts:
 
     def rows(self, event_ids) -> np.ndarray:
         """(n,) int64 rows of ``event_ids`` here, -1 for an event that is not a contact."""
-        order = np.argsort(self.event_id, kind="stable")
-        ids = np.asarray(event_ids, np.int64).reshape(-1)
-        at = np.minimum(np.searchsorted(self.event_id[order], ids), max(len(order) - 1, 0))
-        if not len(order):
-            return np.full(len(ids), -1, np.int64)
-        return np.where(self.event_id[order[at]] == ids, order[at], -1).astype(np.int64)
+        return rows_of(id_index(self.event_id), event_ids)
 
     def skip_reasons(self, need_spin: bool = True) -> np.ndarray:
         """(E,) why each contact cannot be used (None: it can), with ``need_spin`` a spin confidence

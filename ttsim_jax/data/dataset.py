@@ -28,6 +28,7 @@ from . import schema
 from .errors import DataError
 from .tables import (Table, concat_tables, events_table, fill_defaults, rackets_table,  # noqa: F401 (public here too)
                      select_rows, sessions_table)
+from .tables import id_index, rows_of
 
 
 @dataclasses.dataclass
@@ -118,19 +119,7 @@ class Dataset:
     def _lookup(self, name, keys, wanted) -> np.ndarray:
         """Rows of ``wanted`` ids among ``keys`` (an int column), -1 where absent; the sorted keys
         are kept under ``name``."""
-        def build():
-            keys_ = np.asarray(keys, np.int64)
-            order = np.argsort(keys_, kind="stable")
-            return order, keys_[order]
-
-        order, sorted_keys = self._index(name, build)
-        wanted = np.asarray(wanted, np.int64).reshape(-1)
-        if not len(sorted_keys):
-            return np.full(len(wanted), -1, np.int64)
-        # the last row holding an id, as a dict built over the rows would have it
-        at = np.searchsorted(sorted_keys, wanted, side="right") - 1
-        found = (at >= 0) & (sorted_keys[np.maximum(at, 0)] == wanted)
-        return np.where(found, order[np.maximum(at, 0)], -1).astype(np.int64)
+        return rows_of(self._index(name, lambda: id_index(keys)), wanted)
 
     def event_rows(self, event_ids) -> np.ndarray:
         """(E,) int64 rows of the events table holding ``event_ids``, -1 for an id it does not hold."""

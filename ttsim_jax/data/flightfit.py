@@ -220,10 +220,16 @@ def normal_equations(theta, tau, pos, mask, spin, n, air: Air, substeps: int = 1
     return (*sums, vel)
 
 
+def parabola(tau, pos, mask):
+    """(3, 3) coefficients (constant, linear, quadratic) of a per-axis least-squares parabola in
+    tau through the masked samples."""
+    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
+    return spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
+
+
 def initial_guess(tau, pos, mask, cd0=CD_0, cm0=CM_0):
     """(8,) start of the fit: position and velocity at tau[0] from a per-axis parabola."""
-    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
-    coef = spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
+    coef = parabola(tau, pos, mask)
     return jnp.concatenate([coef[0], coef[1], jnp.array([cd0, cm0], pos.dtype)])
 
 

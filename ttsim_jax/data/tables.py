@@ -109,3 +109,23 @@ def concat_tables(tables: list[Table], name: str) -> Table:
     if not tables:
         return schema.empty_table(name)
     return {c.name: np.concatenate([t[c.name] for t in tables]).astype(c.numpy_dtype) for c in schema.TABLES[name]}
+
+
+def id_index(ids) -> tuple[np.ndarray, np.ndarray]:
+    """(order, sorted ids) of an int id column: the index :func:`rows_of` looks ids up in."""
+    ids = np.asarray(ids, np.int64)
+    order = np.argsort(ids, kind="stable")
+    return order, ids[order]
+
+
+def rows_of(index: tuple[np.ndarray, np.ndarray], wanted) -> np.ndarray:
+    """(n,) int64 rows holding the ids ``wanted`` in the column ``index`` was built on
+    (:func:`id_index`), -1 for an id it does not hold; the last row of an id held twice, as a dict
+    built over the rows would have it."""
+    order, sorted_ids = index
+    wanted = np.asarray(wanted, np.int64).reshape(-1)
+    if not len(sorted_ids):
+        return np.full(len(wanted), -1, np.int64)
+    at = np.searchsorted(sorted_ids, wanted, side="right") - 1
+    found = (at >= 0) & (sorted_ids[np.maximum(at, 0)] == wanted)
+    return np.where(found, order[np.maximum(at, 0)], -1).astype(np.int64)

@@ -108,7 +108,7 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
         ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position),
         ``spin`` (S, 3) the measured spins (zeros where none), ``spin_source`` (S,) where each
         segment's spin came from (``"measured"``, ``"latent"``, ``"zero"``) and ``latent_spin``
-        {name: (S, 3) the spins flown where latent}.
+        {name: (S, 3) the spins each model flew, for the models that fitted a latent spin}.
     """
     if spin not in SPIN_SOURCES:
         raise ValueError(f"spin = {spin!r}: must be one of {SPIN_SOURCES}")

@@ -32,10 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.data.flightfit import COMPILER_OPTIONS, levenberg_marquardt
+from ttsim_jax.data.flightfit import COMPILER_OPTIONS, levenberg_marquardt, parabola
 from ttsim_jax.data.segment_batches import BATCH, batches
 from ttsim_jax.physics.aero import coefficients, flight_step
-from ttsim_jax.physics.linalg import spd_solve
 
 #: Prior width of the spin component along the segment's direction of flight [rad/s]: the
 #: positions hardly constrain it.
@@ -62,8 +61,7 @@ def _unit(v):
 
 def _parabola(tau, pos, mask):
     """(p0, v0, mean velocity, mean acceleration) of a per-axis parabola through the samples."""
-    a = jnp.stack([jnp.ones_like(tau), tau, tau**2], axis=-1) * mask[:, None]
-    coef = spd_solve(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (pos * mask[:, None]))
+    coef = parabola(tau, pos, mask)
     t_mid = jnp.sum(tau * mask) / jnp.maximum(jnp.sum(mask), 1.0)
     return coef[0], coef[1], coef[1] + 2.0 * coef[2] * t_mid, 2.0 * coef[2]
 
