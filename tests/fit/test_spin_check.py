@@ -68,3 +68,5 @@ def test_nothing_to_compare_says_so(record):
     spins, ls = record
     c = check_spin(np.zeros_like(spins), ls)
     assert c.n == 0 and "no segment" in c.summary()
+    with pytest.raises(ValueError, match=r"shape \(63, 3\); the latent spins are of 64 segments"):
+        check_spin(spins[1:], ls)

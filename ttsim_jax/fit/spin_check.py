@@ -116,7 +116,10 @@ def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 
     Returns:
         :class:`SpinCheck`.
     """
-    measured = np.asarray(measured, np.float64).reshape(-1, 3)
+    measured = np.asarray(measured, np.float64)
+    if measured.shape != (len(latent), 3):
+        raise ValueError(f"measured spins have shape {measured.shape}; the latent spins are of {len(latent)} "
+                         f"segments: give ({len(latent)}, 3), the same segments in the same order")
     along = latent.along
     m = measured - np.sum(measured * along, 1, keepdims=True) * along
     est = latent.observed
