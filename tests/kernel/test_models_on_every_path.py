@@ -63,22 +63,49 @@ def references(state):
     return of
 
 
-@pytest.mark.parametrize("name", MODELS)
+def kernel_reading(name) -> tuple[str, str]:
+    """How the kernel reads a model's coefficients: its drag and Magnus model kinds."""
+    a = load_model(name).aero
+    return fused.DRAG_KINDS[type(a.drag)], fused.MAGNUS_KINDS[type(a.magnus)]
+
+
+def one_per_reading(names):
+    """The first model of each :func:`kernel_reading` (the others compile the same programs)."""
+    firsts = {}
+    for name in names:
+        firsts.setdefault(kernel_reading(name), name)
+    return list(firsts.values())
+
+
+def _by_reading(names):
+    """The models as test parameters: one per kernel reading by default, the others ``slow``
+    (a second model read the same way runs the same code with other numbers)."""
+    first = set(one_per_reading(names))
+    return [pytest.param(n, marks=() if n in first else pytest.mark.slow) for n in names]
+
+
+@pytest.mark.parametrize("name", _by_reading(COVERED))
 def test_default_path_equals_the_reference_path(name, state, references):
     """At the batch and length from which ``fused="auto"`` flies the fused kernel, the default
-    execution gives the reference step's events and states for every bundled model (those the
-    kernel does not cover run the reference step and say why ``fused=True`` is refused)."""
+    execution (then the fused path) gives the reference step's events and states for every bundled
+    model the kernel covers."""
     model = load_model(name)
     ref = references(name)
     default = rollout(model, state, N_AUTO, 1e-3, two_rackets(N_AUTO))
-    if covered(model):  # then the default is the fused path
-        assert jax.default_backend() != "cpu" or fused_pays(B_AUTO, n_steps=N_AUTO)
-    else:
-        with pytest.raises(ValueError, match="does not cover coefficient models"):
-            rollout(model, state, 10, 1e-3, execution=Execution(fused=True))
+    assert jax.default_backend() != "cpu" or fused_pays(B_AUTO, n_steps=N_AUTO)
     _assert_same_rollout(ref, default, 1e-9)
     kinds = np.asarray(ref[1].events.kind)
     assert (kinds > 0).sum() > B_AUTO  # bounces and racket hits: the events' states are compared too
+
+
+@pytest.mark.parametrize("name", [m for m in MODELS if m not in COVERED])
+def test_models_the_kernel_does_not_cover_run_the_reference_path(name):
+    """The default execution of a model the kernel does not cover is the reference step (the
+    fused path's gate says why), and ``fused=True`` is refused, naming the coefficient model."""
+    model = load_model(name)
+    assert "coefficient" in fused.unsupported(model, None, integrator="rk4", policy=None, rackets_batched=False)
+    with pytest.raises(ValueError, match="does not cover coefficient models"):
+        rollout(model, init_state(shots(4, seed=3)), 10, 1e-3, execution=Execution(fused=True))
 
 
 @pytest.mark.parametrize("name", COVERED)
@@ -137,20 +164,6 @@ SHARDED = textwrap.dedent("""
                                    err_msg=name)
         print("SHARDED-OK", name)
 """)
-
-
-def kernel_reading(name) -> tuple[str, str]:
-    """How the kernel reads a model's coefficients: its drag and Magnus model kinds."""
-    a = load_model(name).aero
-    return fused.DRAG_KINDS[type(a.drag)], fused.MAGNUS_KINDS[type(a.magnus)]
-
-
-def one_per_reading(names):
-    """The first model of each :func:`kernel_reading` (the others compile the same programs)."""
-    firsts = {}
-    for name in names:
-        firsts.setdefault(kernel_reading(name), name)
-    return list(firsts.values())
 
 
 @pytest.mark.parametrize("names", [pytest.param(one_per_reading(COVERED), id="each-reading"),
