@@ -79,7 +79,7 @@ def test_catalogue_lists_every_effect_with_units_and_values():
     assert set(SIM) == {"spin_decay", "air_flow", "table_tilt", "table_unevenness", "ball_variation", "worn_ball",
                         "buckling", "racket_logo", "racket_edge", "rubber_anisotropy", "air_density", "table_friction"}
     assert set(REC) == {"racket_state_error", "position_noise", "spin_noise", "missing_frames", "clock_rate",
-                        "camera_scale"}
+                        "camera_scale", "spin_calibration", "spin_unmeasured"}
     for name, cls in fx.CATALOGUE.items():
         assert cls.NAME == name and cls.DESCRIPTION and cls.SCOPE in fx.SCOPES
         assert cls.hooks(), name
@@ -103,7 +103,10 @@ def test_bad_names_and_parameters_are_named():
         fx.make("air_flow", speed=3.0)
     with pytest.raises(fx.EffectError, match="parameter 'wind' = .*shape"):
         fx.make("air_flow", wind=[1.0, 2.0])
-    assert fx.parse_names("all") == fx.names() and fx.parse_names("none") == []
+    # "all" is every effect but those that take away or falsify a record's spin, asked for by name
+    assert fx.parse_names("all") == [n for n in fx.names() if n not in ("spin_calibration", "spin_unmeasured")]
+    assert fx.parse_names("none") == []
+    assert fx.parse_names("spin_unmeasured") == ["spin_unmeasured"]
     assert fx.parse_names("racket_edge,spin_decay") == ["spin_decay", "racket_edge"]  # catalogue order
 
 
@@ -129,6 +132,12 @@ def test_neutral_values_reproduce_the_plain_model_exactly():
             np.testing.assert_array_equal(conf, np.ones(5))
         elif name == "missing_frames":
             assert e.drop_frames(np.arange(100) * 0.005, rng).all()
+        elif name == "spin_calibration":
+            np.testing.assert_allclose(e.measure_spin(pos * 100, rng), pos * 100, rtol=0, atol=1e-12)
+        elif name == "spin_unmeasured":
+            spin, conf = e.measure_spin(pos * 100, np.full(5, 0.7), rng)
+            np.testing.assert_array_equal(spin, pos * 100)
+            np.testing.assert_array_equal(conf, np.full(5, 0.7))
         else:
             rot = np.broadcast_to(np.eye(3), (5, 3, 3))
             out = e.record_racket(pos, rot, pos * 3, pos * 2, rng)
@@ -137,6 +146,32 @@ def test_neutral_values_reproduce_the_plain_model_exactly():
 
 
 # ------------------------------------------------------------------------ one test per effect
+def test_spin_calibration_scales_turns_and_flips_by_hand():
+    rng = np.random.default_rng(0)
+    spin = rng.normal(size=(400, 3)) * 200
+    # a quarter turn about z takes x to y; scale 1.2
+    e = fx.make("spin_calibration", scale=0.2, rotation=[0.0, 0.0, np.pi / 2], flip=0.0)
+    out = e.measure_spin(spin, rng)
+    np.testing.assert_allclose(out, 1.2 * np.stack([-spin[:, 1], spin[:, 0], spin[:, 2]], 1), atol=1e-9)
+    flipped = fx.make("spin_calibration", scale=0.0, rotation=[0.0, 0.0, 0.0], flip=0.25).measure_spin(spin, rng)
+    sign = np.sum(flipped * spin, 1) < 0
+    np.testing.assert_allclose(np.abs(flipped), np.abs(spin), atol=1e-12)
+    assert 0.18 < sign.mean() < 0.32
+
+
+def test_spin_unmeasured_zeroes_spin_and_confidence_of_its_share():
+    rng = np.random.default_rng(1)
+    spin, conf = rng.normal(size=(1000, 3)) * 100, rng.uniform(0.5, 1.0, 1000)
+    got, c = fx.make("spin_unmeasured", fraction=1.0).measure_spin(spin, conf, rng)
+    assert not got.any() and not c.any()
+    got, c = fx.make("spin_unmeasured", fraction=0.3).measure_spin(spin, conf, rng)
+    gone = c == 0
+    assert 0.25 < gone.mean() < 0.35
+    assert not got[gone].any()
+    np.testing.assert_array_equal(got[~gone], spin[~gone])
+    np.testing.assert_array_equal(c[~gone], conf[~gone])
+
+
 def test_spin_decay_changes_only_flight():
     e = fx.make("spin_decay")
     assert changed_keys(e) == {"flight"}

@@ -1,5 +1,6 @@
 """The spin check (``ttsim_jax.fit.spin_check``) on generated flights whose record's spin was left
-as it was, turned by 10 degrees, or sign-flipped on every segment or on a quarter of them."""
+as it was, turned by 10 degrees, sign-flipped on every segment or on a quarter of them, or scaled
+by 0.8 or 1.2."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.fit.latent_spin import fit_latent_spin
-from ttsim_jax.fit.spin_check import check_spin
+from ttsim_jax.fit.spin_check import check_record_spin, check_spin, findings, spin_scale
 from test_latent_spin import NOISE, flights
 
 
@@ -19,17 +20,29 @@ def rotation(axis, deg):
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
 
 
+def across(model, n, low, high, seed):
+    """n flights with spins of ``low``-``high`` rad/s about random axes across the launch
+    direction (top, back and side spin): (spins, times, positions)."""
+    rng = np.random.default_rng(seed)
+    axis = np.cross([1.0, 0.0, 0.0], rng.normal(size=(n, 3)))
+    spins = rng.uniform(low, high, n)[:, None] * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    times, positions, _ = flights(model, spins, seed=2 * seed)
+    return spins, times, positions
+
+
 @pytest.fixture(scope="module")
 def record():
-    """True spins (top, back and side spin of 150-400 rad/s, sizes the flight shows) and the
-    latent spin of their flights."""
+    """True spins of 150-400 rad/s (sizes the flight shows) and the latent spin of their flights."""
     model = load_model("conti2026")
-    rng = np.random.default_rng(3)
-    s = 64
-    axis = np.cross([1.0, 0.0, 0.0], rng.normal(size=(s, 3)))
-    spins = rng.uniform(150, 400, s)[:, None] * axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    times, positions, _ = flights(model, spins, seed=6)
+    spins, times, positions = across(model, 64, 150, 400, 3)
     return spins, fit_latent_spin(times, positions, model, noise=NOISE)
+
+
+@pytest.fixture(scope="module")
+def scaled():
+    """Flights with spins of 30-400 rad/s across the flight and their (times, positions)."""
+    model = load_model("conti2026")
+    return (model, *across(model, 96, 30, 400, 4))
 
 
 def test_an_unchanged_record_is_consistent(record):
@@ -70,3 +83,30 @@ def test_nothing_to_compare_says_so(record):
     assert c.n == 0 and "no segment" in c.summary()
     with pytest.raises(ValueError, match=r"shape \(63, 3\); the latent spins are of 64 segments"):
         check_spin(spins[1:], ls)
+
+
+@pytest.mark.parametrize("k", [0.8, 1.0, 1.2])
+def test_a_scaled_spin_reads_its_scale(scaled, k):
+    model, spins, times, positions = scaled
+    out = spin_scale(model, times, positions, k * spins)
+    assert out["n"] == len(spins)
+    assert abs(1.0 / out["scale"] - k) < 0.03, out["scale"]
+    lo, hi = out["interval"]
+    assert lo <= out["scale"] <= hi and hi - lo < 0.15
+    # the cost is least near the truth, not at the grid's ends
+    assert 0 < int(np.argmin(out["cost"])) < len(out["scales"]) - 1
+
+
+def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scaled):
+    model, spins, times, positions = scaled
+    ok = check_record_spin(model, times, positions, spins)
+    assert ok["findings"] == [] and ok["summary"].endswith("consistent")
+    high = check_record_spin(model, times, positions, 1.2 * spins)
+    assert [f for f in high["findings"] if f.startswith("spin reads")] == [f"spin reads {100 * (high['reads'] - 1):.0f} % high"]
+    assert abs(high["reads"] - 1.2) < 0.03
+    flipped = check_record_spin(model, times, positions, -spins)
+    assert flipped["findings"][0] == "sign flipped on every segment"
+    # by hand: a rotation interval clear of the threshold is named; a scale interval holding 1 is not
+    assert findings(dict(n=10, opposite=0.0, opposite_interval=[0.0, 0.1], rotation_deg=10.0,
+                         rotation_interval_deg=[7.0, 13.0], rotation_axis=[0.0, 0.0, 1.0], reads=1.02,
+                         reads_interval=[0.97, 1.07])) == ["axis turned by 10 deg about [0.0, 0.0, 1.0]"]

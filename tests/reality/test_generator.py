@@ -166,6 +166,26 @@ def test_spin_noise_changes_spin_estimates_not_truth(runs):
     np.testing.assert_array_equal(base.dataset.observations["x"], gen.dataset.observations["x"])
 
 
+def test_spin_calibration_miscalibrates_the_recorded_spin_not_truth(runs):
+    base, gen = _truth_same_as_without_record_effects(runs, "spin_calibration")
+    p = gen.truth["effects"]["spin_calibration"]["params"]
+    sb, sg = base.dataset.segments, gen.dataset.segments
+    w = lambda seg: np.stack([np.asarray(seg[f"spin_{a}"]) for a in "xyz"], 1)  # noqa: E731
+    expect = (1.0 + p["scale"]) * w(sb) @ fx.rotation_matrix(np.asarray(p["rotation"])).T
+    np.testing.assert_allclose(w(sg), expect, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(sb["spin_conf"], sg["spin_conf"])  # nothing in the record tells
+    np.testing.assert_array_equal(base.dataset.observations["x"], gen.dataset.observations["x"])
+
+
+def test_spin_unmeasured_records_no_spin_not_truth(runs):
+    base, gen = _truth_same_as_without_record_effects(runs, "spin_unmeasured")
+    sg, og = gen.dataset.segments, gen.dataset.observations
+    assert not np.any(sg["spin_conf"]) and not np.any(og["spin_conf"])
+    assert not any(np.any(sg[f"spin_{a}"]) or np.any(og[f"spin_{a}"]) for a in "xyz")
+    np.testing.assert_array_equal(base.dataset.observations["x"], gen.dataset.observations["x"])
+    assert np.any(base.dataset.segments["spin_y"])
+
+
 def test_clock_rate_skews_every_recorded_time_not_truth(runs):
     base, gen = _truth_same_as_without_record_effects(runs, "clock_rate")
     p = gen.truth["effects"]["clock_rate"]["params"]

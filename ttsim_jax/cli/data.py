@@ -7,7 +7,8 @@ import argparse
 import json
 import warnings
 
-from ttsim_jax.cli.options import UsageError, existing_dir, existing_path, finite_float, positive_float, writable_dir
+from ttsim_jax.cli.options import (UsageError, existing_dir, existing_path, finite_float, model_name_or_file,
+                                   positive_float, writable_dir)
 
 
 def _dataset_to_rewrite(text: str):
@@ -58,6 +59,12 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     inf.add_argument("path", metavar="DIR", type=existing_dir, help="dataset directory")
     inf.add_argument("--json", action="store_true", help="print the summary as JSON")
+    inf.add_argument("--spin-check", nargs="?", const="conti2026", default=None, metavar="MODEL",
+                     type=model_name_or_file,
+                     help="also check the measured spins against the spins the flights show, under MODEL (default "
+                     "conti2026): the share bent opposite to their measured spin, an axis rotation and a scale, with "
+                     "95 %% intervals, over the segments with a spin confidence >= 0.5 and at least 8 samples "
+                     "(fits every such segment: seconds to minutes)")
     inf.set_defaults(func=cmd_info)
 
     upg = sub.add_parser(
@@ -128,8 +135,37 @@ def cmd_info(args) -> int:
     found = problems(ds, files)
     doubts = [] if found else borderline(ds, files)
     d = info(ds, found, doubts, (unprotected_files(args.path), len(parquet_files(args.path))))
-    print(json.dumps(d, indent=2) if args.json else format_info(d))
+    if args.spin_check and not found:
+        d["spin_check"] = _spin_check(ds, args.spin_check)
+    text = format_info(d)
+    if "spin_check" in d:
+        sc = d["spin_check"]
+        text += "\nspin check:    " + (sc["skipped"] if "skipped" in sc else sc["summary"])
+    print(json.dumps(d, indent=2) if args.json else text)
     return 1 if found else 0
+
+
+def _spin_check(ds, model_name: str) -> dict:
+    """``--spin-check``: :func:`ttsim_jax.fit.spin_check.check_record_spin` over the segments with a
+    confident measured spin."""
+    import sys
+
+    import numpy as np
+
+    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+    from ttsim_jax.fit.spin_check import check_record_spin
+    from ttsim_jax.params import load_model, resolve_model_path
+
+    ids, times, positions, spins, conf = dataset_segments(ds, LATENT_MIN_SAMPLES)
+    rows = np.flatnonzero(conf >= 0.5)
+    if len(rows) < 3:
+        return dict(skipped=f"{len(rows)} segments with a measured spin (confidence >= 0.5) and at least "
+                    f"{LATENT_MIN_SAMPLES} samples: nothing to check")
+    print(f"spin check: fitting the latent spin of {len(rows)} segments under {model_name} (compiling ...)",
+          file=sys.stderr)
+    return check_record_spin(load_model(resolve_model_path(model_name)), [times[i] for i in rows],
+                             [positions[i] for i in rows], spins[rows])
 
 
 def cmd_upgrade(args) -> int:

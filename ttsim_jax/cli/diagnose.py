@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ttsim_jax.cli.options import (UsageError, existing_dir, model_name_or_file, open_fraction, positive_int, seed,
-                                   writable_dir)
+from ttsim_jax.cli.options import (UsageError, add_spin_option, existing_dir, model_name_or_file, open_fraction,
+                                   positive_int, seed, writable_dir)
 
 
 def effect_list(text: str) -> tuple:
@@ -75,7 +75,8 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true",
                    help=f"a faster, coarser run: {q.steps} descent steps per candidate instead of {d.steps}, at most "
                    f"{q.max_segments} flight segments instead of {d.max_segments}, no landing rollouts, "
-                   "no forward selection (every significant effect reported; none fitted together)")
+                   "no forward selection (every significant effect reported; none fitted together), no spin check "
+                   "of the record")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
                    help=f"Adam steps per candidate (default: {d.steps}, with --quick {q.steps})")
     p.add_argument("--test-fraction", type=open_fraction, default=d.test_fraction, metavar="F",
@@ -86,6 +87,8 @@ def register(subparsers) -> None:
                    help=f"flight segments used at most, a seeded random subset of more (default: {d.max_segments}, "
                    f"with --quick {q.max_segments})")
     p.add_argument("--no-landing", action="store_true", help="skip the landing rollouts (the slowest part)")
+    add_spin_option(p, "flight segments' spin (latent: fitted under --model from the segment's own samples, which "
+                    "then takes up any force across the flight)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_diagnose)
     sub = p.add_subparsers(dest="diagnose_command", metavar="[selfcheck]")
@@ -142,7 +145,7 @@ def cmd_diagnose(args) -> int:
                          "'ttsim diagnose --help'")
     ds = load(args.data)
     model = load_model(resolve_model_path(args.model), dtype=jnp.float32)
-    changes = dict(effects=args.effects, test_fraction=args.test_fraction, seed=args.seed)
+    changes = dict(effects=args.effects, test_fraction=args.test_fraction, seed=args.seed, spin=args.spin)
     if args.steps is not None:
         changes["steps"] = args.steps
     if args.max_segments is not None:

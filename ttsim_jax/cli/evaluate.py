@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import argparse
 
-from ttsim_jax.cli.options import (UsageError, command_group, existing_dir, fraction, model_name_or_file,
-                                   positive_float, seed, writable_dir)
+from ttsim_jax.cli.options import (UsageError, add_spin_option, command_group, existing_dir, fraction,
+                                   model_name_or_file, positive_float, seed, writable_dir)
 
 DEFAULT_MODELS = "nakashima2011,durr2026,conti2026"
 
@@ -72,11 +72,7 @@ def register(subparsers) -> None:
                         help="comma-separated subset of flight,table,racket,landing (default: all)")
     parser.add_argument("--horizon", type=positive_float, default=1.5, metavar="S",
                         help="longest landing rollout [s] (default: %(default)s)")
-    parser.add_argument("--spin", choices=("auto", "measured", "latent", "zero"), default="auto",
-                        help="flight segments' spin: 'auto' the measured one where there is one and the latent spin "
-                        "fitted from the segment's samples elsewhere; 'measured' only the segments with a measured "
-                        "spin (every segment with spin 0 when none has one); 'latent' the latent spin everywhere; "
-                        "'zero' spin 0 everywhere (default: %(default)s)")
+    add_spin_option(parser, "flight segments' spin")
     parser.add_argument("--float64", action="store_true", help="simulate in float64 (default: float32)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=cmd_evaluate)

@@ -12,8 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ttsim_jax.cli.options import (UsageError, existing_dir, finite_float, fraction, model_name_or_file,
-                                   positive_float, positive_int, seed, writable_file)
+from ttsim_jax.cli.options import (UsageError, add_spin_option, existing_dir, finite_float, fraction,
+                                   model_name_or_file, positive_float, positive_int, seed, writable_file)
 
 
 def _stages(text: str) -> tuple:
@@ -92,6 +92,9 @@ def register(subparsers) -> None:
                    "with the same fraction and seed on that dataset; default: %(default)s)")
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the held-out draw and of the cross-validation folds (default: %(default)s)")
+    add_spin_option(p, "spins of the flight segments the fitted and the base model are compared on (the "
+                    "coefficients are fitted from segments with a measured spin only, never from a spin the fit "
+                    "itself estimated)")
     p.add_argument("--force", action="store_true", help="overwrite OUT (and its network checkpoint) if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_fit)
@@ -137,7 +140,7 @@ def cmd_fit(args) -> int:
     settings = FitSettings(association=args.association, forms=tuple(args.forms.split(",")),
                            min_spin_conf=args.min_spin_conf, max_rmse=args.max_rmse_mm / 1000.0, folds=args.folds,
                            lambda_rule=args.lambda_rule, epochs=args.epochs, test_fraction=args.test_fraction,
-                           seed=args.seed)
+                           seed=args.seed, spin=args.spin)
     bars = _Bars()
 
     def log(text):

@@ -207,3 +207,15 @@ def command_group(subparsers, name: str, help: str, description: str):
     sub = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT")
     sub.required = True
     return sub
+
+
+def add_spin_option(parser, what: str) -> None:
+    """``--spin``: where a flight segment's spin comes from (:data:`ttsim_jax.fit.choices.SPIN_SOURCES`);
+    ``what``: what the spins are used for, in the help."""
+    from ttsim_jax.fit.choices import SPIN_SOURCES
+
+    parser.add_argument("--spin", choices=SPIN_SOURCES, default="auto",
+                        help=f"{what}: 'auto' the measured spin where there is one and the latent spin fitted from "
+                        "the segment's samples elsewhere; 'measured' only the segments with a measured spin (every "
+                        "segment with spin 0 when none has one); 'latent' the latent spin everywhere; 'zero' spin 0 "
+                        "everywhere (default: %(default)s)")

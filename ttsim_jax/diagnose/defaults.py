@@ -7,8 +7,9 @@ MAX_SEGMENTS = 128
 STEPS, LEARNING_RATE = 100, 0.1
 #: Share of the segments and contacts held out for scoring.
 TEST_FRACTION = 0.4
-#: What ``--quick`` changes: fewer steps and segments, no landing rollouts, no joint fit.
-QUICK = dict(steps=60, landing=False, combine=False, max_segments=96)
+#: What ``--quick`` changes: fewer steps and segments, no landing rollouts, no joint fit, no spin
+#: check of the record.
+QUICK = dict(steps=60, landing=False, combine=False, max_segments=96, spin_check=False)
 #: Least held-out reduction [%] (lower end of the 95 % interval) of a significant candidate.
 MIN_REDUCTION = 1.0
 #: A bin stands out when its interval's lower end exceeds this times the phase's mean error.

@@ -67,6 +67,12 @@ class Settings:
             the first alone is the before/after).
         max_segments: flight segments used at most (a seeded random subset of more).
         fit: contact state estimation.
+        spin: where a flight segment's spin comes from (:func:`ttsim_jax.diagnose.phases.flights`):
+            ``"auto"`` (default) the measured spin where the record has one of confidence >=
+            ``fit.min_spin_conf``, the latent spin fitted under the diagnosed model elsewhere;
+            ``"measured"``, ``"latent"``, ``"zero"``.
+        spin_check: check the measured spins against the flights in the record section
+            (:func:`ttsim_jax.diagnose.residuals.spin_check`).
     """
 
     effects: tuple | None = None
@@ -78,10 +84,12 @@ class Settings:
     combine: bool = True
     max_segments: int = MAX_SEGMENTS
     fit: ContactFit = ContactFit()
+    spin: str = "auto"
+    spin_check: bool = True
 
     @classmethod
     def quick(cls, **kw) -> "Settings":
-        """Fewer steps and segments, no landing rollouts, no joint fit."""
+        """Fewer steps and segments, no landing rollouts, no joint fit, no spin check."""
         return cls(**{**QUICK, **kw})
 
 
@@ -173,7 +181,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         last[0] = now
     radius = float(ball_properties(model)[0])
     names = candidates.candidate_names(settings.effects)
-    ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed)
+    ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed, spin=settings.spin)
     if ph.flights is None and ph.table is None and ph.racket is None:
         raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
     tick("model errors", 1)
@@ -186,6 +194,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
     out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
+    if ph.flights is not None:
+        src = ph.flights.spin_source[: ph.flights.n]
+        out["spin_sources"] = {k: int(np.sum(src == k)) for k in ("measured", "latent", "zero")}
 
     # where, on every item (the landing's after the candidates: see _landing_before_after)
     items = {p: _items(ph, pb, p, pb.base[p], radius) for p in pb.phases}
@@ -195,7 +206,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["where"] = {p: where.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
     out["dependence"] = {p: residuals.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
-    out["record"] = residuals.record_sizes(ds, ph, model)
+    out["record"] = residuals.record_sizes(ds, ph, model, settings.seed, settings.spin_check)
     lap("where and the record")
     from ttsim_jax.diagnose.bound import bounds
 

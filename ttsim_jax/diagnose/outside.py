@@ -17,9 +17,10 @@ from ttsim_jax.diagnose import candidates as candidate_fit
 OUTSIDE_KINDS = ("outside", "outside_log", "outside_oneway")
 #: The outside suite: each effect generated and withheld from the candidates, in every phase, as
 #: labelled games and as a tracker's raw logs, in both directions and in one; the effects on the
-#: record (a tracker's clock running fast, a camera's scale) have no candidate at all. The last
-#: case is the effect-free control (the model's own physics and the record's noise): right when
-#: nothing is found and no phase stands above its noise floor.
+#: record (a tracker's clock running fast, a camera's scale, a spin estimator's scale and axis) have
+#: no candidate at all (the last only the record section's spin check). The last cases are controls:
+#: the model's own physics and the record's noise, once recorded without any spin (the flights then
+#: fly their latent spin), right when nothing is found and no phase stands above its noise floor.
 OUTSIDE_PLAN = (
     ("outside", ("racket_edge",)),
     ("outside", ("table_tilt",)),
@@ -34,6 +35,8 @@ OUTSIDE_PLAN = (
     ("outside", ("clock_rate",)),
     ("outside_oneway", ("air_density",)),
     ("outside", ("camera_scale",)),
+    ("outside", ("spin_calibration",)),
+    ("control", ("spin_unmeasured",)),
     ("control", ()),
 )
 
@@ -65,6 +68,7 @@ TERMS = {
     "rubber_anisotropy": ("tangential",),
     "clock_rate": ("gravity or clock", "drag"),
     "camera_scale": ("gravity or clock", "drag"),
+    "spin_calibration": ("lift", "ω", "spin", "r·ω"),
 }
 
 

@@ -56,9 +56,11 @@ class Flights:
 
     Attributes:
         t0: (S,) absolute time of the first sample [s]; tau: (S, T) times from t0, padding repeats
-            the last; pos: (S, T, 3); mask: (S, T) 1 for real samples; spin: (S, 3) measured spin;
+            the last; pos: (S, T, 3); mask: (S, T) 1 for real samples; spin: (S, 3) the spin flown
+            (measured, latent or 0: ``spin_source``);
             session: (S,) session index (0..n_sessions-1); segment_id: (S,); n: number of real
-            segments (rows beyond are padding with mask 0).
+            segments (rows beyond are padding with mask 0); spin_source: (S,) where each segment's
+            spin came from (``"measured"``, ``"latent"``, ``"zero"``; ``""`` on padding).
     """
 
     t0: np.ndarray
@@ -69,6 +71,7 @@ class Flights:
     session: np.ndarray
     segment_id: np.ndarray
     n: int
+    spin_source: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -135,28 +138,54 @@ def pad_rows(n: int, multiple: int = 32) -> int:
 
 
 def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float = 0.5,
-            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Flights | None:
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0, *, model=None,
+            spin: str = "measured") -> Flights | None:
     """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
     Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
-    than ``max_segments`` segments a seeded random subset is kept."""
-    from ttsim_jax.data.segment_batches import dataset_segments
+    than ``max_segments`` segments a seeded random subset is kept.
 
+    ``spin`` says where a segment's spin comes from, as :func:`ttsim_jax.fit.flight.segment_rmse`'s:
+    ``"measured"`` (the segments with a measured spin of confidence >= ``min_spin_conf`` when the
+    data has any; else every segment, with spin 0), ``"auto"`` (every segment: the measured spin
+    where there is one, elsewhere the latent spin of :mod:`ttsim_jax.fit.latent_spin` fitted under
+    ``model`` from the samples kept), ``"latent"`` (the latent spin everywhere) or ``"zero"``.
+    A segment too short for a latent spin flies with spin 0; :attr:`Flights.spin_source` says which."""
+    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.choices import SPIN_SOURCES
+    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+
+    if spin not in SPIN_SOURCES:
+        raise ValueError(f"spin = {spin!r}: must be one of {SPIN_SOURCES}")
+    if spin in ("auto", "latent") and model is None:
+        raise ValueError(f"spin = {spin!r} needs the model the latent spin is fitted under")
     ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     times = [t[:max_samples] for t in times]
     positions = [p[:max_samples] for p in positions]
     if not len(ids):
         return None
-    keep = conf >= min_spin_conf
-    if not keep.any():  # no measured spin anywhere: flown with spin 0
-        keep[:] = True
-        spins = np.zeros_like(spins)
+    known = conf >= min_spin_conf
+    keep = known.copy() if spin == "measured" and known.any() else np.ones(len(ids), bool)
     idx = np.flatnonzero(keep)
     if len(idx) > max_segments:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_segments, replace=False))
+    source = np.where(known[idx] & (spin in ("auto", "measured")), "measured", "zero").astype("U8")
+    flown = np.where((source == "measured")[:, None], spins[idx], 0.0)
+    fittable = np.array([len(times[i]) >= LATENT_MIN_SAMPLES for i in idx], bool)
+    latent = fittable & ((source != "measured") if spin == "auto" else (spin == "latent"))
+    if latent.any():
+        from ttsim_jax.fit.latent_spin import fit_latent_spin
+
+        rows = np.flatnonzero(latent)
+        ls = fit_latent_spin([times[idx[r]] for r in rows], [positions[idx[r]] for r in rows], model,
+                             min_samples=LATENT_MIN_SAMPLES)
+        flown[rows] = np.where(ls.ok[:, None], ls.spin, 0.0)
+        source[rows] = np.where(ls.ok, "latent", "zero")
     session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))
     s, t = pad_rows(len(idx)), _capacity(max(len(times[i]) for i in idx))
     out = Flights(t0=np.zeros(s), tau=np.zeros((s, t)), pos=np.zeros((s, t, 3)), mask=np.zeros((s, t)),
-                  spin=np.zeros((s, 3)), session=np.zeros(s, np.int64), segment_id=np.full(s, -1, np.int64), n=len(idx))
+                  spin=np.zeros((s, 3)), session=np.zeros(s, np.int64), segment_id=np.full(s, -1, np.int64), n=len(idx),
+                  spin_source=np.full(s, "", "U8"))
+    out.spin_source[: len(idx)] = source
     for row, i in enumerate(idx):
         ti = np.asarray(times[i], np.float64)
         k = len(ti)
@@ -166,7 +195,7 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
         out.pos[row, :k] = positions[i]
         out.pos[row, k:] = positions[i][-1]
         out.mask[row, :k] = 1.0
-        out.spin[row] = spins[i]
+        out.spin[row] = flown[row]
         out.session[row] = session_index[session_of[int(ids[i])]]
         out.segment_id[row] = ids[i]
     return out
@@ -243,14 +272,16 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
 
 
 def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, phases=("flight", "table", "racket"),
-            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0) -> Phases:
+            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0,
+            spin: str = "measured") -> Phases:
     """Every phase's items of ``ds`` for ``model`` (its ball radius, its racket frame convention);
-    see :func:`flights` for ``max_samples``, ``max_segments`` and ``seed``."""
+    see :func:`flights` for ``max_samples``, ``max_segments``, ``seed`` and ``spin``."""
     sessions = np.unique(np.asarray(ds.sessions["session_id"], np.int64)) if len(ds.sessions["session_id"]) else \
         np.unique(np.asarray(ds.segments["session_id"], np.int64))
     index = {int(s): k for k, s in enumerate(sessions)}
     skipped = {}
-    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed) if "flight" in phases else None
+    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed, model=model,
+                 spin=spin) if "flight" in phases else None
     if fl is None and "flight" in phases:
         skipped["flight"] = f"no flight segment with at least {min_samples} observations"
     tb = rk = None

@@ -201,6 +201,12 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     lines.append("")
     lines += [f"- {p}: no data: {why}" for p, why in no_data.items()]
     lines += [f"- {p}: {why}" for p, why in out["skipped"].items() if p not in no_data]
+    src = out.get("spin_sources") or {}
+    if src.get("latent") or src.get("zero"):
+        lines.append("- flight segments' spin: " + ", ".join(f"{k} {n}" for k, n in src.items() if n)
+                     + " (latent: fitted from the segment's own samples under the diagnosed model, where the record "
+                     "has no confident spin; it takes up any force across the flight, so an unmodelled lift or "
+                     "side force on those segments is read as spin, not as a gap)")
     if out.get("pooled_sessions"):
         lines.append("- per-session effects (air_flow, ball_variation, worn_ball) fitted with one parameter set for "
                      "all sessions: the median session holds too few segments and contacts to fit its own")
@@ -231,6 +237,9 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     if sn:
         lines.append(f"- spin_noise: {100 * sn['low_confidence_fraction']:.0f} % of segments with spin confidence below 0.5 "
                      f"(median {sn['median_confidence']:.2f})")
+    sc = rec.get("spin_check", {})
+    if sc:
+        lines.append(f"- spin_check: {sc['skipped']}" if "skipped" in sc else f"- spin_check: {sc['summary']}")
     rs = rec.get("racket_state_error", {})
     if rs.get("n"):
         b = rs["vel_bias"]

@@ -15,6 +15,10 @@ Effects on the record are sized, not fitted as physics (:func:`record_sizes`):
   segments;
 * ``spin_noise``: what the data says of its spin estimates (share with confidence below 0.5);
   one estimate per segment carries no spread of its own;
+* ``spin_check``: the measured spins against the spins the flights show
+  (:func:`ttsim_jax.fit.spin_check.check_record_spin`: a sign flipped on some or all segments, an
+  axis turned, a scale), over the flight segments flown with a measured spin, at least
+  :data:`SPIN_CHECK_MIN` of them;
 * ``racket_state_error``: the world-frame racket velocity bias b that best explains the
   racket-contact velocity residuals, r_i = (I - J_i) R_i^T b (J_i = d v+ / d v~ of the model's
   racket contact: an error b of the recorded racket velocity shifts both v~ and the observation),
@@ -34,6 +38,8 @@ import numpy as np
 MIN_RHO = 0.3
 #: Largest p-value of a significant dependence.
 MAX_P = 1e-3
+#: Least flight segments with a measured spin for the spin check.
+SPIN_CHECK_MIN = 20
 
 
 def _ranks(x):
@@ -148,13 +154,30 @@ def racket_state_error(model, c) -> dict:
                 vel_spread=np.std(each - bias, axis=0).tolist(), rms_before=rms(r), rms_after=rms(after))
 
 
-def record_sizes(ds, phases, model) -> dict:
-    """{effect name: size estimate} of the record effects of the catalogue (module docstring)."""
+def spin_check(flights, model, seed: int = 0) -> dict:
+    """The spin check (module docstring) of the flight segments flown with their measured spin, or
+    ``{"skipped": why}``."""
+    from ttsim_jax.fit.spin_check import check_record_spin
+
+    rows = np.flatnonzero(flights.spin_source[: flights.n] == "measured") if flights.spin_source is not None else []
+    if len(rows) < SPIN_CHECK_MIN:
+        return dict(skipped=f"{len(rows)} flight segments with a measured spin (the check needs {SPIN_CHECK_MIN})")
+    n = flights.mask[rows].sum(1).astype(int)
+    times = [flights.tau[r, :k] for r, k in zip(rows, n)]
+    positions = [flights.pos[r, :k] for r, k in zip(rows, n)]
+    return check_record_spin(model, times, positions, flights.spin[rows], seed=seed)
+
+
+def record_sizes(ds, phases, model, seed: int = 0, check_spin: bool = True) -> dict:
+    """{effect name: size estimate} of the record effects of the catalogue, and the spin check
+    (``check_spin``; module docstring)."""
     out = {}
     fl = phases.flights
     if fl is not None:
         out["position_noise"] = position_noise(fl)
         out["missing_frames"] = missing_frames(fl)
+        if check_spin:
+            out["spin_check"] = spin_check(fl, model, seed)
     conf = np.asarray(ds.segments["spin_conf"], np.float64)
     some = len(conf) > 0
     out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)) if some else math.nan,

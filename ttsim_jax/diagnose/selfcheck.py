@@ -140,7 +140,9 @@ def _warp(rng, bumps: int = 4, apart: float = 0.6) -> dict:
 #:   sign;
 #: * outside the catalogue: table_friction 25-35 % lower (a dusty or worn coating); air_density
 #:   15-25 % lower (a hall at 1,500-2,000 m, or hot); clock_rate 0.3-0.5 % fast (a tracker's frame
-#:   clock); camera_scale 0.5-1 % either way (a calibration error).
+#:   clock); camera_scale 0.5-1 % either way (a calibration error); spin_calibration: the record's
+#:   spin 15-25 % high or low and turned by 10-15 degrees (a spin estimator's calibration);
+#:   spin_unmeasured: no spin recorded at all (a tracker without spin).
 DRAWS = {
     "spin_decay": lambda r: {"rate": r.uniform(0.15, 0.3), "quadratic": r.uniform(1e-4, 2e-4)},
     "air_flow": lambda r: {"wind": np.append(r.uniform(0.2, 0.4) * _direction(r), 0.0)},
@@ -159,6 +161,10 @@ DRAWS = {
     "air_density": lambda r: {"d_rho": -r.uniform(0.15, 0.25)},
     "clock_rate": lambda r: {"rate": r.uniform(0.003, 0.005), "latency": 0.0},
     "camera_scale": lambda r: {"scale": _signed(r, 0.005, 0.01)},
+    "spin_calibration": lambda r: {"scale": _signed(r, 0.15, 0.25),
+                                   "rotation": list(np.radians(r.uniform(10.0, 15.0)) * _direction(r, 3)),
+                                   "flip": 0.0},
+    "spin_unmeasured": lambda r: {"fraction": 1.0},
 }
 
 #: Generator settings of the games of a case with the effect (on top of the case's own): an effect
@@ -396,6 +402,8 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
             row.update(oracle_steady_pct=float(steady[p]["pct"]), bound_share_steady=row["bound_pct"] / steady[p]["pct"])
     row["bound_significant"] = [p for p, b in (out.get("bound") or {}).items()
                                 if isinstance(b, dict) and b.get("heldout", {}).get("significant")]
+    row["spin_findings"] = list(out.get("record", {}).get("spin_check", {}).get("findings", []))
+    row["spin_sources"] = out.get("spin_sources", {})
     row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
                verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
                seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},

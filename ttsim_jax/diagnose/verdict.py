@@ -165,6 +165,21 @@ def _alike(out: dict, names: list) -> str:
     return text
 
 
+def spin_findings(out: dict) -> list:
+    """What the record section's spin check (:func:`ttsim_jax.diagnose.residuals.spin_check`) found
+    off with the record's measured spin: [] when nothing, or when it did not run."""
+    return list(out.get("record", {}).get("spin_check", {}).get("findings", []))
+
+
+def _spin_text(out: dict) -> str:
+    found = spin_findings(out)
+    if not found:
+        return ""
+    return (" The record's measured spin disagrees with its flights (spin check: " + "; ".join(found) + "): every "
+            "candidate was fitted with that spin, so correct the record's spin (or run with --spin latent) before "
+            "reading them as physics.")
+
+
 def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
     """The verdict: how much of the gap the accepted effects explain, and what is left.
 
@@ -177,7 +192,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
       one of them changes the errors only as a reading that needs no candidate does
       (``out["reads_as"]``, :func:`~ttsim_jax.diagnose.ambiguity.reads_as`: buckling fitted with
       its onset below the impacts is a restitution change at every speed), so the data show the
-      change and not its cause;
+      change and not its cause; or the record's measured spin disagrees with its flights
+      (:func:`spin_findings`), so the candidates were fitted to a wrong spin;
     * *unexplained*: no candidate with plausible parameters is significant.
 
     Phases with a gap above their floor that no accepted effect acts in are named in every case.
@@ -233,7 +249,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         more, beyond_catalogue = _bound_text(out)
         readings = {c.spec.name: out.get("reads_as", {}).get(c.spec.name) for c in significant}
         readings = {n: r for n, r in readings.items() if r}
-        level = "partly explained" if short or untouched or more or readings else "explained"
+        level = "partly explained" if short or untouched or more or readings or spin_findings(out) else "explained"
         closes = []
         for p, g in shares.items():
             if g["share"] is None:
@@ -261,7 +277,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         if redundant:
             text += (" Significant alone but adding nothing significant on top of those: " +
                      "; ".join(part(c) for c in redundant) + ".")
-        return dict(names, level=level, explained=level == "explained", text=text + rest + rejected + beyond_catalogue)
+        return dict(names, level=level, explained=level == "explained",
+                    text=text + rest + rejected + beyond_catalogue + _spin_text(out))
     lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
             "no candidate effect reduces a held-out error significantly.")
     rejected += _alike(out, [c.spec.name for c in beyond])
@@ -271,5 +288,5 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         located = "No regime of those phases stands out and no residual dependence is significant: the gap is spread over them."
     else:
         located = "No regime stands out and no residual dependence is significant: what remains looks like noise."
-    text = "Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1]
+    text = "Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1] + _spin_text(out)
     return dict(names, level="unexplained", explained=False, text=text)

@@ -39,7 +39,11 @@ air_density            simulator   session  air density: drag, Magnus, buoyancy 
 table_friction         simulator   dataset  table friction coefficient scales
 clock_rate             record      dataset  tracker clock: rate error and latency
 camera_scale           record      dataset  positions scaled about the table centre
+spin_calibration       record      dataset  spin estimates scaled, turned, some signs flipped (*)
+spin_unmeasured        record      dataset  a tracker without spin: spin 0, confidence 0 (*)
 =====================  ==========  =======  ====================================================
+
+(*) not in ``"all"`` (the generator's default): asked for by name (``Effect.IN_ALL``).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ import jax.numpy as jnp
 from . import physical, record  # noqa: F401  (importing registers the effects, in catalogue order)
 from . import lab  # noqa: F401  (registered last: see its docstring)
 from .base import BAND_SOFTNESS, CATALOGUE, RECORD_POINTS, SCOPES, Effect, EffectError, Param, register, smoothstep
-from .lab import AirDensity, CameraScale, ClockRate, TableFriction
+from .lab import AirDensity, CameraScale, ClockRate, SpinCalibration, SpinUnmeasured, TableFriction
 from .physical import (
     AirFlow,
     BallVariation,
@@ -69,7 +73,8 @@ from .record import MissingFrames, PositionNoise, RacketStateError, SpinNoise, r
 __all__ = [
     "AirDensity", "AirFlow", "BAND_SOFTNESS", "BallVariation", "Buckling", "CATALOGUE", "CameraScale", "ClockRate",
     "Effect", "EffectError", "MissingFrames", "Param", "PositionNoise", "RECORD_POINTS", "RacketEdge", "RacketLogo",
-    "RacketStateError", "RubberAnisotropy", "SCOPES", "SpinDecay", "SpinNoise", "TableFriction", "TableTilt",
+    "RacketStateError", "RubberAnisotropy", "SCOPES", "SpinCalibration", "SpinDecay", "SpinNoise", "SpinUnmeasured",
+    "TableFriction", "TableTilt",
     "TableUnevenness", "WornBall", "describe", "effect_class",
     "make", "names", "parse_names", "record_effects", "register", "rotation_matrix", "simulator_effects", "smoothstep",
 ]
@@ -101,7 +106,7 @@ def parse_names(spec: str | Iterable[str] | None) -> list[str]:
     if isinstance(spec, str):
         s = spec.strip()
         if s in ("all", "*"):
-            return names()
+            return [n for n in names() if CATALOGUE[n].IN_ALL]
         if s in ("none", ""):
             return []
         spec = [p.strip() for p in s.split(",") if p.strip()]

@@ -87,6 +87,10 @@ class Effect:
     WHERE: ClassVar[str] = "simulator"
     SCOPE: ClassVar[str] = "dataset"
     PARAMS: ClassVar[dict] = {}
+    #: Whether ``"all"`` (the generator's default) turns it on. False for an effect on the record that
+    #: takes away or falsifies what a record's other effects leave (a tracker without spin, a
+    #: miscalibrated spin estimator): it is asked for by name.
+    IN_ALL: ClassVar[bool] = True
 
     # ------------------------------------------------------------------ construction
     @classmethod

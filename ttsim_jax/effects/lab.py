@@ -2,8 +2,11 @@
 
 * in the simulator: :class:`AirDensity` (hook ``air_properties``), :class:`TableFriction` (hook
   ``table_friction``), exactly neutral and differentiable like those of :mod:`.physical`;
-* on the record, applied by the reality generator: :class:`ClockRate` (``record_times``) and
-  :class:`CameraScale` (``observe_positions``), numpy like those of :mod:`.record`.
+* on the record, applied by the reality generator: :class:`ClockRate` (``record_times``),
+  :class:`CameraScale` (``observe_positions``), :class:`SpinCalibration` and
+  :class:`SpinUnmeasured` (``measure_spin``), numpy like those of :mod:`.record`. The last two are
+  left out of ``"all"`` (:attr:`~.base.Effect.IN_ALL`): they take a record's spin away or falsify
+  it, which a generated record is asked for by name.
 
 They register after the effects of :mod:`.physical` and :mod:`.record`: the generator seeds each
 effect's random draws by its position in the catalogue, so effects added later come last and the
@@ -17,7 +20,7 @@ import numpy as np
 from flax import struct
 
 from .base import Effect, Param, register, signed
-from .record import _np
+from .record import _np, rotation_matrix
 
 
 # ---------------------------------------------------------------------- simulator
@@ -134,3 +137,64 @@ class CameraScale(Effect):
     def observe_positions(self, pos, rng: np.random.Generator | None = None):
         """Recorded copies of (N, 3) positions (``rng`` unused: the error is the same for all)."""
         return _np(pos) * (1.0 + _np(self.scale))
+
+
+@register
+@struct.dataclass
+class SpinCalibration(Effect):
+    """A spin estimator that reads wrong the same way on every segment: the recorded spin is
+    (1 + scale) R w, R the rotation by the rotation vector ``rotation`` (a spin frame turned against
+    the world's, an axis convention off), with the sign flipped on a ``flip`` share of the segments
+    (a top/backspin sign read wrong on some trajectories). The confidence is left as it was:
+    nothing in the record says the spin is wrong, which only the spin check
+    (:mod:`ttsim_jax.fit.spin_check`) against the flights can show.
+    """
+
+    scale: jnp.ndarray
+    rotation: jnp.ndarray
+    flip: jnp.ndarray
+
+    NAME = "spin_calibration"
+    DESCRIPTION = "spin estimates times (1 + scale), turned by a rotation vector, the sign flipped on a share"
+    WHERE = "record"
+    SCOPE = "dataset"
+    IN_ALL = False
+    PARAMS = {
+        "scale": Param("1", 0.0, 0.1, "relative scale error of the spin estimate", plausible=(-0.5, 0.5)),
+        "rotation": Param("rad", 0.0, (0.0, 0.0, 0.17), "rotation vector turning the estimate, world frame", (3,),
+                          plausible=((-0.8, -0.8, -0.8), (0.8, 0.8, 0.8))),
+        "flip": Param("1", 0.0, 0.0, "share of segments whose spin's sign is flipped", plausible=(0.0, 1.0)),
+    }
+
+    @classmethod
+    def _draw(cls, rng):
+        axis = rng.normal(size=3)
+        return {"scale": signed(rng, 0.1, 0.2), "rotation": list(axis / np.linalg.norm(axis) * rng.uniform(0.1, 0.3)),
+                "flip": 0.0}
+
+    def measure_spin(self, spin, rng: np.random.Generator):
+        """Recorded copies of (S, 3) spin estimates (``rng`` draws which are flipped)."""
+        out = (1.0 + _np(self.scale)) * _np(spin) @ rotation_matrix(_np(self.rotation)).T
+        flipped = rng.random(len(out)) < _np(self.flip)
+        return np.where(flipped[:, None], -out, out)
+
+
+@register
+@struct.dataclass
+class SpinUnmeasured(Effect):
+    """A tracker that measures no spin (most do not): a ``fraction`` of the segments (1: all) is
+    recorded with spin 0 and confidence 0, as the importers write a record without spin columns."""
+
+    fraction: jnp.ndarray
+
+    NAME = "spin_unmeasured"
+    DESCRIPTION = "no spin measured on a share of the segments (1: a tracker without spin): spin 0, confidence 0"
+    WHERE = "record"
+    SCOPE = "dataset"
+    IN_ALL = False
+    PARAMS = {"fraction": Param("1", 0.0, 1.0, "share of segments without a measured spin", plausible=(0.0, 1.0))}
+
+    def measure_spin(self, spin, conf, rng: np.random.Generator):
+        """(spin (S, 3), conf (S,)) as recorded, from the estimates and their confidences."""
+        gone = rng.random(len(conf)) < _np(self.fraction)
+        return np.where(gone[:, None], 0.0, _np(spin)), np.where(gone, 0.0, _np(conf))

@@ -1,4 +1,4 @@
-"""The choices of an identification (stages, coefficient forms, force associations): plain names,
+"""The choices of an identification (stages, coefficient forms, force associations, spin sources): plain names,
 so that ``ttsim fit``'s options are checked without importing JAX."""
 
 STAGES = ("aero", "table", "racket", "residual")
@@ -9,3 +9,6 @@ FORMS = ("drag", "magnus")
 DEFAULT_FORMS = ("drag",)
 #: How a segment's velocity is paired with its fitted force: at the effective velocity or averaged.
 ASSOCIATIONS = ("v_eff", "averaged")
+#: Where a flight segment's spin comes from (``ttsim evaluate / fit / diagnose --spin``): the measured
+#: spin where confident and the latent spin elsewhere, the measured only, the latent everywhere, 0.
+SPIN_SOURCES = ("auto", "measured", "latent", "zero")

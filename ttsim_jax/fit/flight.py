@@ -20,6 +20,7 @@ import numpy as np
 
 from ttsim_jax.data.flightfit import Air, initial_guess, integrate
 from ttsim_jax.data.segment_batches import BATCH, batches, dataset_segments
+from ttsim_jax.fit.choices import SPIN_SOURCES
 from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve
 
@@ -80,8 +81,6 @@ def flight_rmse(model, times: Sequence[np.ndarray], positions: Sequence[np.ndarr
     return out
 
 
-#: Where a segment's spin comes from (:func:`segment_rmse`'s ``spin``).
-SPIN_SOURCES = ("auto", "measured", "latent", "zero")
 
 
 def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float = 0.5, sessions=None,

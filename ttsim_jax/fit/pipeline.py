@@ -50,7 +50,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ttsim_jax.fit.choices import DEFAULT_FORMS, DEFAULT_STAGES, FORMS, STAGES  # noqa: F401 (re-exported)
+from ttsim_jax.fit.choices import DEFAULT_FORMS, DEFAULT_STAGES, FORMS, SPIN_SOURCES, STAGES  # noqa: F401 (re-exported)
 from ttsim_jax.errors import UserError
 _TABLE_COMPONENTS = {"v_x": "m/s", "v_y": "m/s", "v_z": "m/s", "w_x": "rad/s", "w_y": "rad/s", "w_z": "rad/s"}
 
@@ -100,6 +100,10 @@ class FitSettings:
         epochs: residual: most epochs (None: the bundled config's).
         test_fraction: fraction of each dataset's sessions held out of every stage.
         seed: seed of the held-out draw and of the cross-validation folds.
+        spin: the spin of the flight segments the fitted and the base model are compared on
+            (:func:`ttsim_jax.fit.flight.segment_rmse`'s ``spin``; default ``"auto"``: the measured
+            spin where there is one, each model's latent spin elsewhere). The aero stage fits its
+            coefficients from segments with a measured spin only, whatever this says.
     """
 
     association: str = "averaged"
@@ -111,8 +115,11 @@ class FitSettings:
     epochs: int | None = None
     test_fraction: float = 0.0
     seed: int = 0
+    spin: str = "auto"
 
     def __post_init__(self):
+        if self.spin not in SPIN_SOURCES:
+            raise ValueError(f"FitSettings.spin = {self.spin!r}: expected one of {SPIN_SOURCES}")
         bad = [f for f in self.forms if f not in FORMS]
         if bad or not self.forms:
             raise ValueError(f"FitSettings.forms = {self.forms!r}: expected some of {FORMS}")
@@ -233,6 +240,8 @@ def _comparison(on: str, n: int, base: dict, fitted: dict, units: dict) -> dict:
 def comparison_text(stage: str, c: dict) -> str:
     """One line: where the fitted model of ``stage`` is worse than the base (or that it is not)."""
     where = f"{'held-out' if c['on'] == 'held_out' else 'training'} data, n = {c['n']}"
+    if c.get("spin_sources"):
+        where += " (spin " + ", ".join(f"{k} {v}" for k, v in c["spin_sources"].items() if v) + ")"
     values = ", ".join(f"{k} {c['base'][k]:.4g} -> {c['fitted'][k]:.4g} {c['units'][k]}" for k in c["base"])
     if not c["worse"]:
         return f"{stage}: the fitted model is no worse than the base on any component ({where}; base -> fitted: " \
@@ -241,20 +250,23 @@ def comparison_text(stage: str, c: dict) -> str:
            f"({len(c['worse'])} of {len(c['base'])} components; {where}; base -> fitted: {values})"
 
 
-def _flight_comparison(ds, base_model, fitted_model, test_sessions, min_spin_conf) -> dict | None:
+def _flight_comparison(ds, base_model, fitted_model, test_sessions, settings: FitSettings) -> dict | None:
     from ttsim_jax.fit.flight import segment_rmse
 
     held = len(test_sessions) > 0
-    out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=min_spin_conf,
-                       sessions=tuple(int(s) for s in test_sessions) if held else None)
+    out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
+                       sessions=tuple(int(s) for s in test_sessions) if held else None, spin=settings.spin)
     if "skipped" in out:
         return None
     stats = {}
     for name in ("base", "fitted"):
         e = np.asarray(out["rmse"][name]) * 1e3
         stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
-    return _comparison("held_out" if held else "training", len(out["segment_id"]), stats["base"], stats["fitted"],
-                       dict(median="mm", p75="mm"))
+    c = _comparison("held_out" if held else "training", len(out["segment_id"]), stats["base"], stats["fitted"],
+                    dict(median="mm", p75="mm"))
+    source = np.asarray(out["spin_source"]).astype(str)
+    c["spin_sources"] = {k: int(np.sum(source == k)) for k in ("measured", "latent", "zero")}
+    return c
 
 
 # ---------------------------------------------------------------------------------------------- stages
@@ -301,7 +313,7 @@ class _Run:
         self.sections.update(aero_sections(self.base_path, result.drag.values["cd"], result.magnus.values))
         self.report["aero"] = result.to_dict()
         self.model = self.model.replace(aero=_model_of(self.model_text("fitting", "")).aero)
-        c = _flight_comparison(self.ds, self.base, self.model, self.test, s.min_spin_conf)
+        c = _flight_comparison(self.ds, self.base, self.model, self.test, s)
         if c is not None:
             self.comparison["aero"] = c
 

@@ -16,9 +16,12 @@ measured spin's part across the direction of flight with the latent spin's
 * **angle**: the median angle between the parts over those segments, before and after that
   rotation.
 
-The spin's size is not compared: under the paper's C_M the Magnus force hardly grows with the spin
-above a few hundred rad/s, so a flight shows the spin's direction far better than its size
-(``docs/measurements/spin.md``).
+The spin's size is not compared segment by segment: under the paper's C_M the Magnus force hardly
+grows with the spin above a few hundred rad/s, so a flight shows the spin's direction far better than
+its size (``docs/measurements/spin.md``). :func:`spin_scale` reads the size over all segments at
+once instead: the one factor on every measured spin that lets the model fly the segments best
+(pooled, the segments whose spin is small enough for the Magnus force to grow with it carry it),
+with a bootstrap interval over the segments.
 """
 
 from __future__ import annotations
@@ -32,8 +35,10 @@ OPPOSITE_DEG = 120.0
 #: Least size of the measured spin's part across the flight to be compared [rad/s] (a smaller one
 #: has no direction to speak of).
 MIN_ACROSS = 50.0
-#: Bootstrap resamples of the rotation's angle.
+#: Bootstrap resamples of the rotation's angle and of the scale.
 BOOTSTRAP = 200
+#: Factors on the measured spin that :func:`spin_scale` tries (refined between grid points).
+SCALES = tuple(np.round(np.linspace(0.5, 1.5, 21), 3))
 
 
 def _angles(a, b) -> np.ndarray:
@@ -146,3 +151,98 @@ def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 
                      rotation_deg=(_rotation_angle(r), tuple(float(x) for x in np.percentile(boot, [2.5, 97.5]))),
                      rotation_axis=axis, angle_deg=float(np.median(ang[~opp])),
                      angle_after_deg=float(np.median(_angles(m[same] @ r.T, est[same]))))
+
+
+def _grid_min(scales, cost) -> float:
+    """The minimum of ``cost`` over ``scales``, refined by the parabola through the lowest grid
+    point and its neighbours (the grid's end where the lowest is there)."""
+    k = int(np.argmin(cost))
+    if k == 0 or k == len(scales) - 1:
+        return float(scales[k])
+    x, y = np.asarray(scales[k - 1:k + 2], np.float64), np.asarray(cost[k - 1:k + 2], np.float64)
+    a, b, _ = np.polyfit(x, y, 2)
+    return float(np.clip(-b / (2 * a), x[0], x[2])) if a > 0 else float(x[1])
+
+
+def spin_scale(model, times, positions, spins, *, scales=SCALES, seed: int = 0) -> dict:
+    """The factor on every measured spin that the flights favour (see the module docstring).
+
+    Per segment and factor s, the model flies the segment with spin s w (initial position and
+    velocity fitted, :func:`ttsim_jax.fit.flight.flight_rmse`); the costs (samples x RMSE^2) are
+    summed over the segments and the factor of the least sum kept; the interval is that of a
+    bootstrap over the segments.
+
+    Arguments:
+        model: a :class:`~ttsim_jax.params.Model`; times, positions: the segments' samples (lists of
+            (T_i,) and (T_i, 3)); spins: (S, 3) their measured spins [rad/s].
+        scales: the factors tried; seed: of the bootstrap.
+
+    Returns:
+        dict: ``scale``, ``interval`` (95 %), ``n`` segments, ``scales`` and ``cost`` (summed cost
+        per factor [m^2]).
+    """
+    from ttsim_jax.fit.flight import flight_rmse
+
+    spins = np.asarray(spins, np.float64)
+    scales = np.asarray(scales, np.float64)
+    counts = np.array([len(t) for t in times], np.float64)
+    cost = np.stack([counts * flight_rmse(model, times, positions, f * spins, fit_position=True) ** 2
+                     for f in scales], 1)
+    good = np.isfinite(cost).all(1)
+    cost = cost[good]
+    if not len(cost):
+        return dict(scale=float("nan"), interval=[float("nan")] * 2, n=0, scales=scales.tolist(), cost=[])
+    rng = np.random.default_rng(seed)
+    boot = [_grid_min(scales, cost[rng.integers(0, len(cost), len(cost))].sum(0)) for _ in range(BOOTSTRAP)]
+    total = cost.sum(0)
+    return dict(scale=_grid_min(scales, total), interval=[float(x) for x in np.percentile(boot, [2.5, 97.5])],
+                n=int(len(cost)), scales=scales.tolist(), cost=total.tolist())
+
+
+def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
+    """The whole spin check of segments with a measured spin: their latent spins fitted under
+    ``model`` (:func:`ttsim_jax.fit.latent_spin.fit_latent_spin`), compared with the measured ones
+    (:func:`check_spin`), and the scale the flights favour (:func:`spin_scale`).
+
+    Returns:
+        dict (JSON-able): the :meth:`SpinCheck.to_json` entries; ``scale`` and ``scale_interval``
+        (the factor the flights favour, over the segments not bent opposite: ``scale_segments``),
+        ``reads`` and ``reads_interval`` (its inverse: the measured spin reads that many times the
+        flights'), ``segments`` (given), ``findings`` (short phrases of what is off, empty when the record's spin
+        agrees with its flights: :func:`findings`) and ``summary`` (one line).
+    """
+    from ttsim_jax.fit.latent_spin import fit_latent_spin
+
+    spins = np.asarray(spins, np.float64)
+    latent = fit_latent_spin(times, positions, model)
+    check = check_spin(spins, latent, seed=seed)
+    rest = np.setdiff1d(np.arange(len(times)), check.opposite_rows)  # a flipped spin has no size to read
+    scale = spin_scale(model, [times[i] for i in rest], [positions[i] for i in rest], spins[rest], seed=seed)
+    lo, hi = scale["interval"]
+    out = dict(check.to_json(), segments=len(times), scale=scale["scale"], scale_interval=scale["interval"],
+               reads=1.0 / scale["scale"], reads_interval=[1.0 / hi, 1.0 / lo], scale_segments=scale["n"])
+    out["findings"] = findings(out)
+    text = check.summary() + f"; over {scale['n']} segments the measured spin reads {out['reads']:.2f} (95 % " \
+        f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f}) times what the flights show"
+    out["summary"] = text + ("; " + ", ".join(out["findings"]) if out["findings"] else "; consistent")
+    return out
+
+
+#: A record's spin is reported off when its interval leaves these out: a share bent opposite above
+#: this, a rotation above this [deg], a scale outside 1 +- this.
+FINDING_OPPOSITE, FINDING_ROTATION_DEG, FINDING_SCALE = 0.05, 5.0, 0.05
+
+
+def findings(check: dict) -> list:
+    """Short phrases naming what is off with a record's spin (:func:`check_record_spin`'s dict):
+    a sign flipped (on all or some segments), an axis turned, a scale; [] when none is shown."""
+    out = []
+    if check.get("n", 0) and check["opposite_interval"][0] > FINDING_OPPOSITE:
+        share = check["opposite"]
+        out.append("sign flipped on every segment" if share > 0.9 else f"sign flipped on {100 * share:.0f} % of segments")
+    if check.get("n", 0) and check["rotation_interval_deg"][0] > FINDING_ROTATION_DEG:
+        out.append(f"axis turned by {check['rotation_deg']:.0f} deg about {np.round(check['rotation_axis'], 2).tolist()}")
+    lo, hi = check.get("reads_interval", [np.nan, np.nan])
+    if np.isfinite(lo) and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE):
+        out.append(f"spin reads {abs(100 * (check['reads'] - 1.0)):.0f} % {'high' if check['reads'] > 1 else 'low'}")
+    return out

@@ -176,6 +176,13 @@ def assemble(game: Game, wall: float) -> Generated:
         m = seg["session_id"] == s.sid
         rng = np.random.default_rng([cfg.seed, 6, s.sid])
         spin_m[m], conf[m] = noise.measure_spin(mean_spin[m], seg["t_end"][m] - seg["t_start"][m], rng)
+    for s in game.sessions:  # after the noise: a miscalibrated estimator, then a tracker without spin
+        calibration, unmeasured = _record(game, "spin_calibration", s.sid), _record(game, "spin_unmeasured", s.sid)
+        m = seg["session_id"] == s.sid
+        if calibration is not None:
+            spin_m[m] = calibration.measure_spin(spin_m[m], np.random.default_rng([cfg.seed, 7, s.sid]))
+        if unmeasured is not None:
+            spin_m[m], conf[m] = unmeasured.measure_spin(spin_m[m], conf[m], np.random.default_rng([cfg.seed, 8, s.sid]))
     seg.update(spin_x=spin_m[:, 0], spin_y=spin_m[:, 1], spin_z=spin_m[:, 2], spin_conf=conf)
     o = dict(ds.observations)
     o.update(spin_x=spin_m[seg_id, 0], spin_y=spin_m[seg_id, 1], spin_z=spin_m[seg_id, 2], spin_conf=conf[seg_id])

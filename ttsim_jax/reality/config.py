@@ -58,7 +58,7 @@ class GeneratorConfig:
     games: int = 4
     seed: int = 0
     model: str = "conti2026"
-    effects: tuple = tuple(fx.names())
+    effects: tuple = tuple(fx.parse_names("all"))
     effect_params: dict = dataclasses.field(default_factory=dict)
     rallies_per_game: tuple = (11, 20)
     rally_hits_mean: float = 6.8

@@ -1,0 +1,82 @@
+"""The diagnosis and the record's spin, on the bundled buckling dataset (conti2026 + buckling, no
+noise; tests/diagnose/data/README.md):
+
+* recorded without any spin (as most trackers record), the flights fly their latent spin
+  (``Settings.spin = "auto"``), the report counts them, and buckling is still found;
+* with every measured spin 25 % high, the record section's spin check says so, and the verdict
+  is never "explained" while the candidates were fitted with that spin.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttsim_jax import load_model
+from ttsim_jax.data import load
+from ttsim_jax.diagnose.diagnosis import Settings, diagnose
+from ttsim_jax.diagnose.report import markdown
+
+from test_diagnose import BUCKLING, CANDIDATES
+
+
+def with_spin(ds, factor: float, conf=None):
+    """``ds`` with every recorded spin times ``factor`` (and its confidence set to ``conf``)."""
+    tables = {}
+    for name in ("segments", "observations"):
+        t = dict(getattr(ds, name))
+        for a in "xyz":
+            t[f"spin_{a}"] = np.asarray(t[f"spin_{a}"]) * factor
+        if conf is not None:
+            t["spin_conf"] = np.full(len(t["spin_conf"]), conf)
+        tables[name] = t
+    return ds.replace(**tables)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("conti2026", dtype=jnp.float32)
+
+
+@pytest.fixture(scope="module")
+def unmeasured(model):
+    return diagnose(with_spin(load(BUCKLING), 0.0, conf=0.0), model, Settings.quick(effects=CANDIDATES, spin_check=True))
+
+
+@pytest.fixture(scope="module")
+def reads_high(model):
+    return diagnose(with_spin(load(BUCKLING), 1.25), model, Settings.quick(effects=CANDIDATES, spin_check=True))
+
+
+def test_a_record_without_spin_flies_latent_spin_and_still_finds_the_cause(unmeasured):
+    src = unmeasured["spin_sources"]
+    assert src["measured"] == 0 and src["latent"] >= 0.9 * unmeasured["counts"]["flight"], src
+    assert unmeasured["candidates"][0]["name"] == "buckling" and unmeasured["candidates"][0]["significant"]
+    assert "skipped" in unmeasured["record"]["spin_check"]  # nothing measured to check
+    text = markdown(unmeasured)
+    assert f"latent {src['latent']}" in text and "read as spin" in text
+
+
+def test_latent_spin_flies_closer_than_spin_zero(model, unmeasured):
+    """The same record flown at spin 0 (``--spin zero``): its flights miss by more."""
+    zero = diagnose(with_spin(load(BUCKLING), 0.0, conf=0.0), model,
+                    Settings.quick(effects=("spin_decay",), spin="zero"))
+    assert zero["spin_sources"] == {"measured": 0, "latent": 0, "zero": zero["counts"]["flight"]}
+    assert unmeasured["where"]["flight"]["mean"] < 0.5 * zero["where"]["flight"]["mean"]
+
+
+def test_a_spin_reading_high_is_named_and_nothing_is_explained_with_it(reads_high):
+    sc = reads_high["record"]["spin_check"]
+    assert abs(sc["reads"] - 1.25) < 0.05, sc["summary"]
+    assert any(f.startswith("spin reads") and f.endswith("high") for f in sc["findings"]), sc["findings"]
+    v = reads_high["verdict"]
+    assert v["level"] != "explained" and "spin check" in v["text"]
+    assert "spin_check: " in markdown(reads_high)
+
+
+def test_data_info_spin_check_runs_the_same_check(capsys):
+    from ttsim_jax.cli import main
+
+    assert main(["data", "info", str(BUCKLING), "--spin-check"]) == 0
+    out = capsys.readouterr().out
+    line = [x for x in out.splitlines() if x.startswith("spin check:")]
+    assert len(line) == 1 and "opposite" in line[0] and line[0].endswith("consistent"), out
