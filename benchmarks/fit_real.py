@@ -10,7 +10,10 @@ every variant's aerodynamics come from SpinDOE's training sessions.
 Every model is then scored as ``ttsim evaluate --split test`` scores it
 (:func:`ttsim_jax.evaluate.stages.flight_stage`): per held-out flight segment, the 3-D position
 RMSE with the first observation as the initial position, the initial velocity fitted and the
-measured spin (TT3D and MPI: spin 0, every segment). Per seed: median and 75th percentile of each
+spin ``ttsim evaluate`` flies by default (``--spin auto``): SpinDOE's measured spin where confident,
+elsewhere, and on every TT3D and MPI segment, the latent spin each model fits from the segment's own
+samples (:mod:`ttsim_jax.fit.latent_spin`; before it, TT3D and MPI were scored at spin 0, where a
+C_D fitted on SpinDOE's spinning balls made MPI 9-24 % worse on every seed). Per seed: median and 75th percentile of each
 model, and each fitted variant's reduction against conti2026 and nakashima2011 with a 95 % paired
 bootstrap interval over the segments; across seeds: mean, minimum and maximum. Also per seed, on
 SpinDOE's held-out segments: the error a per-segment constant C_D and C_M leaves (the floor of any
