@@ -46,7 +46,9 @@ def summary(out: dict, counts: dict, wall: float, cpu: float) -> dict:
                   **({"adds": c["adds"]} if "adds" in c else {})) for c in out["candidates"]]
     return dict(dataset=counts, items=out["counts"], no_data=out["no_data"], pooled_sessions=out["pooled_sessions"],
                 where=where, dependence={p: d[:4] for p, d in out["dependence"].items()}, candidates=cands,
-                record={k: v for k, v in out["record"].items() if k in ("position_noise", "missing_frames", "spin_noise")},
+                record={k: v for k, v in out["record"].items()
+                        if k in ("position_noise", "missing_frames", "spin_noise", "spin_check")},
+                spin_sources=out.get("spin_sources", {}),
                 verdict=out["verdict"]["text"], seconds=wall, cpu_seconds=cpu)
 
 

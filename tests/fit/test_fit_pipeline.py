@@ -71,6 +71,11 @@ def test_fit_of_two_datasets_is_the_fit_of_their_union(sample, tmp_path, capsys)
                                np.asarray(load_model(whole.with_suffix(".toml")).aero.drag.cd), rtol=1e-4)
     # the JSON holds the config it was written with
     assert info["model_toml"] == both.with_suffix(".toml").read_text()
+    # the fitted model is compared with the base on each dataset too, and on all of them together
+    each = {f"aero on {tmp_path / x}": info["comparison"][f"aero on {tmp_path / x}"] for x in "ab"}
+    assert sum(c["n"] for c in each.values()) == info["comparison"]["aero"]["n"]
+    assert all(c["on"] == "training" and c["worse"] == [k for k in c["base"] if c["fitted"][k] > c["base"][k]]
+               for c in each.values())
 
 
 def test_default_stages_skip_what_the_data_cannot_fit(sample, tmp_path, capsys):

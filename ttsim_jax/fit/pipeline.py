@@ -32,7 +32,9 @@ Several datasets are merged (:func:`ttsim_jax.data.merge.merge_datasets`); the h
 Each fitted stage is compared with the base model on the held-out sessions (on the training
 data where none are held out): flight RMSE (median, 75th percentile), table and racket contact
 errors by component; the components where the fitted model is worse are listed
-(``FitResult.worse``).
+(``FitResult.worse``). With several datasets the flight comparison is made on each dataset too
+(``comparison["aero on LABEL"]``): a fit pooled over labs can serve one at another's cost, as
+SpinDOE's C_D table does the MPI launcher's balls (``docs/measurements/fitting.md``).
 
 :func:`write_fit` writes the model config and the JSON summary as one unit: the summary holds the
 config's text (``model_toml``) and is written first, the config last, each atomically.
@@ -189,15 +191,24 @@ def load_datasets(data) -> tuple[list, list[str]]:
     return datasets, labels
 
 
-def held_out_sessions(datasets: Sequence, test_fraction: float, seed: int) -> np.ndarray:
-    """The held-out sessions of the merged datasets: a ``test_fraction`` of each dataset's sessions
-    (with flight segments), drawn with ``seed`` as :func:`ttsim_jax.fit.identify.split_sessions`
-    draws them on that dataset alone, in the ids of :func:`ttsim_jax.data.merge.merge_datasets`."""
+def held_out_parts(datasets: Sequence, test_fraction: float, seed: int) -> list:
+    """Per dataset, its held-out sessions (a ``test_fraction`` of its sessions with flight segments,
+    drawn with ``seed`` as :func:`ttsim_jax.fit.identify.split_sessions` draws them on that dataset
+    alone), or all its sessions where ``test_fraction`` is 0, in the ids of
+    :func:`ttsim_jax.data.merge.merge_datasets`."""
     from ttsim_jax.data.merge import id_offsets
     from ttsim_jax.fit.identify import split_sessions
 
-    parts = [split_sessions(ds.segments["session_id"], test_fraction, seed) + off["session_id"]
-             for ds, off in zip(datasets, id_offsets(datasets))]
+    return [(split_sessions(ds.segments["session_id"], test_fraction, seed) if test_fraction > 0 else
+             np.unique(np.asarray(ds.segments["session_id"]))).astype(np.int64) + off["session_id"]
+            for ds, off in zip(datasets, id_offsets(datasets))]
+
+
+def held_out_sessions(datasets: Sequence, test_fraction: float, seed: int) -> np.ndarray:
+    """The held-out sessions of the merged datasets (:func:`held_out_parts`, together)."""
+    if test_fraction <= 0:
+        return np.zeros(0, np.int64)
+    parts = held_out_parts(datasets, test_fraction, seed)
     return np.sort(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
 
 
@@ -250,12 +261,13 @@ def comparison_text(stage: str, c: dict) -> str:
            f"({len(c['worse'])} of {len(c['base'])} components; {where}; base -> fitted: {values})"
 
 
-def _flight_comparison(ds, base_model, fitted_model, test_sessions, settings: FitSettings) -> dict | None:
+def _flight_comparison(ds, base_model, fitted_model, sessions, held: bool, settings: FitSettings) -> dict | None:
+    """The base against the fitted model's flight RMSE over the segments of ``sessions`` (None:
+    every session), ``held``: whether those are held out."""
     from ttsim_jax.fit.flight import segment_rmse
 
-    held = len(test_sessions) > 0
     out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
-                       sessions=tuple(int(s) for s in test_sessions) if held else None, spin=settings.spin)
+                       sessions=None if sessions is None else tuple(int(s) for s in sessions), spin=settings.spin)
     if "skipped" in out:
         return None
     stats = {}
@@ -277,10 +289,11 @@ def _counts(total: int, used: int, skipped: dict, held_out: int) -> dict:
 class _Run:
     """The state the stages pass on: the model so far, the config sections, the report."""
 
-    def __init__(self, ds, base_path, settings, test_sessions, progress, log):
+    def __init__(self, ds, base_path, settings, test_sessions, progress, log, parts=None):
         from ttsim_jax.params import load_model
 
         self.ds, self.base_path, self.settings, self.test = ds, base_path, settings, test_sessions
+        self.parts = parts or {}
         self.base = load_model(base_path)
         self.model = self.base
         self.sections: dict = {}
@@ -313,9 +326,15 @@ class _Run:
         self.sections.update(aero_sections(self.base_path, result.drag.values["cd"], result.magnus.values))
         self.report["aero"] = result.to_dict()
         self.model = self.model.replace(aero=_model_of(self.model_text("fitting", "")).aero)
-        c = _flight_comparison(self.ds, self.base, self.model, self.test, s)
+        held = len(self.test) > 0
+        c = _flight_comparison(self.ds, self.base, self.model, self.test if held else None, held, s)
         if c is not None:
             self.comparison["aero"] = c
+        if len(self.parts) > 1:  # a pooled fit can serve one dataset at another's cost: each is compared
+            for label, sessions in self.parts.items():
+                c = _flight_comparison(self.ds, self.base, self.model, sessions, held, s)
+                if c is not None:
+                    self.comparison[f"aero on {label}"] = c
 
     def table(self):
         from ttsim_jax.fit import table as table_fit
@@ -469,7 +488,8 @@ def fit_dataset(data, base="conti2026", *, stages: Sequence[str] | None = None, 
         raise FitError("; ".join(f"stage {s} cannot run on {', '.join(labels)}: {why}" for s, why in problems.items())
                        + "; leave " + ", ".join(problems) + " out of the stages (without stages, those the data "
                        "cannot fit are skipped)", problems)
-    run = _Run(ds, base_path, settings, test, progress, log)
+    run = _Run(ds, base_path, settings, test, progress, log,
+               parts=dict(zip(labels, held_out_parts(datasets, settings.test_fraction, settings.seed))))
     skipped = dict(problems)
     for stage, why in problems.items():
         log(f"{stage}: skipped: {why}")

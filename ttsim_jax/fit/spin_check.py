@@ -222,12 +222,20 @@ def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
     out = dict(check.to_json(), segments=len(times), scale=scale["scale"], scale_interval=scale["interval"],
                reads=1.0 / scale["scale"], reads_interval=[1.0 / hi, 1.0 / lo], scale_segments=scale["n"])
     out["findings"] = findings(out)
-    text = check.summary() + f"; over {scale['n']} segments the measured spin reads {out['reads']:.2f} (95 % " \
-        f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f}) times what the flights show"
+    grid = (min(scale["scales"]), max(scale["scales"])) if scale["n"] else (np.nan, np.nan)
+    if scale["n"] and grid[0] < scale["scale"] < grid[1] and hi - lo <= MAX_SCALE_WIDTH:
+        size = (f"over {scale['n']} segments the measured spin reads {out['reads']:.2f} (95 % "
+                f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f}) times what the flights show")
+    else:  # the least cost at the end of the factors tried, or an interval too wide to read
+        size = (f"the spin's size is not resolved by the flights (over {scale['n']} segments the measured spin reads "
+                f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f} times theirs, 95 %)")
+    text = check.summary() + "; " + size
     out["summary"] = text + ("; " + ", ".join(out["findings"]) if out["findings"] else "; consistent")
     return out
 
 
+#: Widest interval of the factor :func:`spin_scale` finds that is read as a size [1].
+MAX_SCALE_WIDTH = 0.5
 #: A record's spin is reported off when its interval leaves these out: a share bent opposite above
 #: this, a rotation above this [deg], a scale outside 1 +- this.
 FINDING_OPPOSITE, FINDING_ROTATION_DEG, FINDING_SCALE = 0.05, 5.0, 0.05
