@@ -186,8 +186,11 @@ def spin_scale(model, times, positions, spins, *, scales=SCALES, seed: int = 0) 
     spins = np.asarray(spins, np.float64)
     scales = np.asarray(scales, np.float64)
     counts = np.array([len(t) for t in times], np.float64)
-    cost = np.stack([counts * flight_rmse(model, times, positions, f * spins, fit_position=True) ** 2
-                     for f in scales], 1)
+    n, g = len(times), len(scales)
+    # every (factor, segment) pair in one call: the batches fill, and the compiled shapes are few
+    rmse = flight_rmse(model, list(times) * g, list(positions) * g, (scales[:, None, None] * spins).reshape(-1, 3),
+                       fit_position=True)
+    cost = counts[:, None] * rmse.reshape(g, n).T ** 2
     good = np.isfinite(cost).all(1)
     cost = cost[good]
     if not len(cost):
