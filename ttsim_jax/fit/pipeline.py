@@ -261,24 +261,38 @@ def comparison_text(stage: str, c: dict) -> str:
            f"({len(c['worse'])} of {len(c['base'])} components; {where}; base -> fitted: {values})"
 
 
-def _flight_comparison(ds, base_model, fitted_model, sessions, held: bool, settings: FitSettings) -> dict | None:
-    """The base against the fitted model's flight RMSE over the segments of ``sessions`` (None:
-    every session), ``held``: whether those are held out."""
+def _flight_comparisons(ds, base_model, fitted_model, sessions, held: bool, settings: FitSettings,
+                        parts: dict | None = None) -> dict:
+    """{"aero": the base against the fitted model's flight RMSE over the segments of ``sessions``
+    (None: every session), and "aero on LABEL" for each of ``parts`` ({label: its sessions}) of
+    more than one: the same segments, split by dataset} (empty without segments); ``held``:
+    whether those are held out."""
+    from ttsim_jax.data.tables import id_index, rows_of
     from ttsim_jax.fit.flight import segment_rmse
 
     out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
                        sessions=None if sessions is None else tuple(int(s) for s in sessions), spin=settings.spin)
     if "skipped" in out:
-        return None
-    stats = {}
-    for name in ("base", "fitted"):
-        e = np.asarray(out["rmse"][name]) * 1e3
-        stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
-    c = _comparison("held_out" if held else "training", len(out["segment_id"]), stats["base"], stats["fitted"],
-                    dict(median="mm", p75="mm"))
+        return {}
+    rows = rows_of(id_index(ds.segments["segment_id"]), out["segment_id"])
+    session = np.asarray(ds.segments["session_id"])[rows]
+    groups = {"aero": np.ones(len(session), bool)}
+    if parts and len(parts) > 1:  # a pooled fit can serve one dataset at another's cost: each is compared
+        groups.update({f"aero on {label}": np.isin(session, list(p)) for label, p in parts.items()})
     source = np.asarray(out["spin_source"]).astype(str)
-    c["spin_sources"] = {k: int(np.sum(source == k)) for k in ("measured", "latent", "zero")}
-    return c
+    comparisons = {}
+    for key, rows in groups.items():
+        if not rows.any():
+            continue
+        stats = {}
+        for name in ("base", "fitted"):
+            e = np.asarray(out["rmse"][name])[rows] * 1e3
+            stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
+        c = _comparison("held_out" if held else "training", int(rows.sum()), stats["base"], stats["fitted"],
+                        dict(median="mm", p75="mm"))
+        c["spin_sources"] = {k: int(np.sum(source[rows] == k)) for k in ("measured", "latent", "zero")}
+        comparisons[key] = c
+    return comparisons
 
 
 # ---------------------------------------------------------------------------------------------- stages
@@ -327,14 +341,8 @@ class _Run:
         self.report["aero"] = result.to_dict()
         self.model = self.model.replace(aero=_model_of(self.model_text("fitting", "")).aero)
         held = len(self.test) > 0
-        c = _flight_comparison(self.ds, self.base, self.model, self.test if held else None, held, s)
-        if c is not None:
-            self.comparison["aero"] = c
-        if len(self.parts) > 1:  # a pooled fit can serve one dataset at another's cost: each is compared
-            for label, sessions in self.parts.items():
-                c = _flight_comparison(self.ds, self.base, self.model, sessions, held, s)
-                if c is not None:
-                    self.comparison[f"aero on {label}"] = c
+        self.comparison.update(_flight_comparisons(self.ds, self.base, self.model, self.test if held else None, held,
+                                                   s, self.parts))
 
     def table(self):
         from ttsim_jax.fit import table as table_fit

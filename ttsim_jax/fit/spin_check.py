@@ -10,8 +10,8 @@ measured spin's part across the direction of flight with the latent spin's
   between the two parts above :data:`OPPOSITE_DEG`), with a 95 % interval (Wilson's): a sign flipped
   on every segment reads about 1, on some of them its share;
 * **rotation**: the rotation that best turns the measured parts onto the latent ones over the
-  segments that are not opposite (the orthogonal Procrustes solution on unit vectors), its angle
-  and axis, with a bootstrap 95 % interval of the angle: an axis turned by a frame error reads its
+  segments that are not opposite (the orthogonal Procrustes solution on unit vectors: the
+  correction of the record), its angle and the axis it turns right-handed about, with a bootstrap 95 % interval of the angle: an axis turned by a frame error reads its
   angle, a consistent record a few degrees (the noise's own);
 * **angle**: the median angle between the parts over those segments, before and after that
   rotation.
@@ -57,6 +57,16 @@ def _rotation(src, dst) -> np.ndarray:
 
 def _rotation_angle(r) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _rotation_axis(r) -> np.ndarray:
+    """The unit axis about which ``r`` turns right-handed by its angle (from its skew part; for a
+    turn too small to have one, the eigenvector of eigenvalue 1)."""
+    skew = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if np.linalg.norm(skew) > 1e-9:
+        return skew / np.linalg.norm(skew)
+    w, v = np.linalg.eig(r)
+    return np.real(v[:, np.argmin(np.abs(w - 1.0))])
 
 
 def _wilson(k: int, n: int) -> tuple[float, float]:
@@ -144,9 +154,7 @@ def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 
     r = _rotation(m[same], est[same])
     rng = np.random.default_rng(seed)
     boot = [_rotation_angle(_rotation(m[b], est[b])) for b in (rng.choice(same, len(same)) for _ in range(BOOTSTRAP))]
-    w, v = np.linalg.eig(r)
-    axis = np.real(v[:, np.argmin(np.abs(w - 1.0))])
-    axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+    axis = _rotation_axis(r)
     return SpinCheck(n=n, opposite=(k / n, _wilson(k, n)), opposite_rows=rows[opp],
                      rotation_deg=(_rotation_angle(r), tuple(float(x) for x in np.percentile(boot, [2.5, 97.5]))),
                      rotation_axis=axis, angle_deg=float(np.median(ang[~opp])),
