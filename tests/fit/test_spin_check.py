@@ -109,4 +109,4 @@ def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scale
     # by hand: a rotation interval clear of the threshold is named; a scale interval holding 1 is not
     assert findings(dict(n=10, opposite=0.0, opposite_interval=[0.0, 0.1], rotation_deg=10.0,
                          rotation_interval_deg=[7.0, 13.0], rotation_axis=[0.0, 0.0, 1.0], reads=1.02,
-                         reads_interval=[0.97, 1.07])) == ["axis turned by 10 deg about [0.0, 0.0, 1.0]"]
+                         reads_interval=[0.97, 1.07])) == ["axis turned by 10 deg (turned back right-handed about [0.0, 0.0, 1.0])"]

@@ -11,7 +11,8 @@ measured spin's part across the direction of flight with the latent spin's
   on every segment reads about 1, on some of them its share;
 * **rotation**: the rotation that best turns the measured parts onto the latent ones over the
   segments that are not opposite (the orthogonal Procrustes solution on unit vectors: the
-  correction of the record), its angle and the axis it turns right-handed about, with a bootstrap 95 % interval of the angle: an axis turned by a frame error reads its
+  correction of the record), its angle and the axis it turns right-handed about, with a bootstrap
+  95 % interval of the angle: an axis turned by a frame error reads its
   angle, a consistent record a few degrees (the noise's own);
 * **angle**: the median angle between the parts over those segments, before and after that
   rotation.
@@ -260,7 +261,8 @@ def findings(check: dict) -> list:
         share = check["opposite"]
         out.append("sign flipped on every segment" if share > 0.9 else f"sign flipped on {100 * share:.0f} % of segments")
     if check.get("n", 0) and check["rotation_interval_deg"][0] > FINDING_ROTATION_DEG:
-        out.append(f"axis turned by {check['rotation_deg']:.0f} deg about {np.round(check['rotation_axis'], 2).tolist()}")
+        out.append(f"axis turned by {check['rotation_deg']:.0f} deg (turned back right-handed about "
+                   f"{np.round(check['rotation_axis'], 2).tolist()})")
     lo, hi = check.get("reads_interval", [np.nan, np.nan])
     if np.isfinite(lo) and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE):
         out.append(f"spin reads {abs(100 * (check['reads'] - 1.0)):.0f} % {'high' if check['reads'] > 1 else 'low'}")
