@@ -110,3 +110,10 @@ def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scale
     assert findings(dict(n=10, opposite=0.0, opposite_interval=[0.0, 0.1], rotation_deg=10.0,
                          rotation_interval_deg=[7.0, 13.0], rotation_axis=[0.0, 0.0, 1.0], reads=1.02,
                          reads_interval=[0.97, 1.07])) == ["axis turned by 10 deg (turned back right-handed about [0.0, 0.0, 1.0])"]
+    # a scale interval clear of 1 is named only where the size is resolved (not at the grid's end)
+    scaled_off = dict(n=10, opposite=0.0, opposite_interval=[0.0, 0.1], rotation_deg=1.0,
+                      rotation_interval_deg=[0.0, 3.0], rotation_axis=[0.0, 0.0, 1.0], reads=2.0,
+                      reads_interval=[1.3, 2.0])
+    assert findings(dict(scaled_off, scale_resolved=True)) == ["spin reads 100 % high"]
+    assert findings(dict(scaled_off, scale_resolved=False)) == []
+    assert "None" not in str(ok["summary"]) and "nan" not in ok["summary"]

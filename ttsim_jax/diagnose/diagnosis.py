@@ -195,8 +195,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
     out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
     if ph.flights is not None:
-        src = ph.flights.spin_source[: ph.flights.n]
-        out["spin_sources"] = {k: int(np.sum(src == k)) for k in ("measured", "latent", "zero")}
+        from ttsim_jax.fit.flight import spin_source_counts
+
+        out["spin_sources"] = spin_source_counts(ph.flights.spin_source[: ph.flights.n])
 
     # where, on every item (the landing's after the candidates: see _landing_before_after)
     items = {p: _items(ph, pb, p, pb.base[p], radius) for p in pb.phases}

@@ -16,6 +16,7 @@ import numpy as np
 
 from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, STAGES, TABLE_SKIP_REASONS, counts_text
 from ttsim_jax.data.contact_states import SKIP_REASONS
+from ttsim_jax.fit.flight import spin_source_counts
 from ttsim_jax.fit.network_evaluation import COMPONENTS, DISTANCE_BANDS, ERROR_NAMES, distance_bands
 
 
@@ -120,7 +121,7 @@ def summarise(result: dict) -> dict:
             source = np.asarray(f.get("spin_source", np.full(len(f["segment_id"]), "measured")), str)
             out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
                                  n_without_spin=f["n_without_spin"], unit="m", models=per,
-                                 spin_sources={k: int(np.sum(source == k)) for k in ("measured", "latent", "zero")},
+                                 spin_sources=spin_source_counts(source),
                                  not_finite=_not_finite(f["rmse"], f.get("spin")))
     if "table" in result:
         t = result["table"]

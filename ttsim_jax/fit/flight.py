@@ -25,6 +25,16 @@ from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve
 
 ITERATIONS = 6
+#: Where a flown segment's spin came from (:func:`segment_rmse`'s ``spin_source``).
+FLOWN = ("measured", "latent", "zero")
+
+
+def spin_source_counts(source) -> dict:
+    """{kind of :data:`FLOWN`: number of segments} of an array of spin sources."""
+    source = np.asarray(source).astype(str)
+    return {k: int(np.sum(source == k)) for k in FLOWN}
+
+
 #: Shortest segment whose latent spin is fitted (shorter ones fly with spin 0).
 LATENT_MIN_SAMPLES = 8
 

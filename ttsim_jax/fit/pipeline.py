@@ -268,7 +268,7 @@ def _flight_comparisons(ds, base_model, fitted_model, sessions, held: bool, sett
     more than one: the same segments, split by dataset} (empty without segments); ``held``:
     whether those are held out."""
     from ttsim_jax.data.tables import id_index, rows_of
-    from ttsim_jax.fit.flight import segment_rmse
+    from ttsim_jax.fit.flight import segment_rmse, spin_source_counts
 
     out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
                        sessions=None if sessions is None else tuple(int(s) for s in sessions), spin=settings.spin)
@@ -290,7 +290,7 @@ def _flight_comparisons(ds, base_model, fitted_model, sessions, held: bool, sett
             stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
         c = _comparison("held_out" if held else "training", int(rows.sum()), stats["base"], stats["fitted"],
                         dict(median="mm", p75="mm"))
-        c["spin_sources"] = {k: int(np.sum(source[rows] == k)) for k in ("measured", "latent", "zero")}
+        c["spin_sources"] = spin_source_counts(source[rows])
         comparisons[key] = c
     return comparisons
 

@@ -40,6 +40,11 @@ MIN_ACROSS = 50.0
 BOOTSTRAP = 200
 #: Factors on the measured spin that :func:`spin_scale` tries (refined between grid points).
 SCALES = tuple(np.round(np.linspace(0.5, 1.5, 21), 3))
+#: Widest interval of the factor :func:`spin_scale` finds that is read as a size [1].
+MAX_SCALE_WIDTH = 0.5
+#: A record's spin is reported off when its interval leaves these out: a share bent opposite above
+#: this, a rotation above this [deg], a scale outside 1 +- this.
+FINDING_OPPOSITE, FINDING_ROTATION_DEG, FINDING_SCALE = 0.05, 5.0, 0.05
 
 
 def _angles(a, b) -> np.ndarray:
@@ -218,10 +223,12 @@ def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
 
     Returns:
         dict (JSON-able): the :meth:`SpinCheck.to_json` entries; ``scale`` and ``scale_interval``
-        (the factor the flights favour, over the segments not bent opposite: ``scale_segments``),
-        ``reads`` and ``reads_interval`` (its inverse: the measured spin reads that many times the
-        flights'), ``segments`` (given), ``findings`` (short phrases of what is off, empty when the record's spin
-        agrees with its flights: :func:`findings`) and ``summary`` (one line).
+        (the factor the flights favour, over the segments not bent opposite: ``scale_segments``;
+        None without any), ``reads`` and ``reads_interval`` (its inverse: the measured spin reads
+        that many times the flights'), ``scale_resolved`` (the least cost inside the factors tried,
+        its interval at most :data:`MAX_SCALE_WIDTH` wide: only then is a scale named),
+        ``segments`` (given), ``findings`` (short phrases of what is off, empty when the record's
+        spin agrees with its flights: :func:`findings`) and ``summary`` (one line).
     """
     from ttsim_jax.fit.latent_spin import fit_latent_spin
 
@@ -231,26 +238,25 @@ def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
     rest = np.setdiff1d(np.arange(len(times)), check.opposite_rows)  # a flipped spin has no size to read
     scale = spin_scale(model, [times[i] for i in rest], [positions[i] for i in rest], spins[rest], seed=seed)
     lo, hi = scale["interval"]
-    out = dict(check.to_json(), segments=len(times), scale=scale["scale"], scale_interval=scale["interval"],
-               reads=1.0 / scale["scale"], reads_interval=[1.0 / hi, 1.0 / lo], scale_segments=scale["n"])
+    # the size is read where the least cost lies inside the factors tried and its interval is narrow
+    resolved = bool(scale["n"]) and min(scale["scales"]) < scale["scale"] < max(scale["scales"]) \
+        and hi - lo <= MAX_SCALE_WIDTH
+    out = dict(check.to_json(), segments=len(times), scale_segments=scale["n"], scale_resolved=resolved,
+               scale=scale["scale"] if scale["n"] else None, scale_interval=scale["interval"] if scale["n"] else None,
+               reads=1.0 / scale["scale"] if scale["n"] else None,
+               reads_interval=[1.0 / hi, 1.0 / lo] if scale["n"] else None)
     out["findings"] = findings(out)
-    grid = (min(scale["scales"]), max(scale["scales"])) if scale["n"] else (np.nan, np.nan)
-    if scale["n"] and grid[0] < scale["scale"] < grid[1] and hi - lo <= MAX_SCALE_WIDTH:
+    if resolved:
         size = (f"over {scale['n']} segments the measured spin reads {out['reads']:.2f} (95 % "
                 f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f}) times what the flights show")
-    else:  # the least cost at the end of the factors tried, or an interval too wide to read
+    elif scale["n"]:
         size = (f"the spin's size is not resolved by the flights (over {scale['n']} segments the measured spin reads "
                 f"{out['reads_interval'][0]:.2f}-{out['reads_interval'][1]:.2f} times theirs, 95 %)")
+    else:
+        size = "no segment left to read the spin's size on"
     text = check.summary() + "; " + size
     out["summary"] = text + ("; " + ", ".join(out["findings"]) if out["findings"] else "; consistent")
     return out
-
-
-#: Widest interval of the factor :func:`spin_scale` finds that is read as a size [1].
-MAX_SCALE_WIDTH = 0.5
-#: A record's spin is reported off when its interval leaves these out: a share bent opposite above
-#: this, a rotation above this [deg], a scale outside 1 +- this.
-FINDING_OPPOSITE, FINDING_ROTATION_DEG, FINDING_SCALE = 0.05, 5.0, 0.05
 
 
 def findings(check: dict) -> list:
@@ -263,7 +269,7 @@ def findings(check: dict) -> list:
     if check.get("n", 0) and check["rotation_interval_deg"][0] > FINDING_ROTATION_DEG:
         out.append(f"axis turned by {check['rotation_deg']:.0f} deg (turned back right-handed about "
                    f"{np.round(check['rotation_axis'], 2).tolist()})")
-    lo, hi = check.get("reads_interval", [np.nan, np.nan])
-    if np.isfinite(lo) and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE):
+    lo, hi = check.get("reads_interval") or (np.nan, np.nan)
+    if check.get("scale_resolved", True) and np.isfinite(lo) and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE):
         out.append(f"spin reads {abs(100 * (check['reads'] - 1.0)):.0f} % {'high' if check['reads'] > 1 else 'low'}")
     return out
