@@ -377,17 +377,22 @@ def resolve_model_path(name_or_path: str | Path) -> Path:
     Returns:
         The path of an existing file; raises :class:`ConfigError` naming the name or path otherwise.
     """
+    return _bundled_or_path(name_or_path, "models", "model", available_models)
+
+
+def _bundled_or_path(name_or_path, folder: str, what: str, available) -> Path:
+    """The file of a bundled ``what`` (``configs/FOLDER/NAME.toml``) or the given path, checked."""
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
         if path.is_dir():
-            raise ConfigError(f"{path}: is a directory, not a model .toml file")
+            raise ConfigError(f"{path}: is a directory, not a {what} .toml file")
         if not path.is_file():
-            raise ConfigError(f"{path}: no such model file")
+            raise ConfigError(f"{path}: no such {what} file")
         return path
-    path = config_dir() / "models" / f"{name_or_path}.toml"
+    path = config_dir() / folder / f"{name_or_path}.toml"
     if not path.is_file():
-        raise ConfigError(f"unknown model {str(name_or_path)!r}; bundled models: {available_models()} "
-                          "(or give a path to a .toml file)")
+        raise ConfigError(f"unknown {what} {str(name_or_path)!r}; bundled {what}s: {available()} "
+                          f"(or give a path to a {what} .toml file)")
     return path
 
 
@@ -432,7 +437,38 @@ def read_model_file(path: Path, _chain: tuple = ()) -> dict:
     return _overlay(merged, data)
 
 
-def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tuple = ()) -> Model:
+def available_rackets() -> list[str]:
+    """Names of the bundled racket configurations (``configs/rackets/*.toml``)."""
+    return sorted(p.stem for p in (config_dir() / "rackets").glob("*.toml"))
+
+
+def resolve_racket_path(name_or_path: str | Path) -> Path:
+    """The racket file of a bundled racket configuration's name (``"racket_01"``) or a path to one."""
+    return _bundled_or_path(name_or_path, "rackets", "racket", available_rackets)
+
+
+def read_racket_file(path: Path) -> tuple[dict, Path | None]:
+    """(the ``[racket]`` table, the residual network file or None) of a racket file: a fitted racket
+    configuration (``configs/rackets/*.toml``, written by ``benchmarks/racket_configs_real.py``),
+    whose optional ``network`` names a ``.ttres`` beside it."""
+    data = read_toml(path, "racket file")
+    unknown = set(data) - {"schema", "name", "description", "source", "racket", "network", "held_out"}
+    if unknown:
+        _error(str(path), sorted(unknown)[0], data[sorted(unknown)[0]], "unknown key; known: schema, name, description, "
+               "source, racket, network, held_out")
+    if not isinstance(data.get("racket"), dict):
+        _error(str(path), "racket", data.get("racket"), "expected a [racket] table")
+    net = data.get("network")
+    if net is None:
+        return data["racket"], None
+    net_path = path.parent / str(net)
+    if not net_path.is_file():
+        _error(str(path), "network", net, f"no such file {net_path}")
+    return data["racket"], net_path
+
+
+def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tuple = (), racket=None,
+               racket_network: bool = True) -> Model:
     """Loads a model by bundled name (``"conti2026"``) or TOML path.
 
     Arguments:
@@ -440,6 +476,13 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
         dtype: float dtype of the parameters (default: JAX's default float).
         residual: optional racket residual network (``ResidualModel``) or a path to its checkpoint.
         effects: tuple of effects to attach.
+        racket: optional racket configuration, a bundled name (:func:`available_rackets`, e.g.
+            ``"racket_01"``: tt_rackets' offensive blade with inverted rubber) or a racket file:
+            its fitted ``[racket]`` parameters replace the model's, and its residual network, where
+            it has one, becomes the model's (unless ``residual`` is given). The model is named
+            ``MODEL+RACKET``.
+        racket_network: with ``racket``, attach the configuration's residual network (False: the
+            fitted base model alone).
 
     Returns:
         A validated :class:`Model`.
@@ -448,7 +491,14 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
 
     enable_compilation_cache()  # a library user's first step: later processes load what this one compiles
     path = resolve_model_path(name_or_path)
-    model = model_from_dict(read_model_file(path), str(path), dtype)
+    doc = read_model_file(path)
+    if racket is not None:
+        racket_path = resolve_racket_path(racket)
+        table, net = read_racket_file(racket_path)
+        doc = dict(doc, racket=table, name=f"{doc.get('name', path.stem)}+{racket_path.stem}")
+        if residual is None and racket_network and net is not None:
+            residual = net
+    model = model_from_dict(doc, str(path), dtype)
     if isinstance(residual, (str, Path)):
         from ttsim_jax.physics.network_checkpoint import load_residual
         residual = load_residual(residual)

@@ -209,3 +209,42 @@ def plot_landing(errors: dict, landing: dict, measured, hist_path, xy_path, max_
         ax.set_title(f"landing points: {name}")
         ax.legend(fontsize=7, loc="upper left")
     return hist_path, save_figure(fig, xy_path)
+
+
+def plot_predicted_vs_measured(panels: dict, path, *, xlabel: str = "measured", ylabel: str = "predicted",
+                               title: str = "", max_points: int = 1500) -> Path:
+    """Scatter of predicted against measured values per panel and model, with the identity line.
+
+    Arguments:
+        panels: {panel title: (measured (n,), {model: predicted (n,)})}; one subplot each.
+        path: PNG file to write.
+        xlabel, ylabel, title: labels.
+        max_points: at most this many points per panel (an even subsample), so the file stays light.
+
+    Returns:
+        The path written.
+    """
+    plt = pyplot()
+    names = list(dict.fromkeys(n for _, pred in panels.values() for n in pred))
+    colours = model_colours(names)
+    cols = min(len(panels), 3)
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
+    for ax, (label, (measured, pred)) in zip(axes.ravel(), panels.items()):
+        measured = np.asarray(measured, np.float64)
+        keep = np.linspace(0, len(measured) - 1, min(len(measured), max_points)).astype(int) if len(measured) else []
+        lo, hi = (float(np.min(measured)), float(np.max(measured))) if len(measured) else (0.0, 1.0)
+        for name in names:
+            if name in pred:
+                ax.scatter(measured[keep], np.asarray(pred[name], np.float64)[keep], s=4, alpha=0.4,
+                           color=colours[name], label=name)
+        ax.plot([lo, hi], [lo, hi], color="k", lw=0.8)
+        ax.set_title(f"{label} (n={len(measured)})", fontsize=9)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    axes[0, 0].legend(fontsize=7, markerscale=3)
+    fig.suptitle(title)
+    return save_figure(fig, path)

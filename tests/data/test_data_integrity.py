@@ -12,6 +12,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from ttsim_jax.data import schema
+
 from ttsim_jax.cli import main
 from ttsim_jax.data import DataError, load, save
 from ttsim_jax.data import io as data_io
@@ -87,7 +89,7 @@ def test_a_dataset_without_checksums_warns_once_and_upgrade_protects_it(small_da
     save(small_dataset, path)
     (path / "README.md").write_text("my notes\n")
     strip_checksums(path)
-    assert len(data_io.unprotected_files(path)) == 5
+    assert len(data_io.unprotected_files(path)) == len(schema.TABLES)
     # a flipped bit in such a file goes unnoticed: that is what the warning is about
     before, found = recorded(lambda: load(path))
     assert len(found) == 1
@@ -137,11 +139,12 @@ def test_data_info_shows_protection_and_data_upgrade_adds_it(small_dataset, tmp_
     strip_checksums(path)
     assert main(["data", "info", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "checksums:     none in 5 of 5 Parquet files (not protected" in out and "ttsim data upgrade" in out
+    n = len(schema.TABLES)
+    assert f"checksums:     none in {n} of {n} Parquet files (not protected" in out and "ttsim data upgrade" in out
     copy = tmp_path / "new"
     assert main(["data", "upgrade", str(path), "--out", str(copy)]) == 0
-    assert "page checksums in all 5 Parquet files" in capsys.readouterr().out
-    assert len(data_io.unprotected_files(path)) == 5  # --out leaves the original as it was
+    assert f"page checksums in all {n} Parquet files" in capsys.readouterr().out
+    assert len(data_io.unprotected_files(path)) == len(schema.TABLES)  # --out leaves the original as it was
     assert main(["data", "info", str(copy), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["checksums"] == {"protected": True, "unprotected_files": [], "parquet_files": 5}

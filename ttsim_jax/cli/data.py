@@ -41,7 +41,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         "prints what it found per session and warns about segments that no ballistic flight fits.",
     )
     imp.add_argument("path", metavar="PATH", type=existing_path, help="the source's folder (e.g. shared/data/real/spindoe) or one of its files")
-    imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH")
+    imp.add_argument("--source", required=True, choices=SOURCES, help="which importer reads PATH: spindoe, tt3d, mpi (flight recordings), tt_rackets (racket "
+                     "bounces with measured states, one racket configuration per file) or csv (a tracker's log)")
     imp.add_argument("--out", required=True, metavar="DIR", type=writable_dir, help="dataset directory to write")
     imp.add_argument("--force", action="store_true", help="replace DIR if it holds a dataset (other files in it are kept)")
     imp.add_argument("--length-unit", choices=tuple(LENGTH_UNITS), default="m", help="with --source csv: unit of the positions (default m)")
@@ -103,8 +104,9 @@ def cmd_import(args) -> int:
     for w in caught:
         if not isinstance(w.message, DataWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    print("fitting a flight to every segment to check it ...", flush=True)
-    print(tracking_report(ds))
+    if len(ds.observations["t"]):  # a rig's contact states (tt_rackets) hold no flights to check
+        print("fitting a flight to every segment to check it ...", flush=True)
+        print(tracking_report(ds))
     if args.filter:
         conf = None if args.min_spin_conf < 0 else args.min_spin_conf
         ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)

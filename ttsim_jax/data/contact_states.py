@@ -1,4 +1,6 @@
-"""The ball's state just before and just after a contact, estimated from the observations alone.
+"""The ball's state just before and just after a contact, estimated from the observations alone,
+or read where the dataset measured it directly (its ``contact_states`` table: a racket-bounce rig
+such as tt_rackets, a tracker that writes states).
 
 No model enters: the racket residual's training arrays (:mod:`ttsim_jax.fit.racket_arrays`), the
 table fit's bounces (:mod:`ttsim_jax.fit.table_bounces`), the evaluation and the gap diagnosis all
@@ -20,7 +22,9 @@ How the contact states are estimated (:class:`ContactFit`):
   face is computed from it and the racket pose as in the simulator (``contact_point = "state"``)
   or taken from the rackets table (``"table"``).
 
-Contacts lacking what is needed are skipped and counted by reason (:data:`SKIP_REASONS`).
+Contacts lacking what is needed are skipped and counted by reason (:data:`SKIP_REASONS`). A
+contact with a row in ``contact_states`` takes its states from there, whatever its segments hold
+(fit residual 0, the spins' confidences as given).
 """
 
 from __future__ import annotations
@@ -245,6 +249,8 @@ class Contacts:
         rmse: (E, 2) RMS position residual of each fit [m] (NaN where not fitted).
         reason: (E,) the :data:`SKIP_REASONS` key of a contact whose states are not estimated, spin
             aside (None where they are; :meth:`skip_reasons` adds the spin's).
+        measured: (E,) bool, the states come from the dataset's ``contact_states`` table (not
+            estimated from observations).
     """
 
     fit: ContactFit
@@ -262,6 +268,7 @@ class Contacts:
     spin_conf: np.ndarray
     rmse: np.ndarray
     reason: np.ndarray
+    measured: np.ndarray
 
     def __len__(self) -> int:
         return len(self.event_id)
@@ -344,7 +351,25 @@ class Contacts:
                 vin[i], vout[i], rmse[i] = est.vel_in, est.vel_out, est.rmse
         if progress is not None:
             progress(n, n)
+        measured = _read_measured(ds, ids, vin, win, vout, wout, conf, rmse, reason)
         return cls(fit=fit, event_id=ids, kind=kinds[rows], session_id=np.asarray(ev["session_id"], np.int64)[rows],
                    t=t_c, pos=np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1).reshape(n, 3),
                    in_row=in_row, out_row=out_row, vel_in=vin, vel_out=vout, spin_in=win, spin_out=wout,
-                   spin_conf=conf, rmse=rmse, reason=reason)
+                   spin_conf=conf, rmse=rmse, reason=reason, measured=measured)
+
+
+def _read_measured(ds, ids, vin, win, vout, wout, conf, rmse, reason) -> np.ndarray:
+    """Writes the ``contact_states`` rows of contacts ``ids`` over the estimates (in place);
+    returns which contacts had one."""
+    cs = ds.contact_states
+    rows = rows_of(id_index(cs["event_id"]), ids)
+    hit = np.flatnonzero(rows >= 0)
+    if hit.size:
+        r = rows[hit]
+        col = lambda p: np.stack([np.asarray(cs[f"{p}{a}"], np.float64)[r] for a in "xyz"], -1)  # noqa: E731
+        vin[hit], win[hit], vout[hit], wout[hit] = col("v_in_"), col("w_in_"), col("v_out_"), col("w_out_")
+        conf[hit] = np.stack([np.asarray(cs["spin_conf_in"], np.float64)[r],
+                              np.asarray(cs["spin_conf_out"], np.float64)[r]], -1)
+        rmse[hit] = 0.0
+        reason[hit] = None
+    return rows >= 0

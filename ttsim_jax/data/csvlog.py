@@ -36,10 +36,10 @@ RACKET_COLUMNS = tuple(c.name for c in schema.RACKETS)
 _REQUIRED = {
     "observations": ("session_id", "t", "x", "y", "z"),
     "events": ("session_id", "t", "kind", "x", "y", "z"),
-    "rackets": RACKET_COLUMNS,
+    "rackets": tuple(c.name for c in schema.RACKETS if c.required),
 }
 _INTS = {"session_id", "event_id"}
-_STRINGS = {"kind"}
+_STRINGS = {"kind", "config"}
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3}
 #: Below this 90th percentile of sample-to-sample speeds [m/s] the log shows no ball in play (a ball
@@ -230,6 +230,8 @@ def read_csv(
             "ang_vel": np.stack([r["wx"], r["wy"], r["wz"]], -1),
             "contact": np.stack([r["d_y"], r["d_z"]], -1),
         }
+        if "config" in r:
+            rk["config"] = r["config"]
     t = o["t"] * t_scale
     ds = Dataset.from_arrays(
         o["session_id"],

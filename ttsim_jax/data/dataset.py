@@ -1,4 +1,4 @@
-"""The in-memory dataset: five column tables of numpy arrays plus metadata.
+"""The in-memory dataset: six column tables of numpy arrays plus metadata.
 
 A table is a plain ``dict`` mapping column name -> 1-D numpy array, all of one length, with the
 columns and dtypes of :mod:`ttsim_jax.data.schema`. That is what Parquet stores, what pandas or
@@ -26,8 +26,8 @@ import numpy as np
 
 from . import schema
 from .errors import DataError
-from .tables import (Table, concat_tables, events_table, fill_defaults, rackets_table,  # noqa: F401 (public here too)
-                     select_rows, sessions_table)
+from .tables import (Table, concat_tables, contact_states_table, events_table, fill_defaults,  # noqa: F401
+                     rackets_table, select_rows, sessions_table)
 from .tables import id_index, rows_of
 
 
@@ -70,8 +70,9 @@ class Dataset:
     """Measured (or generated) ball data in the canonical frame; the unit passed around.
 
     Attributes:
-        sessions, observations, events, rackets, segments: column tables (see
-            :mod:`ttsim_jax.data.schema` for columns, dtypes and units).
+        sessions, observations, events, rackets, segments, contact_states: column tables (see
+            :mod:`ttsim_jax.data.schema` for columns, dtypes and units); ``contact_states`` is
+            empty unless contact states were measured directly.
         metadata: :class:`Metadata`.
     """
 
@@ -81,6 +82,7 @@ class Dataset:
     rackets: Table
     segments: Table
     metadata: Metadata = dataclasses.field(default_factory=Metadata)
+    contact_states: Table = dataclasses.field(default_factory=lambda: schema.empty_table("contact_states"))
     # indexes built on first use (:meth:`event_rows`, :meth:`segments_around`, :meth:`segment_rows`,
     # :meth:`observation_index`, :meth:`contacts`); a replaced copy starts without them
     _indexes: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
@@ -203,6 +205,7 @@ class Dataset:
         sessions: Mapping[str, Any] | None = None,
         segments: Mapping[str, Any] | str | None = "events",
         metadata: Metadata | None = None,
+        contact_states: Mapping[str, Any] | None = None,
     ) -> "Dataset":
         """Builds a dataset from numpy arrays, filling every optional column with its default.
 
@@ -218,12 +221,15 @@ class Dataset:
                 ``event_id`` (E,) (default ``0..E-1``).
             rackets: optional dict of racket states, one per racket event: ``pos`` (R, 3),
                 ``quat`` (R, 4) (w, x, y, z), ``vel`` (R, 3), ``ang_vel`` (R, 3), ``contact`` (R, 2)
-                (d_y, d_z), and optionally ``event_id`` (R,) (default: the racket events in order).
+                (d_y, d_z), and optionally ``event_id`` (R,) (default: the racket events in order) and
+                ``config`` (R,) racket configuration names.
             sessions: optional dict with ``session_id`` and optional ``name``, ``notes`` (default:
                 one row per distinct ``session_id``).
             segments: ``"events"`` to split each session at its events (default), ``None`` for no
                 segments, or a segments column table.
             metadata: :class:`Metadata` (default: empty source, canonical frame).
+            contact_states: optional dict of directly measured contact states
+                (:func:`~ttsim_jax.data.tables.contact_states_table`'s arguments).
 
         Returns:
             The dataset (not yet validated: call :func:`ttsim_jax.data.validate.validate`).
@@ -267,6 +273,8 @@ class Dataset:
             rackets=rk,
             segments=schema.empty_table("segments"),
             metadata=metadata if metadata is not None else Metadata(),
+            contact_states=(contact_states_table(**contact_states) if contact_states is not None
+                            else schema.empty_table("contact_states")),
         )
         if isinstance(segments, str):
             if segments != "events":

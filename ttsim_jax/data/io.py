@@ -10,6 +10,7 @@ Layout of a dataset directory (see ``docs/data_format.md``)::
       events.parquet
       rackets.parquet
       segments.parquet
+      contact_states.parquet (from schema 1.2; an older dataset without it reads it as empty)
 
 Every Parquet file also carries the schema version (``ttsim.schema_version``) and the dataset id
 (``ttsim.dataset_id``, a fresh uuid per write, also in ``metadata.json``) in its key-value
@@ -261,6 +262,9 @@ def read_table(file, name: str, dataset_id: str | None = None) -> dict[str, np.n
     out = {}
     for c in schema.TABLES[name]:
         if c.name not in t.column_names:
+            if not c.required:  # an optional column added by a later minor version
+                out[c.name] = np.full(t.num_rows, c.default, dtype=c.numpy_dtype)
+                continue
             raise DataError("missing required column", file=file, table=name, column=c.name)
         col = t.column(c.name)
         if col.null_count:
@@ -298,7 +302,8 @@ def load(path, *, validate: bool = True) -> Dataset:
         raise DataError("no such dataset directory", file=path)
     # One read of metadata.json: a writer swapping the directory meanwhile makes the ids differ.
     meta, ident = _metadata_and_id(path)
-    tables = {name: read_table(table_path(path, name), name, ident) for name in schema.TABLES}
+    tables = {name: read_table(table_path(path, name), name, ident) for name in schema.TABLES
+              if name not in schema.OPTIONAL_TABLES or table_path(path, name).exists()}
     ds = Dataset(metadata=meta, **tables)
     files = {name: table_path(path, name) for name in schema.TABLES}
     files["metadata"] = path / METADATA_FILE

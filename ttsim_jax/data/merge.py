@@ -21,7 +21,7 @@ _REFERENCES = {
     "session_id": (("sessions", "session_id"), ("observations", "session_id"), ("events", "session_id"),
                    ("segments", "session_id")),
     "event_id": (("events", "event_id"), ("rackets", "event_id"), ("segments", "start_event_id"),
-                 ("segments", "end_event_id")),
+                 ("segments", "end_event_id"), ("contact_states", "event_id")),
     "segment_id": (("segments", "segment_id"), ("observations", "segment_id")),
 }
 

@@ -1,6 +1,6 @@
 """Column definitions of the measured-data format (tables, dtypes, units) and its version.
 
-A dataset is five tables (see ``docs/data_format.md``):
+A dataset is six tables (see ``docs/data_format.md``):
 
 * ``sessions``: one row per recording session (a continuous stream of observations).
 * ``observations``: ball positions over time, optional spin with a confidence, and the flight
@@ -8,6 +8,9 @@ A dataset is five tables (see ``docs/data_format.md``):
 * ``events``: labelled contacts (table, racket, net, out, other) that split a session into segments.
 * ``rackets``: the racket state at each racket contact event.
 * ``segments``: flight segments, the spans between consecutive events, with their spin.
+* ``contact_states``: the ball's state just before and just after a contact where it was measured
+  directly (a racket-bounce rig, a tracker that writes states), instead of estimated from the
+  observations (optional: datasets written before schema 1.2 read it as empty).
 
 Everything is SI and in the canonical world frame: origin at the centre of the table's playing
 surface, x along the table's length, y across, z up; a ball resting on the table has z = 0.02.
@@ -22,9 +25,11 @@ import numpy as np
 from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, TABLE_LENGTH, TABLE_WIDTH  # noqa: F401 (public here too)
 
 #: Version of the on-disk layout, "MAJOR.MINOR". A reader accepts files with the same major version;
-#: a newer minor version may only add optional columns (which older readers ignore) or metadata keys.
-#: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity").
-SCHEMA_VERSION = "1.1"
+#: a newer minor version may only add optional columns or tables (which older readers ignore, and which
+#: a newer reader fills with their defaults, or reads as empty, in older files) or metadata keys.
+#: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity"); 1.2 the
+#: ``contact_states`` table and the rackets' ``config`` column.
+SCHEMA_VERSION = "1.2"
 
 #: Name written into every dataset's metadata; data in any other frame must be converted first.
 CANONICAL_FRAME = "ttsim-table-centre-v1"
@@ -118,6 +123,8 @@ RACKETS = (
     *_xyz("w", "rad/s", "angular velocity of the racket, world frame"),
     Column("d_y", "float64", "m", "contact point on the face along racket y (x-axis = face normal)"),
     Column("d_z", "float64", "m", "contact point on the face along racket z (handle -> tip)"),
+    Column("config", "string", "", "racket configuration (blade, sponge, rubber) as named in the metadata's "
+           "equipment['rackets']; '' = not given", ""),
 )
 
 SEGMENTS = (
@@ -131,6 +138,16 @@ SEGMENTS = (
     Column("spin_conf", "float64", "", "confidence of the segment's spin in [0, 1]", 0.0),
 )
 
+CONTACT_STATES = (
+    Column("event_id", "int64", "", "the table or racket contact event these states belong to"),
+    *_xyz("v_in_", "m/s", "ball velocity just before the contact"),
+    *_xyz("w_in_", "rad/s", "ball spin just before the contact"),
+    *_xyz("v_out_", "m/s", "ball velocity just after the contact"),
+    *_xyz("w_out_", "rad/s", "ball spin just after the contact"),
+    Column("spin_conf_in", "float64", "", "confidence of the incoming spin in [0, 1]; 0 = not measured", 1.0),
+    Column("spin_conf_out", "float64", "", "confidence of the outgoing spin in [0, 1]; 0 = not measured", 1.0),
+)
+
 #: Table name -> its columns, in file order.
 TABLES: dict[str, tuple[Column, ...]] = {
     "sessions": SESSIONS,
@@ -138,7 +155,10 @@ TABLES: dict[str, tuple[Column, ...]] = {
     "events": EVENTS,
     "rackets": RACKETS,
     "segments": SEGMENTS,
+    "contact_states": CONTACT_STATES,
 }
+#: Tables a dataset of an older minor version may lack (read as empty), with the version that added them.
+OPTIONAL_TABLES = {"contact_states": "1.2"}
 
 #: Columns holding positions (checked for millimetres given as metres).
 POSITION_COLUMNS = {
@@ -148,7 +168,8 @@ POSITION_COLUMNS = {
 }
 
 #: Columns that identify a row and must be unique.
-ID_COLUMNS = {"sessions": "session_id", "events": "event_id", "segments": "segment_id", "rackets": "event_id"}
+ID_COLUMNS = {"sessions": "session_id", "events": "event_id", "segments": "segment_id", "rackets": "event_id",
+              "contact_states": "event_id"}
 
 
 def column(table: str, name: str) -> Column:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import schema
+from . import racket_configs, schema
 from .dataset import Dataset
 
 
@@ -53,6 +53,8 @@ def info(ds: Dataset, problems=None, warnings=None, unprotected=None) -> dict:
         "segments_with_spin": int(has_spin.sum()),
         "events": kinds,
         "racket_states": len(ds.rackets["event_id"]),
+        "contact_states": len(ds.contact_states["event_id"]),
+        "racket_configs": racket_configs.summary(ds),
         "speed_p1_p50_p99": pct(speeds, [1, 50, 99]),
         "spin_min_median_max": [float(mags.min()), float(np.median(mags)), float(mags.max())] if len(mags) else [],
         "checksums": None if unprotected is None else {"protected": not unprotected[0],
@@ -75,6 +77,13 @@ def format_info(d: dict) -> str:
         f"events:        {ev}",
         f"racket states: {d['racket_states']}",
     ]
+    if d.get("contact_states"):
+        lines.append(f"contact states: {d['contact_states']} measured directly (not estimated from observations)")
+    for name, c in d.get("racket_configs", {}).items():
+        tilts = ", ".join(f"{t} deg {n}" for t, n in c["tilts_deg"].items())
+        what = ", ".join(str(c[k]) + (" mm" if k == "sponge_mm" else "") for k in ("blade", "sponge_mm", "rubber", "rubber_type")
+                         if k in c)
+        lines.append(f"  racket {name}: {c['n']} contacts" + (f" (tilt {tilts})" if tilts else "") + (f"; {what}" if what else ""))
     if d["speed_p1_p50_p99"]:
         lo, mid, hi = d["speed_p1_p50_p99"]
         lines.append(f"speed [m/s]:   {lo:.2f} .. {hi:.2f} (1st..99th percentile), median {mid:.2f}")

@@ -72,9 +72,9 @@ def events_table(session_id, t, kind, pos, event_id=None) -> Table:
     )
 
 
-def rackets_table(event_id, pos, quat, vel, ang_vel, contact) -> Table:
-    """Rackets column table from (R, 3) ``pos``/``vel``/``ang_vel``, (R, 4) ``quat`` (w, x, y, z)
-    and (R, 2) ``contact`` (d_y, d_z)."""
+def rackets_table(event_id, pos, quat, vel, ang_vel, contact, config=None) -> Table:
+    """Rackets column table from (R, 3) ``pos``/``vel``/``ang_vel``, (R, 4) ``quat`` (w, x, y, z),
+    (R, 2) ``contact`` (d_y, d_z) and optionally (R,) ``config`` names (default '')."""
     pos = np.asarray(pos, np.float64).reshape(-1, 3)
     quat = np.asarray(quat, np.float64).reshape(-1, 4)
     vel = np.asarray(vel, np.float64).reshape(-1, 3)
@@ -86,7 +86,22 @@ def rackets_table(event_id, pos, quat, vel, ang_vel, contact) -> Table:
     cols.update(vx=vel[:, 0], vy=vel[:, 1], vz=vel[:, 2])
     cols.update(wx=ang_vel[:, 0], wy=ang_vel[:, 1], wz=ang_vel[:, 2])
     cols.update(d_y=contact[:, 0], d_z=contact[:, 1])
+    if config is not None:
+        cols["config"] = np.broadcast_to(np.asarray(config, object), (len(pos),))
     return fill_defaults("rackets", cols)
+
+
+def contact_states_table(event_id, v_in, w_in, v_out, w_out, spin_conf_in=1.0, spin_conf_out=1.0) -> Table:
+    """Contact-states column table from (C,) ``event_id`` and (C, 3) world-frame velocities [m/s]
+    and spins [rad/s] just before (``_in``) and after (``_out``) each contact."""
+    cols = {"event_id": event_id}
+    for name, a in (("v_in_", v_in), ("w_in_", w_in), ("v_out_", v_out), ("w_out_", w_out)):
+        a = np.asarray(a, np.float64).reshape(-1, 3)
+        cols.update({f"{name}{k}": a[:, i] for i, k in enumerate("xyz")})
+    n = len(np.atleast_1d(event_id))
+    cols["spin_conf_in"] = np.broadcast_to(np.asarray(spin_conf_in, np.float64), (n,))
+    cols["spin_conf_out"] = np.broadcast_to(np.asarray(spin_conf_out, np.float64), (n,))
+    return fill_defaults("contact_states", cols)
 
 
 def sessions_table(session_id, name=None, notes=None) -> Table:

@@ -193,11 +193,13 @@ def _check_values(name: str, table, f) -> Iterator[DataError]:
                 f"ball below the floor (z = {schema.FLOOR_Z} m in the canonical frame): is the table surface at z = 0?",
                 file=f, table=name, row=bad[0], column="z", value=z[bad[0]],
             )
-    if "spin_conf" in table:
-        conf = np.asarray(table["spin_conf"], np.float64)
+    for col in ("spin_conf", "spin_conf_in", "spin_conf_out"):
+        if col not in table:
+            continue
+        conf = np.asarray(table[col], np.float64)
         bad = np.flatnonzero((conf < 0) | (conf > 1))
         if bad.size:
-            yield DataError("spin confidence must be in [0, 1]", file=f, table=name, row=bad[0], column="spin_conf", value=conf[bad[0]])
+            yield DataError("spin confidence must be in [0, 1]", file=f, table=name, row=bad[0], column=col, value=conf[bad[0]])
     if name == "events":
         bad = [i for i, k in enumerate(table["kind"]) if k not in schema.EVENT_CODES]
         if bad:
@@ -270,6 +272,14 @@ def _check_references(ds: Dataset, files) -> Iterator[DataError]:
     stray = np.flatnonzero(~np.isin(rk_ids, racket_events))
     if stray.size:
         yield DataError("racket state whose event_id is not a racket contact event", file=f_rk, table="rackets", row=stray[0], column="event_id", value=rk_ids[stray[0]])
+    kinds = np.asarray(ev["kind"]).astype(str)
+    contact_events = np.asarray(ev["event_id"])[np.isin(kinds, ("table", "racket"))]
+    cs_ids = np.asarray(ds.contact_states["event_id"])
+    stray = np.flatnonzero(~np.isin(cs_ids, contact_events))
+    if stray.size:
+        yield DataError("contact state whose event_id is not a table or racket contact event",
+                        file=_file_of(files, "contact_states"), table="contact_states", row=stray[0], column="event_id",
+                        value=cs_ids[stray[0]])
 
     seg = ds.segments
     f_obs, f_seg = _file_of(files, "observations"), _file_of(files, "segments")
@@ -414,6 +424,18 @@ def _plausibility(ds: Dataset, files, want: str):
                               "more than the largest measured in play (Tang 2002)"))
             warned = bool(found)
             yield from found
+    cs = ds.contact_states
+    for side in ("in", "out"):
+        v_cols, w_cols = tuple(f"v_{side}_{a}" for a in "xyz"), tuple(f"w_{side}_{a}" for a in "xyz")
+        v, w = _magnitudes(cs, v_cols), _magnitudes(cs, w_cols)
+        yield from over("contact_states", v_cols, v, MAX_SPEED, "error", "a ball speed", "m/s",
+                        "beyond what the game produces; is it in m/s?")
+        yield from over("contact_states", w_cols, w, MAX_SPIN, "error", "a spin", "rad/s",
+                        f"beyond what any contact can give a ball ({MAX_SPIN:.0f} rad/s); is it in rad/s?")
+        yield from over("contact_states", v_cols, v, FASTEST_BALL, "warning", "a ball speed", "m/s",
+                        "more than the fastest ball measured in play")
+        yield from over("contact_states", w_cols, w, FASTEST_SPIN, "warning", "a spin", "rad/s",
+                        "more than the largest measured in play (Tang 2002)")
     rk = ds.rackets
     for cols, unit, scale, what in ((("vx", "vy", "vz"), "m/s", 1.0, "a face speed"),
                                     (("wx", "wy", "wz"), "rad/s", BLADE_HALF_WIDTH, "a rotation rate")):

@@ -131,6 +131,9 @@ class TaskConfig:
 
     Attributes:
         model: bundled model name or model .toml path.
+        racket_config: the learning racket's configuration (blade, sponge, rubber): a bundled name
+            (``ttsim_jax.params.available_rackets()``, e.g. "racket_05": long pips) or a racket file,
+            whose fitted contact and residual network replace the model's; "" keeps the model's.
         shots, control, racket, observation, reward, intercept, residual: the sections of the file.
         randomisation: ((dotted model path, a, b, law), ...) per-environment draws: ``law`` "uniform"
             in [a, b], or "normal" of mean a and standard deviation b, truncated at 3 b.
@@ -138,6 +141,7 @@ class TaskConfig:
     """
 
     model: str = "conti2026"
+    racket_config: str = ""
     shots: ShotsConfig = field(default_factory=ShotsConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     racket: RacketConfig = field(default_factory=RacketConfig)
@@ -318,9 +322,9 @@ def read_section(raw: dict, name: str, cls, source: str, positive=(), non_negati
 
 def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     """A :class:`TaskConfig` from the parsed TOML ``raw`` (see :func:`load_task_config`)."""
-    unknown = set(raw) - set(_SECTIONS) - {"model", "randomisation"}
+    unknown = set(raw) - set(_SECTIONS) - {"model", "racket_config", "randomisation"}
     if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: model, randomisation, "
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: model, racket_config, randomisation, "
                           f"{', '.join(_SECTIONS)}")
     out = {name: read_section(raw, name, cls, source, _POSITIVE, _NON_NEGATIVE) for name, cls in _SECTIONS.items()}
     racket = out["racket"]
@@ -375,4 +379,11 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     model = raw.get("model", "conti2026")
     if not isinstance(model, str):
         raise ConfigError(f"{source}: model = {model!r}: expected a model name or path")
-    return TaskConfig(model=model, randomisation=tuple(ranges), source=source, **out)
+    racket_config = raw.get("racket_config", "")
+    if not isinstance(racket_config, str):
+        raise ConfigError(f"{source}: racket_config = {racket_config!r}: expected a racket name or path")
+    if racket_config:
+        from ttsim_jax.params import resolve_racket_path
+
+        resolve_racket_path(racket_config)  # an unknown name is refused here, naming the bundled ones
+    return TaskConfig(model=model, racket_config=racket_config, randomisation=tuple(ranges), source=source, **out)

@@ -253,7 +253,8 @@ class ReturnBall:
     def _make_params(self, draw: bool) -> EnvParams:
         c = self.config
         # a residual checkpoint holds float32 arrays, as the environment's model
-        model = load_model(c.model, dtype=jnp.float32, residual=c.residual.checkpoint or None)
+        model = load_model(c.model, dtype=jnp.float32, residual=c.residual.checkpoint or None,
+                           racket=c.racket_config or None)
         try:
             per_ball_axes(model, *self.paths)
         except ValueError as e:

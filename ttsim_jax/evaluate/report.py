@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttsim_jax.evaluate import racket_groups
 from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, STAGES, TABLE_SKIP_REASONS, counts_text
 from ttsim_jax.data.contact_states import SKIP_REASONS
 from ttsim_jax.fit.flight import spin_source_counts
@@ -158,7 +159,7 @@ def summarise(result: dict) -> dict:
                         cell["reduction_median_pct"] = reduction(per[ref][label][c]["median"], cell["median"])
             out["racket"] = dict(n_contacts=r["n_contacts"], n_used=len(r["event_id"]), skip_counts=r["skip_counts"],
                                  frame="racket (x = face normal)", units=dict(velocity="m/s", spin="rad/s"),
-                                 bands=[label for label, _ in bands], models=per)
+                                 bands=[label for label, _ in bands], models=per, groups=racket_groups.groups(r))
     if "landing" in result:
         g = result["landing"]
         if "skipped" in g:
@@ -175,6 +176,7 @@ def summarise(result: dict) -> dict:
 
 # ---------------------------------------------------------------------------------------------- files
 FIGURES = dict(flight="flight_rmse.png", table="table_errors.png", racket="racket_errors.png",
+               racket_spin="racket_spin.png",
                landing_hist="landing_hist.png", landing_xy="landing_xy.png")
 
 
@@ -251,7 +253,9 @@ def _racket_md(r: dict, names: list, figures: dict) -> list:
              "brackets), per band of contact distance from the face centre; racket frame.", ""]
             + _table_md(head, rows) + ["", "All bands, median |error| per component (racket frame):", ""]
             + _table_md(["model"] + list(COMPONENTS), components)
-            + ["", f"![racket contact errors]({figures['racket']})", ""])
+            + ["", f"![racket contact errors]({figures['racket']})", ""]
+            + racket_groups.markdown(r.get("groups", {}), names)
+            + [f"![predicted against measured outgoing spin]({figures['racket_spin']})", ""])
 
 
 def _landing_md(g: dict, names: list, figures: dict) -> list:
@@ -298,7 +302,7 @@ def _samples(result: dict) -> dict:
                 for name, arr in value.items():
                     out[f"{stage}/{key}/{name}"] = np.asarray(arr)
             elif isinstance(value, np.ndarray):
-                out[f"{stage}/{key}"] = value
+                out[f"{stage}/{key}"] = value.astype(str) if value.dtype == object else value
     return out
 
 
@@ -341,6 +345,15 @@ def write_report(result: dict, out_dir, data: str = "") -> dict:
         paths["racket"] = plots.plot_violins(groups, out / FIGURES["racket"], ylabel="magnitude error (predicted - measured)",
                                              title="racket contact: speed and spin magnitude errors by contact distance",
                                              panels=(keys[:len(bands)], keys[len(bands):]))
+        k = 3 + racket_groups.spin_component(r["y_obs"])
+        by = np.asarray(r["rubber_type"] if any(np.asarray(r["config"]) != "") else np.full(len(r["y_obs"]), "all"), object)
+        panels = {str(g): (r["y_obs"][by == g, k], {n: r["predicted"][n][by == g, k] for n in names})
+                  for g in dict.fromkeys(by.tolist())}
+        axis = "xyz"[k - 3]
+        paths["racket_spin"] = plots.plot_predicted_vs_measured(
+            panels, out / FIGURES["racket_spin"], xlabel=f"measured outgoing spin w~_{axis} [rad/s]",
+            ylabel=f"predicted w~_{axis} [rad/s]", title="racket contact: outgoing spin, predicted against measured"
+            + (" per rubber type" if len(panels) > 1 or "all" not in panels else ""))
     if "landing" in result and "skipped" not in result["landing"]:
         g = result["landing"]
         paths["landing_hist"], paths["landing_xy"] = plots.plot_landing(

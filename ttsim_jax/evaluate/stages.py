@@ -41,7 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ttsim_jax.data import racket_configs
 from ttsim_jax.data.contact_states import SKIP_REASONS, ContactFit, fit_contact_state
+from ttsim_jax.data.tables import id_index, rows_of
 from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.fit.network_evaluation import contact_errors
 from ttsim_jax.fit.racket_arrays import contact_arrays
@@ -232,6 +234,8 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``distance`` (N,) [m], ``x`` (N, 8)
         the pre-contact racket-frame state (v~, w~, d) of the first model's frame, ``error``
         {name: (N, 8) signed errors (:data:`~ttsim_jax.fit.network_evaluation.ERROR_NAMES`)},
+        ``predicted`` {name: (N, 6)} and ``y_obs`` (N, 6) the post-contact (v~+, w~+), ``config``,
+        ``rubber_type`` (N,) str and ``tilt`` (N,) [deg] (:func:`ttsim_jax.data.racket_configs.of_events`),
         ``skip_counts`` {reason: n} (of the first model's conversion), ``n_contacts``.
     """
     from ttsim_jax.fit.network_evaluation import predict
@@ -260,16 +264,18 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
         return dict(skipped=f"none of the {first.n_contacts} racket contacts is usable "
                     f"({counts_text(first.counts(), SKIP_REASONS)})")
     event_ids = np.array(sorted(common), np.int64)
-    error, x = {}, None
+    error, predicted, x, y_obs = {}, {}, None, None
     for name, _ in models:
         a, _, y = arrays[name]
-        row_of = {int(e): k for k, e in enumerate(a.event_id)}
-        rows = np.array([row_of[int(e)] for e in event_ids], np.int64)
+        rows = rows_of(id_index(a.event_id), event_ids)
         error[name] = contact_errors(y[rows], a.y_obs[rows])
+        predicted[name] = np.asarray(y[rows], np.float64)
         if x is None:
-            x = np.asarray(a.x[rows], np.float64)
+            x, y_obs = np.asarray(a.x[rows], np.float64), np.asarray(a.y_obs[rows], np.float64)
         tick()
+    config, rubber_type, tilt = racket_configs.of_events(ds, event_ids)
     return dict(event_id=event_ids, distance=np.linalg.norm(x[:, 6:8], axis=1), x=x, error=error,
+                predicted=predicted, y_obs=y_obs, config=config, rubber_type=rubber_type, tilt=tilt,
                 skip_counts=first.counts(), n_contacts=first.n_contacts)
 
 

@@ -15,7 +15,8 @@ so a network trained on the arrays corrects the simulator's own racket-frame pre
   R^T (w_out - w_surf), with R, v_surf, w_surf those of the pre-contact state (the inverse of
   the paper's v+ = R v~+ + v_R + w_R x r, w+ = R w~+ + w_R).
 
-The states come from the observations alone (:mod:`ttsim_jax.data.contact_states`, settings
+The states come from the observations alone, or from the dataset's directly measured contact
+states (:mod:`ttsim_jax.data.contact_states`, settings
 :class:`~ttsim_jax.data.contact_states.ContactFit`); contacts lacking what is needed are skipped
 and counted by reason (:data:`~ttsim_jax.data.contact_states.SKIP_REASONS`).
 :func:`draw_contact_states` draws racket-frame pre-contact states for synthetic contacts.
@@ -204,11 +205,19 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     return ContactArrays(
         x=f32(x8[:, :n_inputs]), y_base=f32(y_base), y_obs=f32(y_obs),
         distance=np.linalg.norm(x8[:, 6:8], axis=1), event_id=event_ids[g], session_id=sess[g],
-        in_segment_id=seg_ids[in_row[g]] if len(g) else np.zeros(0, np.int64),
-        out_segment_id=seg_ids[out_row[g]] if len(g) else np.zeros(0, np.int64),
+        in_segment_id=_segment_ids(seg_ids, in_row[g]), out_segment_id=_segment_ids(seg_ids, out_row[g]),
         world_in=np.concatenate([vin[g], win[g]], 1), world_out=np.concatenate([vout[g], wout[g]], 1),
         fit_rmse=rmse[g], skipped=skipped, n_contacts=n + len(stateless), model=name,
     )
+
+
+def _segment_ids(seg_ids, rows) -> np.ndarray:
+    """Segment ids of segments-table ``rows``, -1 for none (a contact whose states were measured
+    directly has no segments)."""
+    rows = np.asarray(rows, np.int64)
+    out = np.full(len(rows), -1, np.int64)
+    out[rows >= 0] = seg_ids[rows[rows >= 0]]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------

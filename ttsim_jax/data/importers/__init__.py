@@ -21,7 +21,7 @@ from ..errors import DataError
 from ..frames import FrameTransform, fit_bounce_plane
 from ..segment import detect_events, find_bounces, segments_from_events
 
-SOURCES = ("spindoe", "tt3d", "mpi", "csv")
+SOURCES = ("spindoe", "tt3d", "mpi", "tt_rackets", "csv")
 
 
 @dataclasses.dataclass
@@ -48,12 +48,15 @@ def import_source(path, source: str, *, length_unit: str = "m", time_unit: str =
 
     Arguments:
         path: the source's folder (e.g. ``.../real/spindoe``) or one of its files.
-        source: ``spindoe``, ``tt3d``, ``mpi`` or ``csv`` (see :mod:`ttsim_jax.data.csvlog`).
+        source: ``spindoe``, ``tt3d``, ``mpi``, ``tt_rackets`` (racket bounces with measured
+            states: :mod:`~ttsim_jax.data.importers.tt_rackets`) or ``csv`` (see
+            :mod:`ttsim_jax.data.csvlog`).
         length_unit, time_unit: units of a CSV log (``"m"``/``"mm"``, ``"s"``/``"ms"``); the
             public sources have known units.
 
     Returns:
-        Validated, segmented :class:`Dataset` (events detected from the observations).
+        Validated, segmented :class:`Dataset` (events detected from the observations; tt_rackets:
+        racket events with their measured states).
     """
     if source not in SOURCES:
         raise ValueError(f"unknown source {source!r}; known: {', '.join(SOURCES)}")
