@@ -147,7 +147,7 @@ def test_data_info_shows_protection_and_data_upgrade_adds_it(small_dataset, tmp_
     assert len(data_io.unprotected_files(path)) == len(schema.TABLES)  # --out leaves the original as it was
     assert main(["data", "info", str(copy), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["checksums"] == {"protected": True, "unprotected_files": [], "parquet_files": 5}
+    assert info["checksums"] == {"protected": True, "unprotected_files": [], "parquet_files": n}
     assert main(["data", "upgrade", str(path), "--out", str(copy)]) == 2  # exists: needs --force
     assert "--force" in capsys.readouterr().err
     assert main(["data", "upgrade", str(path)]) == 0
