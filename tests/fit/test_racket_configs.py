@@ -10,13 +10,10 @@ import numpy as np
 import pytest
 
 from ttsim_jax import Ball, Racket, simulate
-from ttsim_jax.data import Dataset
-from ttsim_jax.data.importers import tt_rackets
 from ttsim_jax.fit import racket_configs as rc
-from ttsim_jax.fit.racket import predict, updated_params
-from ttsim_jax.fit.racket_arrays import draw_contact_states
 from ttsim_jax.params import ConfigError, available_rackets, load_model
 from ttsim_jax.physics.events import KIND_NAMES
+from ttsim_jax.reality import synthetic_rig_dataset
 
 
 def test_quadratic_regression_recovers_a_quadratic_law_exactly():
@@ -43,34 +40,9 @@ def test_held_out_split():
         rc.held_out(names, tilts, test_fraction=1.0)
 
 
-def _rig(truth: dict, n: int, seed: int):
-    """A rig dataset (tt_rackets' layout) of two configurations bouncing through known updated-base
-    coefficients, racket at rest, face normal along world z."""
-    base = load_model("conti2026").racket
-    ids, states, names = [], [], []
-    for k, (name, theta) in enumerate(truth.items()):
-        v, w, d = draw_contact_states(np.random.default_rng(seed + k), n, 10.0, 400.0)
-        x = np.concatenate([v, w, np.zeros((n, 2))], 1)
-        vp, wp = predict(updated_params(base, theta), jnp.asarray(x, jnp.float32), 0.02, 2.721e-3)
-        racket_frame = np.concatenate([x[:, :6], np.asarray(vp), np.asarray(wp)], 1)
-        # racket frame (x~ normal, y~, z~) -> world (y~, z~, x~)
-        states.append(racket_frame.reshape(n, 4, 3)[:, :, [1, 2, 0]].reshape(n, 12))
-        ids.append((k + 1) * 10000 + np.arange(n))
-        names += [name] * n
-    ids, s = np.concatenate(ids), np.concatenate(states)
-    m = len(ids)
-    face = np.tile(tt_rackets.RACKET_POSITION, (m, 1))
-    return Dataset.from_arrays(
-        np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)),
-        events=dict(event_id=ids, session_id=0, t=np.arange(m, dtype=float), kind="racket", pos=face + [0, 0, 0.02]),
-        rackets=dict(event_id=ids, pos=face, quat=np.tile(tt_rackets.RACKET_QUAT, (m, 1)), vel=np.zeros((m, 3)),
-                     ang_vel=np.zeros((m, 3)), contact=np.zeros((m, 2)), config=np.array(names, object)),
-        segments=None, contact_states=dict(event_id=ids, v_in=s[:, 0:3], w_in=s[:, 3:6], v_out=s[:, 6:9], w_out=s[:, 9:12]))
-
-
 def test_fit_configs_recovers_each_configurations_coefficients():
     truth = {"grippy": [0.85, -0.01, 0.75, -0.01, 0.6], "slick": [0.7, -0.005, 0.2, -0.002, 0.3]}
-    fits = rc.fit_configs(_rig(truth, 300, 0), "conti2026", network=False)
+    fits = rc.fit_configs(synthetic_rig_dataset(truth, 300, 0), "conti2026", network=False)
     assert [f.name for f in fits] == ["grippy", "slick"]
     for f in fits:
         got = [f.values[k] for k in rc.PARAMETERS]

@@ -216,7 +216,8 @@ def contact_times(ds, event_ids) -> dict:
     hi = np.searchsorted(sorted_ids, seg_ids, side="right")
     first = np.array([t_obs[order[a]] if b > a else np.nan for a, b in zip(lo, hi)])
     mean = np.array([t_obs[order[a:b]].mean() if b > a else np.nan for a, b in zip(lo, hi)])
-    at = lambda values, rows: np.where(rows >= 0, values[np.maximum(rows, 0)], np.nan)  # noqa: E731
+    # NaN for a contact without the segment (as every contact of a rig that measured states, not flights)
+    at = lambda values, rows: np.append(values, np.nan)[np.where(rows >= 0, rows, len(values))]  # noqa: E731
     spin_dt = np.nan_to_num(np.stack([t_c - at(mean, in_rows), at(mean, out_rows) - t_c], 1))
     return dict(t=t_c, since=t_c - at(first, in_rows), spin_dt=spin_dt)
 

@@ -99,7 +99,7 @@ def gap_shares(out: dict) -> dict:
         out: the diagnosis's dict with ``before_after`` and ``floor``.
 
     Returns:
-        {phase: {"share", "ci95", "before", "after", "floor", "removable"}}, the shares as
+        {phase: {"share", "ci95", "before", "after", "floor", "removable", "floor_known"}}, the shares as
         fractions; a phase with no removable gap on the held-out items (its error at the floor) gets
         ``share`` None, as does one whose removable gap is below the phase's resolution
         (:data:`~ttsim_jax.diagnose.candidates.MIN_GAIN`).
@@ -113,7 +113,8 @@ def gap_shares(out: dict) -> dict:
         fl = out.get("floor", {}).get(p)
         f = fl["floor"] if isinstance(fl, dict) else 0.0
         room = b * b - f * f
-        entry = dict(before=b, after=a, floor=f, removable=math.sqrt(max(room, 0.0)), share=None, ci95=None)
+        entry = dict(before=b, after=a, floor=f, removable=math.sqrt(max(room, 0.0)), share=None, ci95=None,
+                     floor_known=isinstance(fl, dict))
         if entry["removable"] >= MIN_GAIN[p]:
             def share(pct):
                 return (b * b - (b * (1.0 - pct / 100.0)) ** 2) / room
@@ -221,6 +222,9 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
 
     def gap(p, g):
         u = UNITS[p]
+        if not g.get("floor_known", True):  # e.g. states measured directly: no positions to read a noise from
+            return (f"the {p} gap (error {g['before']:.3g} {u} on held-out data; its noise floor is not known, so all "
+                    "of it is counted as removable)")
         return (f"the {p} gap (error {g['before']:.3g} {u} on held-out data, noise floor {g['floor']:.3g} {u}, "
                 f"removable {g['removable']:.3g} {u})")
 

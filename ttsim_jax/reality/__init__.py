@@ -64,7 +64,7 @@ _NAMES = {
     **dict.fromkeys(["GENERATOR_VERSION", "Generated"], "ttsim_jax.reality.assembly"),
     **dict.fromkeys(["generate", "rerecord"], "ttsim_jax.reality.generation"),
     **dict.fromkeys(["Truth", "load_truth", "write"], "ttsim_jax.reality.truth"),
-    **dict.fromkeys(["synthetic_contact_dataset"], "ttsim_jax.reality.synthetic"),
+    **dict.fromkeys(["synthetic_contact_dataset", "synthetic_rig_dataset"], "ttsim_jax.reality.synthetic"),
 }
 __getattr__, __dir__ = exports(__name__, _NAMES)
 __all__ = sorted(_NAMES)

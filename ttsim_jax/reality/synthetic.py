@@ -149,3 +149,49 @@ def synthetic_contact_dataset(n: int, seed: int = 0, model="conti2026", residual
     truth = dict(x=x8, y_base=y_base, y_obs=y_obs, distance=np.linalg.norm(d, axis=1), event_id=np.arange(n),
                  vel_in=vel_in, spin_in=spin_in, vel_out=vel_out, spin_out=spin_out)
     return ds, truth
+
+
+def synthetic_rig_dataset(laws: dict, n: int, seed: int = 0, model="conti2026", max_speed: float = 10.0,
+                          max_spin: float = 400.0) -> Dataset:
+    """A racket-bounce rig's dataset (as ``ttsim data import --source tt_rackets`` writes one): per
+    racket configuration, ``n`` bounces on a racket at rest with their states measured directly
+    (the ``contact_states`` table), through a known law.
+
+    Arguments:
+        laws: configuration name -> its racket parameters (:class:`~ttsim_jax.physics.racket.RacketParams`)
+            or the updated base model's (e0, e1, et0, et1, e_s) over ``model``'s racket.
+        n: bounces per configuration; seed: seeds the incoming states (one stream per configuration).
+        model: its ball's radius and mass, and the base of a law given as five numbers.
+        max_speed, max_spin: the incoming states' bounds (:func:`~ttsim_jax.fit.racket_arrays.draw_contact_states`).
+
+    Returns:
+        The dataset (racket face centre at the tt_rackets importer's position, normal along world z,
+        contact at the face centre; ``rackets.config`` the law's name).
+    """
+    from ttsim_jax.data.importers.tt_rackets import RACKET_POSITION, RACKET_QUAT
+    from ttsim_jax.fit.racket import updated_params
+
+    m, _ = model_and_name(model)
+    radius, mass = ball_properties(m)
+    ids, states, names = [], [], []
+    for k, (name, law) in enumerate(laws.items()):
+        params = law if isinstance(law, racket_stage.RacketParams) else updated_params(m.racket, law)
+        v, w, _ = draw_contact_states(np.random.default_rng(seed + k), n, max_speed, max_spin)
+        d = jnp.zeros((n, 2))
+        vp, wp = jax.vmap(lambda vi, wi, di: racket_stage.base_response(params, vi, wi, di, radius, mass))(
+            jnp.asarray(v), jnp.asarray(w), d)
+        frame = np.stack([v, w, np.asarray(vp, np.float64), np.asarray(wp, np.float64)], 1)  # (n, 4, 3) racket frame
+        states.append(frame[:, :, [1, 2, 0]])  # racket (x~ normal, y~, z~) -> world (y~, z~, x~) at this pose
+        ids.append((k + 1) * 10000 + np.arange(n))
+        names += [name] * n
+    ids, s = np.concatenate(ids), np.concatenate(states)
+    total = len(ids)
+    face = np.tile(RACKET_POSITION, (total, 1))
+    return Dataset.from_arrays(
+        np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)),
+        events=dict(event_id=ids, session_id=0, t=np.arange(total, dtype=float), kind="racket",
+                    pos=face + [0.0, 0.0, float(radius)]),
+        rackets=dict(event_id=ids, pos=face, quat=np.tile(RACKET_QUAT, (total, 1)), vel=np.zeros((total, 3)),
+                     ang_vel=np.zeros((total, 3)), contact=np.zeros((total, 2)), config=np.array(names, object)),
+        segments=None, metadata=Metadata(source="ttsim_jax.reality.synthetic_rig_dataset"),
+        contact_states=dict(event_id=ids, v_in=s[:, 0], w_in=s[:, 1], v_out=s[:, 2], w_out=s[:, 3]))
