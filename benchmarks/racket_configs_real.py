@@ -43,8 +43,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from ttsim_jax.data import import_source
-    from ttsim_jax.fit.racket_configs import best, fit_configs
-    from ttsim_jax.physics.network_checkpoint import save_residual
+    from ttsim_jax.fit.racket_configs import best, fit_configs, write_racket_file
 
     t0 = time.time()
     ds = import_source(args.data, "tt_rackets")
@@ -59,27 +58,10 @@ def main(argv=None) -> int:
         out["splits"][split] = rows
         if split == "random" and args.write_configs:
             folder = REPO / "configs" / "rackets"
-            folder.mkdir(parents=True, exist_ok=True)
             for f in fits:
-                d = f.description
-                net = f"{f.name}.ttres" if f.network is not None else None
-                t = f.report["test"]
-                held = ", ".join(f"{k} {v['dv']:.3f} m/s {v['dw']:.1f} rad/s" for k, v in t.items())
-                text = [f"# {f.name} of tt_rackets (MIT licence, (c) 2026 Thomas Gossard; arXiv:2604.11349): "
-                        f"{d.get('blade', '')}, {d.get('sponge_mm', '')} mm {d.get('rubber', '')} ({d.get('rubber_type', '')}).",
-                        "# The updated base model fitted on 80 % of its bounces (benchmarks/racket_configs_real.py, seed "
-                        f"{args.seed}); held-out median |dv|, |dw|: {held}.",
-                        "schema = 1", f'name = "{f.name}"',
-                        f'description = "{d.get("blade", "")}, {d.get("sponge_mm", "")} mm {d.get("rubber", "")} '
-                        f'({d.get("rubber_type", "")})"',
-                        'source = "tt_rackets train split, fitted with ttsim_jax.fit.racket_configs.fit_configs"']
-                if net:
-                    text.append(f'network = "{net}"                # residual network trained on the same 80 %')
-                text += ["", f.racket_toml.rstrip()]
-                (folder / f"{f.name}.toml").write_text("\n".join(text) + "\n")
-                if net:
-                    save_residual(folder / net, f.network, metadata=dict(config=f.name, seed=args.seed,
-                                                                         n_train=f.report["n_train"]))
+                write_racket_file(f, folder, "tt_rackets train split (MIT licence, (c) 2026 Thomas Gossard; "
+                                  "arXiv:2604.11349), 80 % of the configuration's bounces: "
+                                  "benchmarks/racket_configs_real.py", seed=args.seed)
             print(f"wrote {len(fits)} racket files to {folder}")
     out["wall_s"] = time.time() - t0
     args.out.parent.mkdir(parents=True, exist_ok=True)

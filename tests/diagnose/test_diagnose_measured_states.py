@@ -10,6 +10,7 @@ import numpy as np
 
 from ttsim_jax.diagnose import phases
 from ttsim_jax.diagnose.diagnosis import diagnose
+from ttsim_jax.diagnose.report import markdown
 from ttsim_jax.params import load_model
 from ttsim_jax.reality import synthetic_rig_dataset
 
@@ -30,3 +31,5 @@ def test_racket_phase_from_measured_states():
     text = out["verdict"]["text"]
     assert "racket" in text and "0 m/s" not in text
     assert out["verdict"]["level"] != "explained"
+    text = markdown(out, "rig", "conti2026")
+    assert "nan" not in text.lower().replace("nakashima", "")  # nothing unknown is printed as a number

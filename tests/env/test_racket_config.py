@@ -31,3 +31,14 @@ def test_return_ball_plays_with_a_fitted_racket():
 def test_an_unknown_racket_is_refused_at_load():
     with pytest.raises(ConfigError, match="unknown racket 'rubber_x'.*racket_01"):
         load_task_config("return_ball", dict(OVERRIDES, racket_config="rubber_x"))
+
+
+def test_a_tracker_that_does_not_know_its_rubber_plans_with_the_models_racket():
+    generic = load_model("conti2026")
+    fitted = load_model("conti2026", racket="racket_10")
+    for known, planned in ((True, fitted), (False, generic)):
+        overrides = dict(OVERRIDES, racket_config="racket_10", **{"intercept.racket_known": known})
+        params = ReturnBall(load_task_config("return_ball", overrides), 2).default_params()
+        assert float(params.model.racket.e0) == pytest.approx(float(fitted.racket.e0))  # the rally: the rubber
+        assert float(params.intercept.e_racket) == pytest.approx(float(planned.racket.e0))  # the plan
+        assert float(params.intercept.contact.et0) == pytest.approx(float(planned.racket.et0))

@@ -80,3 +80,18 @@ def test_every_bundled_racket_loads_by_name_and_runs_in_the_kernel():
     assert np.linalg.norm(outgoing["racket_01"] - outgoing["racket_05"]) > 0.1
     with pytest.raises(ConfigError, match="unknown racket 'racket_99'"):
         load_model("conti2026", racket="racket_99")
+
+
+def test_ttsim_fit_per_racket_writes_racket_files_that_load(tmp_path, capsys):
+    from ttsim_jax.cli import main
+    from ttsim_jax.data import save
+
+    truth = {"grippy": [0.85, -0.01, 0.75, -0.01, 0.6], "slick": [0.7, -0.005, 0.2, -0.002, 0.3]}
+    data = save(synthetic_rig_dataset(truth, 200, 1), tmp_path / "rig")
+    assert main(["fit", "--data", str(data), "--out", str(tmp_path / "fit"), "--stages", "racket", "--per-racket",
+                 "--quiet"]) == 0
+    assert "grippy: wrote" in capsys.readouterr().out
+    for name, theta in truth.items():
+        m = load_model("conti2026", racket=tmp_path / "fit.rackets" / f"{name}.toml")
+        assert m.residual is None  # no residual stage: no network
+        np.testing.assert_allclose([float(getattr(m.racket, k)) for k in rc.PARAMETERS], theta, atol=3e-3)

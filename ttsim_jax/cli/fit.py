@@ -95,6 +95,13 @@ def register(subparsers) -> None:
     add_spin_option(p, "spins of the flight segments the fitted and the base model are compared on (the "
                     "coefficients are fitted from segments with a measured spin only, never from a spin the fit "
                     "itself estimated)")
+    p.add_argument("--per-racket", action="store_true",
+                   help="also fit each racket configuration the data name (rackets.config, as 'ttsim data import "
+                   "--source tt_rackets' writes) on its own: the updated base model (and, with residual in --stages, "
+                   "the residual network) on its contacts less a held-out --test-fraction of them (0.2 if not given), "
+                   "scored held out against --base's constants and a model-free quadratic regression; written as "
+                   "racket files OUT's stem + '.rackets/NAME.toml' (load_model(BASE, racket=FILE), a task's "
+                   "racket_config)")
     p.add_argument("--force", action="store_true", help="overwrite OUT (and its network checkpoint) if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_fit)
@@ -173,9 +180,32 @@ def cmd_fit(args) -> int:
         print(f"{name}: {t['wall']:.1f} s wall, {t['cpu']:.1f} s CPU")
     extra = f" with --residual {written['network']}" if "network" in written else ""
     print(f"wrote {out} (load_model({str(out)!r}) or --model {out}){extra} and {written['json']}")
+    if args.per_racket:
+        _per_racket(args, datasets, labels, out)
     missed = [s for s in (args.stages or ()) if s in result.skipped]
     if missed:
         for s in missed:
             print(f"error: --stages {s}: skipped: {result.skipped[s]}", file=sys.stderr)
         return 1
     return 0
+
+
+def _per_racket(args, datasets, labels, out) -> None:
+    """``--per-racket``: :func:`ttsim_jax.fit.racket_configs.fit_configs` per dataset, the racket files
+    beside OUT."""
+    from ttsim_jax.fit.racket_configs import best, fit_configs, write_racket_file
+
+    folder = out.with_suffix(".rackets")
+    network = bool(args.stages and "residual" in args.stages)
+    for ds, label in zip(datasets, labels):
+        if not any(str(c) for c in ds.rackets["config"]):
+            print(f"--per-racket: {label}: its racket states name no configuration (rackets.config); skipped")
+            continue
+        print(f"--per-racket: {label}: fitting each configuration" + (" (with its residual network)" if network else ""),
+              flush=True)
+        fits = fit_configs(ds, args.base, test_fraction=args.test_fraction or 0.2, seed=args.seed, network=network,
+                           progress=(lambda s: None) if args.quiet else print)
+        for f in fits:
+            path = write_racket_file(f, folder, f"ttsim fit --per-racket on {label}", seed=args.seed)
+            t = f.report["test"][best(f.report)]
+            print(f"  {f.name}: wrote {path} (held out: |dv| {t['dv']:.3f} m/s, |dw| {t['dw']:.1f} rad/s; {f.report['form']})")

@@ -179,8 +179,8 @@ def record_sizes(ds, phases, model, seed: int = 0, check_spin: bool = True) -> d
         if check_spin:
             out["spin_check"] = spin_check(fl, model, seed)
     conf = np.asarray(ds.segments["spin_conf"], np.float64)
-    some = len(conf) > 0
-    out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)) if some else math.nan,
-                             median_confidence=float(np.median(conf)) if some else math.nan)
+    if len(conf):  # a rig's contact states have no segments: nothing to size (and no NaN in the report)
+        out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)),
+                                 median_confidence=float(np.median(conf)))
     out["racket_state_error"] = racket_state_error(model, phases.racket)
     return out

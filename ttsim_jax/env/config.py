@@ -53,6 +53,7 @@ class InterceptConfig:
     bounce: str = "plain"
     magnus: bool = False
     air: bool = False
+    racket_known: bool = True  # plan with the task's racket_config; False: with the model's own racket
 
 
 @dataclass(frozen=True)

@@ -291,7 +291,16 @@ class ReturnBall:
             rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
             limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
             noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
-            target=f32(w.target_point), intercept=intercept_params(model, c))
+            target=f32(w.target_point), intercept=intercept_params(self._planning_model(model), c))
+
+    def _planning_model(self, model: Model) -> Model:
+        """The model the tracker plans its stroke with: the task's, or, with a ``racket_config`` and
+        ``[intercept] racket_known = false``, the same with the model's own racket (a robot that does
+        not know the rubber it plays with)."""
+        c = self.config
+        if not c.racket_config or c.intercept.racket_known:
+            return model
+        return model.replace(racket=load_model(c.model, dtype=jnp.float32).racket)
 
     def draw_model_values(self, key, lo, hi, normal, n: int | None = None):
         """(n, P) randomised parameter values (n: default ``num_envs``): uniform in [lo, hi], or where

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Callable
 
 import jax.numpy as jnp
@@ -186,6 +187,33 @@ def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int 
     return out
 
 
+def write_racket_file(fit: ConfigFit, folder, source: str, seed: int = 0) -> Path:
+    """Writes ``fit`` as a racket file ``folder/NAME.toml`` (+ ``NAME.ttres``, its network, if it has
+    one): what ``load_model(model, racket=path)`` and a task's ``racket_config`` load. Returns the path."""
+    from ttsim_jax.files.atomic import atomic_write
+    from ttsim_jax.physics.network_checkpoint import save_residual
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    d, t = fit.description, fit.report["test"]
+    what = f"{d.get('blade', '')}, {d.get('sponge_mm', '')} mm {d.get('rubber', '')} ({d.get('rubber_type', '')})" if d else ""
+    held = ", ".join(f"{k} {v['dv']:.3f} m/s {v['dw']:.1f} rad/s" for k, v in t.items())
+    lines = [f"# {fit.name}: {what}" if what else f"# {fit.name}",
+             f"# The updated base model fitted on {fit.report['n_train']} bounces (seed {seed}); held-out "
+             f"({fit.report['n_test']}) median |dv|, |dw|: {held}.",
+             "schema = 1", f'name = "{fit.name}"']
+    if what:
+        lines.append(f'description = "{what}"')
+    lines.append(f'source = "{source}"')
+    if fit.network is not None:
+        save_residual(folder / f"{fit.name}.ttres", fit.network, metadata=dict(config=fit.name, seed=seed,
+                                                                               n_train=fit.report["n_train"]))
+        lines.append(f'network = "{fit.name}.ttres"                # residual network trained on the same bounces')
+    path = folder / f"{fit.name}.toml"
+    atomic_write(path, ("\n".join(lines + ["", fit.racket_toml.rstrip()]) + "\n").encode())
+    return path
+
+
 def best(report: dict) -> str:
     """The fitted model (of "fitted", "fitted+network") with the smallest held-out median |dw|."""
     fitted = {k: v["dw"] for k, v in report["test"].items() if k.startswith("fitted") and math.isfinite(v["dw"])}
@@ -193,4 +221,4 @@ def best(report: dict) -> str:
 
 
 __all__ = ["ConfigFit", "FORM_LIMIT", "PARAMETERS", "best", "errors", "fit_configs", "form_limit", "held_out",
-           "quadratic_regression"]
+           "quadratic_regression", "write_racket_file"]
