@@ -50,7 +50,12 @@ def main(argv=None) -> int:
                    help="folder for the task files and the trained policy (default: runs/racket_rl)")
     p.add_argument("--episodes", type=int, default=1024, help="episodes per case (default 1024)")
     p.add_argument("--train", default=None, help="also train a policy on this rubber (e.g. racket_05) and play it")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="draw the legal-return rates per racket, policy and planning (PNG); with --replot only that")
+    p.add_argument("--replot", action="store_true", help="draw --plot from an existing --out JSON, play nothing")
     args = p.parse_args(argv)
+    if args.replot:
+        return plot(json.loads(args.out.read_text()), args.plot)
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -78,6 +83,34 @@ def main(argv=None) -> int:
     out["wall_s"] = time.time() - t0
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {args.out} ({out['wall_s']:.0f} s)")
+    return plot(out, args.plot) if args.plot else 0
+
+
+def plot(out: dict, path: Path) -> int:
+    """Grouped bars: per racket, the legal-return rate of each (policy, planning) pair."""
+    import numpy as np
+
+    from ttsim_jax.plots import pyplot, save_figure
+
+    plt = pyplot()
+    rackets = ["generic"] + list(out["rackets"])
+    series = {}
+    for c in out["cases"]:
+        key = f"{c['policy']}, " + ("stroke planned with the rubber" if c["racket_known"] else "rubber unknown to the tracker")
+        series.setdefault(key, {})[c["racket"]] = c["legal_rate"]
+    fig, ax = plt.subplots(figsize=(10, 4.2))
+    width = 0.8 / len(series)
+    for k, (label, values) in enumerate(series.items()):
+        x = np.arange(len(rackets)) + (k - (len(series) - 1) / 2) * width
+        ax.bar(x, [values.get(r, np.nan) for r in rackets], width, label=label)
+    ax.set_xticks(range(len(rackets)), rackets)
+    ax.set_ylabel("legal-return rate")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2)
+    ax.set_title(f"ReturnBall on tt_rackets' fitted rubbers ({out['episodes']} episodes per bar)")
+    save_figure(fig, path)
+    print(f"wrote {path}")
     return 0
 
 
