@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     p.add_argument("--seed", type=int, default=0, help="seed of the random split and the networks (default 0)")
     p.add_argument("--no-network", action="store_true", help="skip the residual networks (about 10 s per configuration)")
+    p.add_argument("--few", default="racket_01", help="the configuration refitted on fewer training bounces "
+                   "(50, 100, 200, 400), the same held-out ones (default racket_01; '' for none)")
     p.add_argument("--write-configs", action="store_true",
                    help="write the random split's fits as configs/rackets/racket_NN.toml and .ttres")
     args = p.parse_args(argv)
@@ -63,6 +65,12 @@ def main(argv=None) -> int:
                                   "arXiv:2604.11349), 80 % of the configuration's bounces: "
                                   "benchmarks/racket_configs_real.py", seed=args.seed)
             print(f"wrote {len(fits)} racket files to {folder}")
+    if args.few and not args.no_network:
+        print(f"fewer bounces, {args.few}:", flush=True)
+        out["few"] = {}
+        for n in (50, 100, 200, 400):
+            f = fit_configs(ds, "conti2026", seed=args.seed, configs=[args.few], max_train=n, progress=print)[0]
+            out["few"][str(n)] = dict(n_train=f.report["n_train"], test=f.report["test"])
     out["wall_s"] = time.time() - t0
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -377,7 +377,19 @@ def resolve_model_path(name_or_path: str | Path) -> Path:
     Returns:
         The path of an existing file; raises :class:`ConfigError` naming the name or path otherwise.
     """
+    name_or_path, racket = split_model_name(name_or_path)
+    if racket is not None:
+        resolve_racket_path(racket)
     return _bundled_or_path(name_or_path, "models", "model", available_models)
+
+
+def split_model_name(name_or_path):
+    """(model, racket) of a name ``"MODEL+RACKET"`` (``"conti2026+racket_05"``: a model with a
+    racket configuration, as :func:`load_model` names it); (``name_or_path``, None) otherwise."""
+    if isinstance(name_or_path, str) and "+" in name_or_path and not Path(name_or_path).exists():
+        model, _, racket = name_or_path.partition("+")
+        return model, racket
+    return name_or_path, None
 
 
 def _bundled_or_path(name_or_path, folder: str, what: str, available) -> Path:
@@ -480,7 +492,8 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
             ``"racket_01"``: tt_rackets' offensive blade with inverted rubber) or a racket file:
             its fitted ``[racket]`` parameters replace the model's, and its residual network, where
             it has one, becomes the model's (unless ``residual`` is given). The model is named
-            ``MODEL+RACKET``.
+            ``MODEL+RACKET``, and that name loads it too (``load_model("conti2026+racket_05")``, or
+            ``--model conti2026+racket_05`` on the command line).
         racket_network: with ``racket``, attach the configuration's residual network (False: the
             fitted base model alone).
 
@@ -490,6 +503,8 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
     from ttsim_jax.files.cache import enable_compilation_cache
 
     enable_compilation_cache()  # a library user's first step: later processes load what this one compiles
+    name_or_path, named = split_model_name(name_or_path)
+    racket = named if racket is None else racket
     path = resolve_model_path(name_or_path)
     doc = read_model_file(path)
     if racket is not None:

@@ -64,11 +64,14 @@ def test_every_bundled_racket_loads_by_name_and_runs_in_the_kernel():
     ball = Ball.create([[1.1, 0.0, 0.3]], [[5.0, 0.0, 0.5]], [[0.0, 150.0, 0.0]])
     outgoing = {}
     run = jax.jit(lambda m: simulate(m, ball, n, racket=sched))
-    for name in ["racket_01", "racket_05", "racket_10"]:
+    for name in names:
         m = load_model("conti2026", racket=name)
+        assert load_model(f"conti2026+{name}").name == m.name  # the same model by its name
         assert m.name == f"conti2026+{name}" and m.residual is not None and m.racket.kind == "updated"
         base_only = load_model("conti2026", racket=name, racket_network=False)
         assert base_only.residual is None and float(base_only.racket.e0) == float(m.racket.e0)
+        if name not in ("racket_01", "racket_05", "racket_10"):  # each name compiles (it is static)
+            continue
         r = run(m)
         kinds = np.asarray(r.events.kind[0])
         assert (kinds == KIND_NAMES.index("racket")).any(), kinds
@@ -80,6 +83,8 @@ def test_every_bundled_racket_loads_by_name_and_runs_in_the_kernel():
     assert np.linalg.norm(outgoing["racket_01"] - outgoing["racket_05"]) > 0.1
     with pytest.raises(ConfigError, match="unknown racket 'racket_99'"):
         load_model("conti2026", racket="racket_99")
+    with pytest.raises(ConfigError, match="unknown racket 'racket_99'"):
+        load_model("conti2026+racket_99")
 
 
 def test_ttsim_fit_per_racket_writes_racket_files_that_load(tmp_path, capsys):

@@ -33,6 +33,10 @@ from ttsim_jax.fit.racket_arrays import contact_arrays, model_and_name
 
 #: Ridge penalty of the quadratic regression, per training contact, on standardised features.
 RIDGE = 1e-3
+#: k-means centres of each configuration's network (its attenuation's distances): one number for all,
+#: so that every configuration's network has the same shapes and swapping rubbers (in a rollout, in
+#: ReturnBall's parameters) never recompiles; fewer only for a configuration with fewer bounces.
+CLUSTERS = 100
 #: The fitted base model is "limited by its form" where the model-free regression's held-out median
 #: |dw| is below this fraction of the fitted base's.
 FORM_LIMIT = 0.8
@@ -122,7 +126,7 @@ class ConfigFit:
 
 def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int = 0, hold_tilt: float | None = None,
                 network: bool = True, max_epochs: int = 300, patience: int = 40, configs=None,
-                progress: Callable[[str], None] = lambda s: None) -> list[ConfigFit]:
+                max_train: int | None = None, progress: Callable[[str], None] = lambda s: None) -> list[ConfigFit]:
     """Fits the racket contact per configuration of ``ds`` (see the module docstring).
 
     Arguments:
@@ -132,6 +136,8 @@ def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int 
         network: also train the residual network per configuration (about 10 s each on 2 cores).
         max_epochs, patience: its training length and early stopping.
         configs: only these configurations (default: all the dataset names).
+        max_train: at most this many training contacts per configuration (a seeded draw; the held-out
+            ones unchanged): what the fits do with fewer bounces.
         progress: called with one line per configuration.
 
     Returns:
@@ -157,6 +163,8 @@ def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int 
         if configs is not None and name not in configs:
             continue
         tr, te = np.flatnonzero((names == name) & ~test), np.flatnonzero((names == name) & test)
+        if max_train is not None and len(tr) > max_train:
+            tr = np.sort(np.random.default_rng(seed + 1).permutation(tr)[:max_train])
         fit = fit_racket(x[tr], y[tr], m)
         params = fit.params(m.racket)
 
@@ -169,7 +177,8 @@ def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int 
                            quadratic=errors(quadratic_regression(x[tr, :6], y[tr], x[te, :6]), y[te]))
         net = None
         if network:
-            config = ResidualConfig(n_inputs=8, n_clusters=max(8, min(1000, len(tr) // 4)))
+            # at most three quarters of the contacts: the network trains on 80 % of them
+            config = ResidualConfig(n_inputs=8, n_clusters=min(CLUSTERS, max(2, (3 * len(tr)) // 4)))
             net, _ = train_residual(x[tr], y_fit_tr, y[tr], config, TrainConfig(max_epochs=max_epochs, patience=patience,
                                                                               split=(0.8, 0.15, 0.05), seed=seed),
                                     progress=False)
