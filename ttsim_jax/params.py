@@ -377,9 +377,11 @@ def resolve_model_path(name_or_path: str | Path) -> Path:
     Returns:
         The path of an existing file; raises :class:`ConfigError` naming the name or path otherwise.
     """
-    name_or_path, racket = split_model_name(name_or_path)
+    model, racket = split_model_name(name_or_path)
     if racket is not None:
-        resolve_racket_path(racket)
+        raise ConfigError(f"{name_or_path!r}: a model with a racket configuration has no model file of its own; load "
+                          f"it with load_model({name_or_path!r}) (here: give {model!r} and the racket apart, or use a "
+                          "command that takes MODEL+RACKET)")
     return _bundled_or_path(name_or_path, "models", "model", available_models)
 
 
@@ -505,7 +507,7 @@ def load_model(name_or_path: str | Path, dtype=None, residual=None, effects: tup
     enable_compilation_cache()  # a library user's first step: later processes load what this one compiles
     name_or_path, named = split_model_name(name_or_path)
     racket = named if racket is None else racket
-    path = resolve_model_path(name_or_path)
+    path = _bundled_or_path(name_or_path, "models", "model", available_models)
     doc = read_model_file(path)
     if racket is not None:
         racket_path = resolve_racket_path(racket)

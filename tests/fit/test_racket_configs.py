@@ -100,3 +100,17 @@ def test_ttsim_fit_per_racket_writes_racket_files_that_load(tmp_path, capsys):
         m = load_model("conti2026", racket=tmp_path / "fit.rackets" / f"{name}.toml")
         assert m.residual is None  # no residual stage: no network
         np.testing.assert_allclose([float(getattr(m.racket, k)) for k in rc.PARAMETERS], theta, atol=3e-3)
+
+
+def test_a_model_with_a_racket_by_name_is_never_read_as_the_bare_model():
+    from ttsim_jax.cli.options import model_name_or_file
+    from ttsim_jax.evaluate.stages import resolve_models
+    from ttsim_jax.params import resolve_model_path
+
+    (name, m), = resolve_models(["conti2026+racket_05"])
+    assert name == "conti2026+racket_05" and m.residual is not None
+    assert float(m.racket.et0) == float(load_model("conti2026", racket="racket_05").racket.et0)
+    assert float(m.racket.et0) != float(load_model("conti2026").racket.et0)
+    assert model_name_or_file("conti2026+racket_05") == "conti2026+racket_05"
+    with pytest.raises(ConfigError, match="has no model file of its own"):
+        resolve_model_path("conti2026+racket_05")  # whoever reads the file would drop the racket

@@ -157,7 +157,7 @@ def _spin_check(ds, model_name: str) -> dict:
     from ttsim_jax.data.segment_batches import dataset_segments
     from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
     from ttsim_jax.fit.spin_check import check_record_spin
-    from ttsim_jax.params import load_model, resolve_model_path
+    from ttsim_jax.params import load_model
 
     ids, times, positions, spins, conf = dataset_segments(ds, LATENT_MIN_SAMPLES)
     rows = np.flatnonzero(conf >= 0.5)
@@ -166,7 +166,7 @@ def _spin_check(ds, model_name: str) -> dict:
                     f"{LATENT_MIN_SAMPLES} samples: nothing to check")
     print(f"spin check: fitting the latent spin of {len(rows)} segments under {model_name} (compiling ...)",
           file=sys.stderr)
-    return check_record_spin(load_model(resolve_model_path(model_name)), [times[i] for i in rows],
+    return check_record_spin(load_model(model_name), [times[i] for i in rows],
                              [positions[i] for i in rows], spins[rows])
 
 

@@ -137,14 +137,14 @@ def cmd_diagnose(args) -> int:
     from ttsim_jax.data import load
     from ttsim_jax.diagnose.diagnosis import NoData, Settings, diagnose, work_units
     from ttsim_jax.diagnose.report import write_report
-    from ttsim_jax.params import load_model, resolve_model_path
+    from ttsim_jax.params import load_model
 
     missing = [opt for opt, v in (("--data", args.data), ("--out", args.out)) if v is None]
     if missing:
         raise UsageError(f"ttsim diagnose: {' and '.join(missing)} required (or 'ttsim diagnose selfcheck'); see "
                          "'ttsim diagnose --help'")
     ds = load(args.data)
-    model = load_model(resolve_model_path(args.model), dtype=jnp.float32)
+    model = load_model(args.model, dtype=jnp.float32)
     changes = dict(effects=args.effects, test_fraction=args.test_fraction, seed=args.seed, spin=args.spin)
     if args.steps is not None:
         changes["steps"] = args.steps

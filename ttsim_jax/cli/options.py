@@ -155,11 +155,15 @@ def memory_size(text: str) -> int:
 
 
 def model_name_or_file(text: str) -> str:
-    """A bundled model name or the path of a model TOML file."""
-    from ttsim_jax.params import ConfigError, resolve_model_path
+    """A bundled model name or the path of a model TOML file, optionally ``+RACKET`` (a bundled racket
+    configuration: ``conti2026+racket_05``)."""
+    from ttsim_jax.params import ConfigError, resolve_model_path, resolve_racket_path, split_model_name
 
+    model, racket = split_model_name(text)
     try:
-        path = resolve_model_path(text)
+        path = resolve_model_path(model)
+        if racket is not None:
+            resolve_racket_path(racket)
     except ConfigError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
     if path == Path(text):  # a file given by path, not a bundled name

@@ -122,16 +122,17 @@ def resolve_models(models: Sequence, dtype=None) -> list:
         ConfigError: an unknown name, an unreadable file, or two models of the same name (the
         message names them).
     """
-    from ttsim_jax.params import ConfigError, Model, load_model, resolve_model_path
+    from ttsim_jax.params import ConfigError, Model, load_model, resolve_model_path, split_model_name
 
     out = []
     for spec in models:
         if isinstance(spec, Model):
             name, model = spec.name, spec
         else:
-            path = resolve_model_path(spec)
-            model = load_model(path, dtype=dtype)
-            name = str(spec) if path != Path(str(spec)) else path.stem
+            base, racket = split_model_name(spec)
+            path = resolve_model_path(base)
+            model = load_model(spec, dtype=dtype)
+            name = str(spec) if path != Path(str(base)) or racket else path.stem
         if any(name == n for n, _ in out):
             raise ConfigError(f"models: two models are named {name!r} ({spec!r}); rename the .toml file")
         out.append((name, model))
