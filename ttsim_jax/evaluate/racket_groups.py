@@ -11,11 +11,11 @@ import math
 
 import numpy as np
 
+from ttsim_jax.fit.racket_configs import error_medians
+
 #: Edges of the incoming-state bands: speed [m/s], spin [rad/s], incidence angle from the normal [deg].
 BANDS = {"incoming speed": ((5.0, 8.0), "m/s"), "incoming spin": ((100.0, 300.0), "rad/s"),
          "incidence angle": ((10.0, 20.0), "deg")}
-#: Per group and model: what is reported (median over the group's contacts).
-QUANTITIES = ("dv", "dw", "dv_normal", "dv_tangential", "dw_normal", "dw_tangential")
 
 
 def incoming(x) -> dict:
@@ -30,14 +30,6 @@ def _label(lo, hi, unit) -> str:
     if math.isinf(lo):
         return f"< {hi:g} {unit}"
     return f">= {lo:g} {unit}" if math.isinf(hi) else f"{lo:g}-{hi:g} {unit}"
-
-
-def _medians(e) -> dict:
-    e = np.asarray(e, np.float64)
-    per = dict(dv=np.linalg.norm(e[:, :3], axis=1), dw=np.linalg.norm(e[:, 3:6], axis=1), dv_normal=np.abs(e[:, 0]),
-               dv_tangential=np.linalg.norm(e[:, 1:3], axis=1), dw_normal=np.abs(e[:, 3]),
-               dw_tangential=np.linalg.norm(e[:, 4:6], axis=1))
-    return {k: float(np.median(per[k])) if len(e) else math.nan for k in QUANTITIES}
 
 
 def groups(r: dict) -> dict:
@@ -61,7 +53,7 @@ def groups(r: dict) -> dict:
             continue
         order = keys.get(name + " order")
         labels = [g for g in (order if order is not None else sorted(set(key.tolist()))) if np.any(key == g)]
-        out[name] = {g: dict(n=int(np.sum(key == g)), **{m: _medians(e[key == g]) for m, e in r["error"].items()})
+        out[name] = {g: dict(n=int(np.sum(key == g)), **{m: error_medians(e[key == g]) for m, e in r["error"].items()})
                      for g in labels}
     return out
 

@@ -80,13 +80,18 @@ def quadratic_regression(x_train, y_train, x_test, ridge: float = RIDGE) -> np.n
 
 def errors(pred, y_obs) -> dict:
     """Median |dv| [m/s] and |dw| [rad/s] (norms of the post-contact errors), and the normal (x~)
-    and tangential parts of each."""
-    e = np.asarray(pred, np.float64) - np.asarray(y_obs, np.float64)
+    and tangential parts of each (:func:`error_medians` of ``pred - y_obs``)."""
+    return error_medians(np.asarray(pred, np.float64) - np.asarray(y_obs, np.float64))
+
+
+def error_medians(e) -> dict:
+    """:func:`errors`' medians of signed racket-frame post-contact errors ``e`` (N, >= 6)."""
+    e = np.asarray(e, np.float64)
     if not len(e):
         return dict(dv=math.nan, dw=math.nan, dv_normal=math.nan, dv_tangential=math.nan, dw_normal=math.nan,
                     dw_tangential=math.nan)
     med = lambda a: float(np.median(a))  # noqa: E731
-    return dict(dv=med(np.linalg.norm(e[:, :3], axis=1)), dw=med(np.linalg.norm(e[:, 3:], axis=1)),
+    return dict(dv=med(np.linalg.norm(e[:, :3], axis=1)), dw=med(np.linalg.norm(e[:, 3:6], axis=1)),
                 dv_normal=med(np.abs(e[:, 0])), dv_tangential=med(np.linalg.norm(e[:, 1:3], axis=1)),
                 dw_normal=med(np.abs(e[:, 3])), dw_tangential=med(np.linalg.norm(e[:, 4:6], axis=1)))
 
