@@ -53,18 +53,30 @@ def spins(n, value, row=None):
     return s
 
 
-def test_an_impossible_spin_is_refused_naming_its_line(rally, tmp_path, capsys):
+def test_an_impossible_spin_on_every_sample_is_refused_naming_its_line(rally, tmp_path, capsys):
     t, pos, _, _ = rally
-    write_log(tmp_path, t, pos, spins(len(t), 1e9, row=8))  # data row 8 is line 10
+    write_log(tmp_path, t, pos, spins(len(t), 1e9))  # every sample: a unit, not a glitch
     with pytest.raises(DataError) as e:
         read_csv(tmp_path)
     err = e.value
-    assert err.row == 10 and err.row_label == "line" and err.column == "spin_y" and err.value == 1e9
+    assert err.row == 2 and err.row_label == "line" and err.column == "spin_y" and err.value == 1e9
     assert "observations.csv" in str(err) and f"{MAX_SPIN:.0f} rad/s" in str(err)
     assert main(["data", "import", str(tmp_path), "--source", "csv", "--out", str(tmp_path / "ds")]) == 2
     msg = capsys.readouterr().err
-    assert msg.startswith("error: ") and "line 10" in msg and "'spin_y'" in msg and "1000000000.0" in msg
+    assert msg.startswith("error: ") and "line 2" in msg and "'spin_y'" in msg and "1000000000.0" in msg
     assert not (tmp_path / "ds").exists()
+
+
+def test_one_impossible_spin_is_dropped_from_its_sample_naming_its_line(rally, tmp_path):
+    from ttsim_jax.data.glitches import SPIN
+
+    t, pos, _, _ = rally
+    write_log(tmp_path, t, pos, spins(len(t), 1e9, row=8))  # data row 8 is line 10
+    ds, found = read_recording(tmp_path)
+    assert len(ds.observations["t"]) == len(t) and ds.metadata.left_out == {SPIN: 1}
+    assert ds.observations["spin_conf"][8] == 0.0 and ds.observations["spin_y"][8] == 0.0
+    assert ds.observations["spin_y"][7] == 150.0
+    assert any("line 10" in str(w) and "spin dropped" in str(w) for w in found)
 
 
 def test_a_spin_beyond_those_measured_in_play_warns_naming_its_line(rally, tmp_path, capsys):

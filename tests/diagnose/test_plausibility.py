@@ -1,5 +1,6 @@
 """A candidate that fits only with parameters no lab meets is reported as such, never accepted."""
 
+import math
 from types import SimpleNamespace
 
 from ttsim_jax.diagnose.verdict import implausible, verdict
@@ -113,3 +114,26 @@ def test_a_phase_at_its_floor_asks_no_share():
     assert v["level"] == "partly explained" and "of the racket gap" in v["text"] and "32 % is left" in v["text"]
     out["before_after"]["racket"]["heldout"].update(pct=35.0, after_rms=0.39)
     assert verdict(out, [buck])["level"] == "explained"
+
+
+def test_a_phase_within_the_floors_own_accuracy_is_no_gap():
+    """The floor is known to a few per cent beyond its bootstrap interval (verdict.FLOOR_SYSTEMATIC):
+    the cross wind's table at 1.04 x its floor, with tight intervals, is no gap; at 1.15 x it is."""
+    from ttsim_jax.diagnose.verdict import FLOOR_SYSTEMATIC, open_gaps
+
+    wind = cand("air_flow", 20.0, {"air_flow": {}})
+    wind.heldout = {"flight": {"pct": 20.0, "ci95": [15.0, 25.0]}}
+    tight = dict(error=0.308, error_ci95=[0.305, 0.311], floor=0.297, floor_ci95=[0.2955, 0.2985],
+                 removable=math.sqrt(0.308**2 - 0.297**2), removable_ci95=[0.07, 0.09])
+    assert tight["error_ci95"][0] > tight["floor_ci95"][1]  # "significant" by the intervals alone
+    out = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": tight, "flight": floor(0.004, 0.002)},
+           "before_after": {"flight": {"heldout": dict(pct=50.0, ci95=[45.0, 55.0], before_rms=0.004, after_rms=0.002)}}}
+    assert open_gaps(out) == ["flight"]
+    v = verdict(out, [wind])
+    assert v["level"] == "explained" and v["open"] == [] and "table gap" not in v["text"]
+    control = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": tight}}
+    v = verdict(control, [])
+    assert v["level"] == "unexplained" and v["gaps"] == [] and v["text"].endswith("what remains looks like noise.")
+    far = dict(tight, error=0.297 * 1.15, error_ci95=[0.297 * 1.13, 0.297 * 1.17])
+    assert open_gaps({"floor": {"table": far}}) == ["table"]
+    assert 1.13 > 1.0 + FLOOR_SYSTEMATIC["table"] > 1.04

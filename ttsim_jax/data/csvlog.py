@@ -28,7 +28,8 @@ import numpy as np
 
 from . import schema
 from .dataset import Dataset, Metadata
-from .errors import DataError
+from .errors import DataError, DataWarning
+from .glitches import far_samples, leave_out_too_fast, noted, time_order
 
 OBSERVATION_COLUMNS = ("session_id", "t", "x", "y", "z", "spin_x", "spin_y", "spin_z", "spin_conf")
 EVENT_COLUMNS = ("session_id", "t", "kind", "x", "y", "z", "event_id")
@@ -208,8 +209,22 @@ def read_csv(
             raise DataError("no such file", file=f)
 
     o, o_lines = _read(obs_file, "observations", OBSERVATION_COLUMNS)
+    keep, mended = time_order(o["session_id"], o["t"])
+    if mended:
+        o, o_lines = {k: v[keep] for k, v in o.items()}, o_lines[keep]
+        warnings.warn(DataWarning("; ".join(f"{n} {what}" for what, n in mended.items()), file=obs_file,
+                                  table="observations"), stacklevel=2)
     pos = np.stack([o["x"], o["y"], o["z"]], axis=-1) * scale
     spin = np.stack([o[k] for k in ("spin_x", "spin_y", "spin_z")], axis=-1) if "spin_x" in o else None
+    keep, unspun, far = far_samples(pos, spin, lambda row: f"{obs_file.name} line {o_lines[row]}, session "
+                                    f"{o['session_id'][row]}, t = {o['t'][row] * t_scale:.4f} s")
+    if far:
+        if unspun.any():
+            spin = np.where(unspun[:, None], 0.0, spin)
+            o["spin_conf"] = np.where(unspun, 0.0, o["spin_conf"]) if "spin_conf" in o else np.where(unspun, 0.0, 1.0)
+        o, o_lines, pos = {k: v[keep] for k, v in o.items()}, o_lines[keep], pos[keep]
+        spin = None if spin is None else spin[keep]
+        mended.update(far)
     ev = rk = None
     lines = {"observations": o_lines}
     if ev_file is not None:
@@ -253,6 +268,8 @@ def read_csv(
     _check_speeds(o["session_id"], t, pos, o["t"], obs_file, o_lines, time_unit)
     _check_long_axis(o["session_id"], t, pos, o["y"], obs_file, o_lines)
     ds = detect_events(ds) if detect else segments_from_events(ds)
+    ds, too_fast = leave_out_too_fast(ds, lambda row: f"{obs_file.name} line {o_lines[row]}")
+    ds = noted(ds, {**mended, **too_fast})
     # Segmenting keeps the observations' and rackets' rows in file order (events are re-sorted and
     # joined by detected ones): the checks that need segments still name those files' lines.
     same_rows = {k: files[k] for k in ("observations", "rackets")}

@@ -42,6 +42,8 @@ class Metadata:
         units: unit of each kind of quantity (:data:`schema.UNITS`).
         schema_version: layout version (:data:`schema.SCHEMA_VERSION`).
         notes: anything else worth keeping (free text), e.g. how the frame was established.
+        left_out: {what: count} of what the import mended or left out of the log (frames reordered
+            or dropped, segments faster than any ball: :mod:`ttsim_jax.data.glitches`); from schema 1.3.
     """
 
     source: str = ""
@@ -50,6 +52,7 @@ class Metadata:
     units: dict = dataclasses.field(default_factory=lambda: dict(schema.UNITS))
     schema_version: str = schema.SCHEMA_VERSION
     notes: str = ""
+    left_out: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-able dict (inverse of :meth:`from_dict`)."""

@@ -28,8 +28,9 @@ from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, TABLE_LENGTH, TABL
 #: a newer minor version may only add optional columns or tables (which older readers ignore, and which
 #: a newer reader fills with their defaults, or reads as empty, in older files) or metadata keys.
 #: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity"); 1.2 the
-#: ``contact_states`` table and the rackets' ``config`` column.
-SCHEMA_VERSION = "1.2"
+#: ``contact_states`` table and the rackets' ``config`` column; 1.3 the metadata's ``left_out``
+#: counts (what the import mended or left out).
+SCHEMA_VERSION = "1.3"
 
 #: Name written into every dataset's metadata; data in any other frame must be converted first.
 CANONICAL_FRAME = "ttsim-table-centre-v1"

@@ -372,7 +372,14 @@ def filter_segments(
                 report.dropped["rmse"].append(int(ids[k]))
                 alive[k] = False
     report.kept = int(alive.sum())
-    kept_ids = ids[alive]
+    return drop_segments(ds, alive), report
+
+
+def drop_segments(ds: Dataset, keep: np.ndarray) -> Dataset:
+    """``ds`` without the segments whose row of ``keep`` (bool, one per segment row) is False: their
+    rows leave the segments table, their observations stay with ``segment_id = -1``; events stay."""
+    seg, obs = ds.segments, ds.observations
+    kept_ids = seg["segment_id"][keep]
     observations = dict(obs)
     observations["segment_id"] = np.where(np.isin(obs["segment_id"], kept_ids), obs["segment_id"], -1)
-    return ds.replace(segments=select_rows(seg, alive), observations=observations), report
+    return ds.replace(segments=select_rows(seg, keep), observations=observations)

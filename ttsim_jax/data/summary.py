@@ -6,18 +6,15 @@ import numpy as np
 
 from . import racket_configs, schema
 from .dataset import Dataset
+from .validate import step_speeds
 
 
 def _speeds(ds: Dataset) -> np.ndarray:
-    """Finite-difference speeds between consecutive samples of the same segment [m/s]."""
-    o = ds.observations
-    seg = o["segment_id"]
-    same = (seg[1:] == seg[:-1]) & (seg[1:] >= 0)
-    if not same.any():
-        return np.zeros(0)
-    d = np.diff(ds.positions, axis=0)[same]
-    dt = np.diff(o["t"])[same]
-    return np.linalg.norm(d, axis=-1) / dt
+    """Speeds between consecutive samples of the same segment [m/s]
+    (:func:`~ttsim_jax.data.validate.step_speeds`)."""
+    rows, speed = step_speeds(ds)
+    seg = np.asarray(ds.observations["segment_id"])
+    return speed[(seg[rows + 1] == seg[rows]) & (seg[rows] >= 0)]
 
 
 def info(ds: Dataset, problems=None, warnings=None, unprotected=None) -> dict:
@@ -60,6 +57,7 @@ def info(ds: Dataset, problems=None, warnings=None, unprotected=None) -> dict:
         "checksums": None if unprotected is None else {"protected": not unprotected[0],
                                                         "unprotected_files": [str(f) for f in unprotected[0]],
                                                         "parquet_files": int(unprotected[1])},
+        "left_out": dict(ds.metadata.left_out),
         "problems": [str(p) for p in (problems or [])],
         "warnings": [str(w) for w in (warnings or [])],
     }
@@ -97,6 +95,8 @@ def format_info(d: dict) -> str:
                                           "refused on load)" if c["protected"] else
                                           f"none in {n_bare} of {c['parquet_files']} Parquet files (not protected: damage "
                                           "loads unnoticed; add them with 'ttsim data upgrade DIR')"))
+    if d.get("left_out"):
+        lines.append("left out:      " + "; ".join(f"{n} {what}" for what, n in d["left_out"].items()) + " (at import)")
     lines.append("validation:    " + ("ok" if not d["problems"] else f"{len(d['problems'])} problem(s)")
                  + (f", {len(d['warnings'])} warning(s)" if d.get("warnings") else ""))
     lines += [f"  - {p}" for p in d["problems"]]

@@ -107,6 +107,7 @@ def build_dataset(raw: list[RawSession], frame: FrameTransform, metadata: Metada
     Returns:
         The dataset.
     """
+    from ..glitches import leave_out_too_fast, noted
     from ..validate import borderline, validate
 
     sid, ts, ps, names, notes, spins = [], [], [], [], [], []
@@ -145,6 +146,8 @@ def build_dataset(raw: list[RawSession], frame: FrameTransform, metadata: Metada
             obs["spin_x"][rows], obs["spin_y"][rows], obs["spin_z"][rows] = s
             obs["spin_conf"][rows] = spin_conf
         ds = segments_from_events(ds.replace(observations=obs))
+    ds, too_fast = leave_out_too_fast(ds)
+    ds = noted(ds, too_fast)
     validate(ds)
     for w in borderline(ds):
         warnings.warn(w, stacklevel=2)
