@@ -11,7 +11,7 @@ from ttsim_jax.data import DataError, io, read_csv
 from ttsim_jax.data import glitches
 from ttsim_jax.data.errors import DataWarning
 from ttsim_jax.data.summary import format_info, info
-from ttsim_jax.data.validate import implausible_segments
+from ttsim_jax.data.speeds import implausible_segments
 
 
 def throws(simulate, n=6):

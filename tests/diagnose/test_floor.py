@@ -136,6 +136,10 @@ def test_floor_in_the_diagnosis_and_report(tmp_path):
     json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in diagnosis.json"))
     report = (tmp_path / "report.md").read_text()
     assert "Noise floor" in report and "| flight | " in report and "nan" not in report.lower()
+    # the detection limit of the one candidate, in its own parameter, in the report and the JSON
+    lim = out["limits"]["candidates"]["table_tilt"]["table"]
+    assert lim["size"] is None or (lim["size"] > 0 and len(lim["params"]["slope"]) == 2)
+    assert "Detection limits" in report and "| table_tilt | table |" in report
     # a phase without a floor is a reason, never a number
     lines = floor_lines(dict(jsonable(out["floor"]), racket="no data: no racket states"))
     assert any("racket: no floor: no data" in line for line in lines)

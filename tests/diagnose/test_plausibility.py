@@ -137,3 +137,14 @@ def test_a_phase_within_the_floors_own_accuracy_is_no_gap():
     far = dict(tight, error=0.297 * 1.15, error_ci95=[0.297 * 1.13, 0.297 * 1.17])
     assert open_gaps({"floor": {"table": far}}) == ["table"]
     assert 1.13 > 1.0 + FLOOR_SYSTEMATIC["table"] > 1.04
+
+
+def test_unexplained_says_what_the_data_could_have_shown():
+    limits = {"candidates": {
+        "air_flow": {"flight": dict(size=0.2, params={"wind": [0.04, 0.0, 0.0]}, share_pct=3.1, reduction_pct=1.6)},
+        "buckling": {"table": dict(size=None, params={}, share_pct=None, reduction_pct=None)}}}
+    out = {"where": {}, "dependence": {}, "candidates": [], "floor": {}, "limits": limits}
+    v = verdict(out, [])
+    assert v["level"] == "unexplained"
+    assert "These data would have shown, at least: air_flow: wind 0.04 m/s (flight: 3.1 % of its error); none of these is there." in v["text"]
+    assert "could not have shown buckling" in v["text"]

@@ -74,7 +74,7 @@ def register(subparsers) -> None:
                    help="candidate effects: 'all' (default: every simulator effect) or comma-separated names")
     p.add_argument("--quick", action="store_true",
                    help=f"a faster, coarser run: {q.steps} descent steps per candidate instead of {d.steps}, at most "
-                   f"{q.max_segments} flight segments instead of {d.max_segments}, no landing rollouts, "
+                   f"{q.max_segments} flight segments instead of every one, no landing rollouts, "
                    "no forward selection (every significant effect reported; none fitted together), no spin check "
                    "of the record")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
@@ -84,8 +84,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed, default=d.seed, help="seed of the split, the segment subset and the "
                    "bootstraps (default: %(default)s)")
     p.add_argument("--max-segments", type=positive_int, default=None, metavar="N",
-                   help=f"flight segments used at most, a seeded random subset of more (default: {d.max_segments}, "
-                   f"with --quick {q.max_segments})")
+                   help="flight segments used at most, a seeded random subset of more, for speed (default: every "
+                   f"segment; with --quick {q.max_segments})")
     p.add_argument("--no-landing", action="store_true", help="skip the landing rollouts (the slowest part)")
     add_spin_option(p, "flight segments' spin (latent: fitted under --model from the segment's own samples, which "
                     "then takes up any force across the flight)")

@@ -22,7 +22,8 @@ from .dataset import Dataset
 from .errors import DataWarning
 from .segment import drop_segments
 from .tracks import MAX_SPEED
-from .validate import MAX_ABS_POSITION, MAX_SPIN, implausible_segments
+from .speeds import implausible_segments
+from .validate import MAX_ABS_POSITION, MAX_SPIN
 
 #: Largest share of a log's segments left out as glitches; beyond it the log is refused (the
 #: validation's message names the first bad segment and asks about units).
@@ -117,7 +118,7 @@ def far_samples(pos: np.ndarray, spin: np.ndarray | None, where=None) -> tuple[n
 
 
 def leave_out_too_fast(ds: Dataset, where=None) -> tuple[Dataset, dict]:
-    """``ds`` without its segments faster than any ball (:func:`~ttsim_jax.data.validate.implausible_segments`),
+    """``ds`` without its segments faster than any ball (:func:`~ttsim_jax.data.speeds.implausible_segments`),
     each named in a :class:`~ttsim_jax.data.errors.DataWarning` (the first :data:`LISTED`, then a
     count), unless more than :data:`MAX_LEFT_OUT` of the segments are (then ``ds`` is returned
     whole, for the validation to refuse with its message about units).

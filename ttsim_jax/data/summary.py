@@ -6,12 +6,12 @@ import numpy as np
 
 from . import racket_configs, schema
 from .dataset import Dataset
-from .validate import step_speeds
+from .speeds import step_speeds
 
 
 def _speeds(ds: Dataset) -> np.ndarray:
     """Speeds between consecutive samples of the same segment [m/s]
-    (:func:`~ttsim_jax.data.validate.step_speeds`)."""
+    (:func:`~ttsim_jax.data.speeds.step_speeds`)."""
     rows, speed = step_speeds(ds)
     seg = np.asarray(ds.observations["segment_id"])
     return speed[(seg[rows + 1] == seg[rows]) & (seg[rows] >= 0)]

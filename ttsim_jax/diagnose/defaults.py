@@ -1,8 +1,9 @@
 """The diagnosis's default settings and thresholds: plain numbers, so that ``ttsim diagnose
 --help`` states them (and the options are checked) before JAX is imported."""
 
-#: Flight segments used at most (a seeded random subset of more): the flight stage is the costly one.
-MAX_SEGMENTS = 128
+#: Flight segments used at most (a seeded random subset of more): None, every segment (a lab that
+#: recorded 2,000 expects them all to count; ``--max-segments`` is the opt-out for speed).
+MAX_SEGMENTS = None
 #: Adam steps per candidate and the initial step size (units of each parameter's scale).
 STEPS, LEARNING_RATE = 100, 0.1
 #: Share of the segments and contacts held out for scoring.

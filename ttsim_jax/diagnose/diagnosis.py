@@ -9,7 +9,8 @@
 3. the model-free residual dependences and the record effects' sizes
    (:mod:`ttsim_jax.diagnose.residuals`);
 4. *which effect* (:mod:`ttsim_jax.diagnose.candidates`): every candidate fitted on the training
-   part, scored on the held-out part, ranked;
+   part, scored on the held-out part, ranked; and each one's detection limit
+   (:mod:`ttsim_jax.diagnose.limits`): the smallest effect these data would have shown;
 5. *how far*: forward selection among the significant candidates (:func:`select`: each fitted
    jointly with those accepted before it and kept when it adds significantly, at most :data:`TOP`),
    the accepted ones' held-out errors against the model's per phase and regime, and the landing
@@ -35,6 +36,7 @@ from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.diagnose import ambiguity, candidates, residuals, where
 from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
+from ttsim_jax.diagnose.limits import limits
 from ttsim_jax.diagnose.phases import collect
 from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS, UNITS,  # noqa: F401 (public here too)
                                         gap_shares, implausible, interchangeable, open_gaps, verdict)
@@ -65,7 +67,7 @@ class Settings:
             jointly with those accepted before it, kept when it adds significantly; the accepted
             ones' joint fit is the before/after (else every significant candidate is reported and
             the first alone is the before/after).
-        max_segments: flight segments used at most (a seeded random subset of more).
+        max_segments: flight segments used at most (a seeded random subset of more; None: every one).
         fit: contact state estimation.
         spin: where a flight segment's spin comes from (:func:`ttsim_jax.diagnose.phases.flights`):
             ``"auto"`` (default) the measured spin where the record has one of confidence >=
@@ -82,7 +84,7 @@ class Settings:
     lr: float = LEARNING_RATE
     landing: bool = True
     combine: bool = True
-    max_segments: int = MAX_SEGMENTS
+    max_segments: int | None = MAX_SEGMENTS
     fit: ContactFit = ContactFit()
     spin: str = "auto"
     spin_check: bool = True
@@ -162,7 +164,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``no_data`` ({phase:
         reason} of the phases without items: reported as "no data", never as a number),
         ``pooled_sessions`` (per-session effects fitted with one shared set), ``dependence``,
-        ``record``, ``floor`` (per phase the noise floor and the removable gap, or why there is
+        ``record``, ``limits`` (:func:`ttsim_jax.diagnose.limits.limits`), ``floor`` (per phase the noise floor and the removable gap, or why there is
         none: :func:`ttsim_jax.diagnose.floor.floors`), ``candidates`` (ranked), ``combined``,
         ``before_after``, ``landing``,
         ``verdict``, ``settings``, ``seconds``, ``timings`` ({stage: seconds}: where the time went,
@@ -231,6 +233,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         tick(following, 1)
     ranked = candidates.rank(cands)
     out["candidates"] = [_candidate_json(c, i + 1) for i, c in enumerate(ranked)]
+    tick("detection limits", 0)
+    out["limits"] = limits(pb, model, names, settings.seed)
+    lap("detection limits")
     beyond = {c.spec.name: implausible(c.params) for c in ranked}
     for entry in out["candidates"]:
         entry["implausible"] = beyond[entry["name"]]

@@ -138,11 +138,11 @@ def pad_rows(n: int, multiple: int = 32) -> int:
 
 
 def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float = 0.5,
-            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0, *, model=None,
+            max_samples: int = MAX_SAMPLES, max_segments: int | None = MAX_SEGMENTS, seed: int = 0, *, model=None,
             spin: str = "measured") -> Flights | None:
     """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
     Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
-    than ``max_segments`` segments a seeded random subset is kept.
+    than ``max_segments`` segments (None: no limit) a seeded random subset is kept.
 
     ``spin`` says where a segment's spin comes from, as :func:`ttsim_jax.fit.flight.segment_rmse`'s:
     ``"measured"`` (the segments with a measured spin of confidence >= ``min_spin_conf`` when the
@@ -166,7 +166,7 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     known = conf >= min_spin_conf
     keep = known.copy() if spin == "measured" and known.any() else np.ones(len(ids), bool)
     idx = np.flatnonzero(keep)
-    if len(idx) > max_segments:
+    if max_segments is not None and len(idx) > max_segments:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_segments, replace=False))
     source = np.where(known[idx] & (spin in ("auto", "measured")), "measured", "zero").astype("U8")
     flown = np.where((source == "measured")[:, None], spins[idx], 0.0)
@@ -273,7 +273,7 @@ def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Co
 
 
 def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, phases=("flight", "table", "racket"),
-            max_samples: int = MAX_SAMPLES, max_segments: int = MAX_SEGMENTS, seed: int = 0,
+            max_samples: int = MAX_SAMPLES, max_segments: int | None = MAX_SEGMENTS, seed: int = 0,
             spin: str = "measured") -> Phases:
     """Every phase's items of ``ds`` for ``model`` (its ball radius, its racket frame convention);
     see :func:`flights` for ``max_samples``, ``max_segments``, ``seed`` and ``spin``."""

@@ -183,6 +183,29 @@ def bound_lines(bound: dict) -> list:
     return lines
 
 
+def limit_lines(limits: dict) -> list:
+    """Markdown lines of the detection limits (:mod:`ttsim_jax.diagnose.limits`): per candidate and
+    phase, the smallest effect these data would have shown as significant."""
+    if not limits.get("candidates"):
+        return []
+    from ttsim_jax.diagnose.limits import MAX_SIZE, describe
+
+    lines = ["", "Detection limits: the smallest effect of each candidate that these data would have shown as "
+             "significant (injected into the model's predictions with the record's own residuals as its noise, "
+             "either sign), in the candidate's parameters, as the RMS change of the phase's errors over their RMS, "
+             "and as the held-out reduction it would make.", "",
+             "| effect | phase | smallest effect shown | share of the error [%] | held-out reduction [%] |",
+             "|---|---|---|---|---|"]
+    for name, per in limits["candidates"].items():
+        for p, e in per.items():
+            if e["size"] is None:
+                lines.append(f"| {name} | {p} | not within {MAX_SIZE:g} x its typical size | - | - |")
+                continue
+            lines.append(f"| {name} | {p} | {describe(name, e).split(': ', 1)[1]} | {e['share_pct']:.1f} | "
+                         f"{e['reduction_pct']:.1f} |")
+    return lines
+
+
 def markdown(out: dict, data: str = "", model: str = "") -> str:
     """The report's Markdown."""
     v = out["verdict"]
@@ -226,6 +249,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
             h = c["heldout"][p]
             lines.append(f"| {c['rank']} | {c['name']} | {p} | {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} | "
                          f"{_significance(c)} | `{params}` |")
+    lines += limit_lines(out.get("limits", {}))
     lines += ["", f"![ranked effects]({FIGURES['effects']})", "", "Effects on the record (sizes, not physics):", ""]
     rec = out["record"]
     if "position_noise" in rec:

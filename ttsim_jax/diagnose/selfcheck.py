@@ -77,7 +77,7 @@ GAMES = {"full": 14, "quick": 8}
 SEGMENTS = {"full": 2000, "quick": 384}
 #: Parameters of an effect that vary within a session faster than a diagnosis's flight segments
 #: sample it (air_flow's gusts, periods of 1-20 s, against a segment every ~10 s of a session at
-#: the default 128 segments): no held-out method resolves them, so an outside case also scores
+#: 128 segments, the default before every segment was): no held-out method resolves them, so an outside case also scores
 #: the model-free bound against the oracle with them at neutral (``oracle_steady_pct``).
 UNRESOLVED = {"air_flow": ("gust_amp",)}
 #: Tries of successive seeds when the generator refuses its own data.
@@ -402,6 +402,8 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
             row.update(oracle_steady_pct=float(steady[p]["pct"]), bound_share_steady=row["bound_pct"] / steady[p]["pct"])
     row["bound_significant"] = [p for p, b in (out.get("bound") or {}).items()
                                 if isinstance(b, dict) and b.get("heldout", {}).get("significant")]
+    # the true effects' detection limits on these data (those among the candidates), beside the oracle
+    row["limits"] = {n: out["limits"]["candidates"][n] for n in names if n in out.get("limits", {}).get("candidates", {})}
     row["spin_findings"] = list(out.get("record", {}).get("spin_check", {}).get("findings", []))
     row["spin_sources"] = out.get("spin_sources", {})
     row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],

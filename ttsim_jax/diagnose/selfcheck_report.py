@@ -59,15 +59,25 @@ def plot(result: dict, path):
     return save_figure(fig, path)
 
 
+def limit_cell(r: dict) -> str:
+    """The table's cell of a case's detection limit: the smallest held-out reduction these data
+    would have shown of its (first) true effect, in the oracle's phase (``-`` where not known)."""
+    for name in r.get("effects", []):
+        e = r.get("limits", {}).get(name, {}).get(r.get("oracle_phase") or "")
+        if e:
+            return f"{e['reduction_pct']:.1f}" if e.get("size") is not None else "beyond reach"
+    return "-"
+
+
 def table(result: dict) -> str:
     """The per-case Markdown table of a selfcheck and its summary."""
-    lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | shrink recovered | "
+    lines = ["| case | effects | outcome | top candidate | phase | found [%] | oracle [%] | limit [%] | shrink recovered | "
              "model-free bound [%] (of the oracle's; its strongest term) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["cases"]:
         effects = " + ".join(r["effects"])
         if "error" in r:
-            lines.append(f"| {r['kind']} | {effects} | {r['error'][:60]} | | | | | | |")
+            lines.append(f"| {r['kind']} | {effects} | {r['error'][:60]} | | | | | | | |")
             continue
         phase = f"{r['phase']} ({'right' if r['phase_right'] else 'wrong'})" if r["phase"] else "-"
         shrink = f"{r['shrink']:.2f}" if math.isfinite(r["shrink"]) else "-"
@@ -87,7 +97,7 @@ def table(result: dict) -> str:
             bound = "significant in " + ", ".join(sig) if sig else "not significant in any phase"
         oracle = f"{r['oracle_pct']:.1f} ({r['oracle_phase']})" if r.get("oracle_phase") else "-"
         lines.append(f"| {r['kind']} | {effects} | {r['outcome']} | {r['top']} | {phase} | {r['found_pct']:.1f} | "
-                     f"{oracle} | {shrink} | {bound} |")
+                     f"{oracle} | {limit_cell(r)} | {shrink} | {bound} |")
     s = result["summary"]
     lines.append(f"\nDetectable single effects: {s['n_single']}, true effect first {s['rank1_rate']:.2f} "
                  f"(of them {s.get('n_interchangeable', 0)} as interchangeable with the first), phase right "

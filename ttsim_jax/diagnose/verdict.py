@@ -194,6 +194,31 @@ def _spin_text(out: dict) -> str:
             "reading them as physics.")
 
 
+def limits_text(out: dict, left_out=()) -> str:
+    """The verdict's sentence on what these data could have shown (``out["limits"]``,
+    :mod:`ttsim_jax.diagnose.limits`): each candidate's smallest significant effect in its phase
+    most sensitive to it, in its own parameters and as a share of that phase's error; "" without
+    limits. ``left_out``: candidates not to name (those found)."""
+    from ttsim_jax.diagnose.limits import MAX_SIZE, describe
+
+    seen, blind = [], []
+    for name, per in out.get("limits", {}).get("candidates", {}).items():
+        if name in left_out or not per:
+            continue
+        p, e = min(per.items(), key=lambda kv: math.inf if kv[1]["size"] is None else kv[1]["share_pct"])
+        if e["size"] is not None:
+            seen.append(f"{describe(name, e)} ({p}: {e['share_pct']:.2g} % of its error)")
+        else:
+            blind.append(name)
+    text = ""
+    if seen:
+        text += " These data would have shown, at least: " + "; ".join(seen) + "; none of these is there."
+    if blind:
+        text += (f" They could not have shown {', '.join(blind)} (not within {MAX_SIZE:g} x their typical sizes, "
+                 "in the regimes these data cover).")
+    return text
+
+
 def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
     """The verdict: how much of the gap the accepted effects explain, and what is left.
 
@@ -305,5 +330,6 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         located = "No regime of those phases stands out and no residual dependence is significant: the gap is spread over them."
     else:
         located = "No regime stands out and no residual dependence is significant: what remains looks like noise."
-    text = "Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1] + _spin_text(out)
+    text = ("Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1] + _spin_text(out) +
+            limits_text(out, [c.spec.name for c in beyond]))
     return dict(names, level="unexplained", explained=False, text=text)
