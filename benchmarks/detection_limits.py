@@ -5,7 +5,7 @@ Per seed (the selfcheck's games: conti2026 plus paper-like position noise, ``--g
 
 1. the games without the effect (the effect present at neutral, so that all three datasets share
    the generator's programs and draws), diagnosed with conti2026 and the one candidate
-   (``Settings.quick(effects=(NAME,), max_segments=None)``: every segment): its detection limit in typical sizes, in the phase
+   (``Settings.quick(effects=(NAME,))``, every flight segment unless ``--max-segments``): its detection limit in typical sizes, in the phase
    where it is smallest (``diagnosis["limits"]``);
 2. the same games with the effect generated at 0.5 and at 1.5 times that limit (its typical
    parameter values times the size: :func:`ttsim_jax.diagnose.limits.direction`), each diagnosed
@@ -15,7 +15,7 @@ A right limit is found in >= 80 % of seeds at 1.5 x and in <= 20 % at 0.5 x. Wri
 ``OUT/detection_limits.json`` (per seed and effect: the limit, the found flags, the held-out
 reductions) and prints the rates. Resumable: each finished seed is kept in ``OUT/detection_limits/``.
 
-    python benchmarks/detection_limits.py --effects table_friction,air_density --seeds 10 --out benchmarks/results
+    python benchmarks/detection_limits.py --effects table_friction --seeds 10 --max-segments 96 --out benchmarks/results
 """
 
 from __future__ import annotations
@@ -55,20 +55,20 @@ def _stepped(name: str) -> set:
     return set(direction(sp, const))
 
 
-def diagnosed(ds, name: str):
+def diagnosed(ds, name: str, max_segments):
     import jax.numpy as jnp
 
     from ttsim_jax import load_model
     from ttsim_jax.diagnose.diagnosis import Settings, diagnose
 
-    out = diagnose(ds, load_model("conti2026", dtype=jnp.float32), Settings.quick(effects=(name,), max_segments=None))
+    out = diagnose(ds, load_model("conti2026", dtype=jnp.float32), Settings.quick(effects=(name,), max_segments=max_segments))
     c = next(c for c in out["candidates"] if c["name"] == name)
     return out, c
 
 
-def one_seed(name: str, seed: int, n_games: int) -> dict:
+def one_seed(name: str, seed: int, n_games: int, max_segments) -> dict:
     ds, _ = games(name, 0.0, seed, n_games)
-    out, _ = diagnosed(ds, name)
+    out, _ = diagnosed(ds, name, max_segments)
     per = out["limits"]["candidates"].get(name, {})
     shown = {p: e for p, e in per.items() if e["size"] is not None}
     if not shown:
@@ -78,7 +78,7 @@ def one_seed(name: str, seed: int, n_games: int) -> dict:
                limit_reduction_pct=lim["reduction_pct"], segments=out["counts"])
     for factor in (0.5, 1.5):
         ds, values = games(name, factor * lim["size"], seed, n_games)
-        res, c = diagnosed(ds, name)
+        res, c = diagnosed(ds, name, max_segments)
         row[f"x{factor}"] = dict(found=bool(c["significant"] and not c.get("implausible")),
                                  heldout={p: dict(pct=h["pct"], ci95=h["ci95"]) for p, h in c["heldout"].items()},
                                  generated={k: values[k] for k in _stepped(name)})
@@ -90,6 +90,8 @@ def main(argv=None) -> int:
     p.add_argument("--effects", default="table_friction", help="comma-separated candidate names (default: %(default)s)")
     p.add_argument("--seeds", type=int, default=10, help="seeds per effect (default: %(default)s)")
     p.add_argument("--games", type=int, default=4, help="games per dataset (default: %(default)s)")
+    p.add_argument("--max-segments", type=int, default=None, help="flight segments diagnosed (default: every one; "
+                   "fewer for speed where the effect acts on contacts only)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results"), help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     store = args.out / "detection_limits"
@@ -103,7 +105,7 @@ def main(argv=None) -> int:
                 rows.append(json.loads(f.read_text()))
                 continue
             print(f"{name}, seed {seed}: generating and diagnosing 3 datasets ...", file=sys.stderr, flush=True)
-            row = one_seed(name, seed, args.games)
+            row = one_seed(name, seed, args.games, args.max_segments)
             tmp = f.with_suffix(".tmp")
             tmp.write_text(json.dumps(row, indent=1))
             tmp.replace(f)
