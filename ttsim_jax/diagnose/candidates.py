@@ -368,6 +368,13 @@ class Candidate:
         return explains(self.heldout)
 
 
+def group_specs(pb: Problem, group) -> tuple[tuple, tuple]:
+    """(specs, numpy constants) of the effects of one compiled group, as every fit attaches them."""
+    built = [spec(n, pb.pooled) for n in group]
+    specs = tuple(b[0] for b in built)
+    return specs, tuple(stages.session_starts(s, b[1], pb.n_sessions) for s, b in zip(specs, built))
+
+
 def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 0.1, ridge: float = 1e-4,
         name: str = "") -> Candidate:
     """Fits the effects ``names`` jointly on the training split (see the module docstring) and scores
@@ -389,9 +396,7 @@ def fit(pb: Problem, names, model, *, group=None, steps: int = 150, lr: float = 
     missing = set(names) - set(group)
     if missing:
         raise ValueError(f"fit: effects {sorted(missing)} are not in the group {list(group)}")
-    built = [spec(n, pb.pooled) for n in group]
-    specs = tuple(b[0] for b in built)
-    consts = tuple(stages.session_starts(s, b[1], pb.n_sessions) for s, b in zip(specs, built))
+    specs, consts = group_specs(pb, group)
     fitted = [s for s in specs if s.name in names]
     phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
     scored = tuple(p for p in phases if any(p in s.phases for s in fitted))

@@ -65,9 +65,7 @@ def responses(pb, model, names, group) -> dict:
     ``group`` (:func:`~ttsim_jax.diagnose.candidates.groups`): the change of the model's errors by
     each effect at its typical size, in the phases it acts in (one evaluation each, and one of the
     group at neutral, all one compiled program). A candidate without a typical step is left out."""
-    built = [candidates.spec(n, pb.pooled) for n in group]
-    specs = tuple(b[0] for b in built)
-    consts = tuple(stages.session_starts(s, b[1], pb.n_sessions) for s, b in zip(specs, built))
+    specs, consts = candidates.group_specs(pb, group)
     phases = tuple(p for p in pb.phases if any(p in s.phases for s in specs))
     u0 = candidates.initial_u(specs, pb.n_sessions)
     at_rest, _ = candidates.evaluate(model, specs, consts, u0, pb, stages.GN_START, phases)
@@ -108,15 +106,16 @@ def without_effect(pb, p: str, delta) -> np.ndarray:
     return rest
 
 
-def heldout_at(pb, delta: dict, size: float, seed: int = 0) -> dict:
+def heldout_at(pb, delta: dict, size: float, seed: int = 0, rest: dict | None = None) -> dict:
     """The held-out scores {phase: score} of the candidate fitted, along its typical direction, to
     an effect of ``size`` typical sizes injected into the record without it (:func:`without_effect`):
     the errors r - size Delta before, the fit finding the size exactly on the training rows
-    (the rest is orthogonal to Delta there), so r after."""
+    (the rest is orthogonal to Delta there), so r after. ``rest``: {phase: :func:`without_effect`}
+    where already computed (a bisection asks for many sizes)."""
     before, after = {}, {}
     for p, d in delta.items():
-        rest = without_effect(pb, p, d)
-        before[p], after[p] = rest - size * d, rest
+        r = rest[p] if rest is not None and p in rest else without_effect(pb, p, d)
+        before[p], after[p] = r - size * d, r
     return candidates.score(pb, after, seed=seed, base=before)
 
 
@@ -143,8 +142,10 @@ def candidate_limits(pb, delta: dict, sp, const, seed: int = 0) -> dict:
     step = direction(sp, const)
     out = {}
     for p, d in delta.items():
-        def scores(s, p=p):
-            return [heldout_at(pb, {p: d}, sign * s, seed)[p] for sign in (1.0, -1.0)]
+        rest = {p: without_effect(pb, p, d)}
+
+        def scores(s, p=p, d=d, rest=rest):
+            return [heldout_at(pb, {p: d}, sign * s, seed, rest)[p] for sign in (1.0, -1.0)]
 
         # each phase alone: the smallest effect its held-out items show whatever its sign
         size = limit_size(lambda s: all(candidates.significant(p, h) for h in scores(s)))
