@@ -131,9 +131,13 @@ def test_a_phase_within_the_floors_own_accuracy_is_no_gap():
     assert open_gaps(out) == ["flight"]
     v = verdict(out, [wind])
     assert v["level"] == "explained" and v["open"] == [] and "table gap" not in v["text"]
-    control = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": tight}}
+    control = {"phases": ["table"], "where": {}, "dependence": {}, "candidates": [], "floor": {"table": tight}}
     v = verdict(control, [])
-    assert v["level"] == "unexplained" and v["gaps"] == [] and v["text"].endswith("what remains looks like noise.")
+    assert v["level"] == "no gap" and v["gaps"] == [] and v["text"].startswith("No gap: no phase's error stands above")
+    assert v["text"].endswith("what remains looks like noise.")
+    # a phase whose floor is not known could hold a gap: then it is no more than "unexplained"
+    v = verdict(dict(control, phases=["table", "racket"]), [])
+    assert v["level"] == "unexplained" and v["text"].endswith("what remains looks like noise.")
     far = dict(tight, error=0.297 * 1.15, error_ci95=[0.297 * 1.13, 0.297 * 1.17])
     assert open_gaps({"floor": {"table": far}}) == ["table"]
     assert 1.13 > 1.0 + FLOOR_SYSTEMATIC["table"] > 1.04

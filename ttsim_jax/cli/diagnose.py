@@ -63,7 +63,8 @@ def register(subparsers) -> None:
         "phase measures how far the gap could shrink and names the variables that carry it. VERDICT: 'explained' "
         "only when the accepted effects close 70 % or more of the removable gap in every phase they act in; "
         "'partly explained' says how much each closes and where the rest lies; 'unexplained' when nothing "
-        "plausible is significant. Writes report.md, diagnosis.json and PNG figures to --out.")
+        "plausible is significant; 'no gap' when, besides, every phase lies at its noise floor and nothing stands "
+        "out. Writes report.md, diagnosis.json and PNG figures to --out.")
     p = subparsers.add_parser("diagnose", help="where the sim-to-real gap lies and which effect causes it",
                               description=description)
     p.add_argument("--data", metavar="DATA", type=existing_dir, help="dataset directory (required)")
@@ -106,7 +107,7 @@ def register(subparsers) -> None:
                    "spin_decay,air_flow,table_tilt,buckling)")
     s.add_argument("--quick", action="store_true", help="four single effects and the outside case, on smaller "
                    "datasets, diagnosed with 'ttsim diagnose --quick' on at most 384 flight segments "
-                   "(default: every effect, four pairs and the outside case, at most 2000 segments, the full diagnosis "
+                   "(default: every effect, four pairs and the outside case, every flight segment, the full diagnosis "
                    "without landing, with --quick's descent steps)")
     s.add_argument("--outside", action="store_true", help="run the suite outside the catalogue instead: each of "
                    "its effects generated and withheld from the candidates, some cases recorded as a tracker's raw "

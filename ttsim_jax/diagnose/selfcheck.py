@@ -7,8 +7,7 @@ with conti2026 (the effects hidden from the model) and scores the result against
 * *single*: one catalogue effect;
 * *pair*: two catalogue effects at once;
 * *control*: no effect at all, only the record's noise (last in every suite): the right answer is
-  "unexplained" with nothing significant and no phase above its noise floor, the model-free bound
-  included;
+  "no gap": nothing significant and no phase above its noise floor, the model-free bound included;
 * *outside*: an effect the diagnosis's catalogue lacks (the candidates are every simulator effect
   but it): the right answer is "unexplained", with the gap located in the phase it acts in. The
   outside suite (:data:`OUTSIDE_PLAN`, ``--outside``) also records some cases as a tracker does
@@ -72,9 +71,10 @@ PAIRS = (("spin_decay", "table_tilt"), ("air_flow", "buckling"), ("ball_variatio
 #: The outside case's effect: generated, but not a candidate.
 OUTSIDE = "racket_edge"
 #: Games per generated dataset (about 150 flight segments, 70 table and 30 racket contacts each)
-#: and flight segments diagnosed at most, per case: full run and ``--quick``.
+#: and flight segments diagnosed at most, per case: full run (None: every one, the diagnosis's
+#: default) and ``--quick``.
 GAMES = {"full": 14, "quick": 8}
-SEGMENTS = {"full": 2000, "quick": 384}
+SEGMENTS = {"full": None, "quick": 384}
 #: Parameters of an effect that vary within a session faster than a diagnosis's flight segments
 #: sample it (air_flow's gusts, periods of 1-20 s, against a segment every ~10 s of a session at
 #: 128 segments, the default before every segment was): no held-out method resolves them, so an outside case also scores

@@ -330,6 +330,14 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         located = "No regime of those phases stands out and no residual dependence is significant: the gap is spread over them."
     else:
         located = "No regime stands out and no residual dependence is significant: what remains looks like noise."
-    text = ("Unexplained: " + lead + rejected + rest + " " + located + _bound_text(out)[1] + _spin_text(out) +
+    bound_phases, bound_text = _bound_text(out)
+    floors = out.get("floor", {})
+    known = all(isinstance(floors.get(p), dict) and floors[p].get("floor_known", True) for p in out.get("phases", ()))
+    if known and out.get("phases") and not (where or gaps or beyond or bound_phases or spin_findings(out)):
+        # nothing to explain: every phase at its noise floor, nothing significant, nothing located
+        text = ("No gap: no phase's error stands above its noise floor, and " + lead + " " + located +
+                limits_text(out, []))
+        return dict(names, level="no gap", explained=False, text=text)
+    text = ("Unexplained: " + lead + rejected + rest + " " + located + bound_text + _spin_text(out) +
             limits_text(out, [c.spec.name for c in beyond]))
     return dict(names, level="unexplained", explained=False, text=text)
