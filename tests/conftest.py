@@ -53,6 +53,12 @@ def real_data_dir() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data" / "real"
 
 
+@pytest.fixture
+def real_data() -> Path:
+    """The folder of the public measured data: $TTSIM_REAL_DATA, else ../shared/data/real."""
+    return real_data_dir()
+
+
 @pytest.fixture(params=[jnp.float32, jnp.float64], ids=["f32", "f64"])
 def dtype(request):
     return request.param

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ttsim_jax.cli.options import (UsageError, command_group, existing_file, positive_float, positive_int, seed,
-                                   text_file, writable_dir, writable_file)
+from ttsim_jax.cli.options import (UsageError, command_group, existing_dir, existing_file, positive_float, positive_int,
+                                   seed, text_file, writable_dir, writable_file)
 
 
 def register(subparsers) -> None:
@@ -44,10 +44,18 @@ def register(subparsers) -> None:
                    help="checkpoint written by 'ttsim train ppo' (OUT/checkpoint.msgpack; default: the bundled "
                         "policy, a small one trained on the default task for a few minutes)")
     q.add_argument("--task", default=None, metavar="TASK",
-                   help="bundled task name (return_ball, return_ball_pro; return_ball_accel, return_ball_pro_accel for "
-                        "an accel policy) or task .toml (default: the checkpoint's)")
+                   help="bundled task name (return_ball, return_ball_pro, return_ball_real (measured shots: set "
+                        "TTSIM_REAL_DATA); return_ball_accel, return_ball_pro_accel for an accel policy) or task .toml "
+                        "(default: the checkpoint's)")
     q.add_argument("--episodes", type=positive_int, default=1024, help="episodes (default: %(default)s)")
     q.add_argument("--seed", type=seed, default=0, help="seed (default: %(default)s)")
+    q.add_argument("--real-shots", type=existing_dir, default=None, metavar="DIR",
+                   help="play the held-out split of measured shots instead of the task's bank: a folder of "
+                        "Google DeepMind's post-hit ball states (serves.json, rallies.json of "
+                        "google-deepmind/competitive_robot_table_tennis, CC-BY-4.0); the rates are also given "
+                        "per shot type (serve, rally)")
+    q.add_argument("--split", choices=("test", "train", "all"), default="test",
+                   help="with --real-shots: which split of the states (default: %(default)s, the held-out one)")
     q.add_argument("--plot", type=writable_file, default=None, metavar="PNG", help="draw sample rallies to this PNG")
     q.add_argument("--gif", type=writable_file, default=None, metavar="GIF",
                    help="animate the first episode (top and side views of the ball's path and the racket face, "
@@ -105,13 +113,17 @@ def cmd_play(args) -> int:
     train_env, train_params = build(config, config.ppo.num_envs, args.task)
     runner = restore_runner(jax.eval_shape(lambda k: ppo.init_runner(train_env, train_params, config, k),
                                            jax.random.PRNGKey(0)), payload, args.policy)
-    env, params = (train_env, train_params) if args.episodes == train_env.num_envs else build(
-        config, args.episodes, args.task)
+    shots = None if args.real_shots is None else dict(source="measured", measured=str(args.real_shots.resolve()),
+                                                      split=args.split, types=["serve", "rally"])
+    env, params = (train_env, train_params) if args.episodes == train_env.num_envs and shots is None else build(
+        config, args.episodes, args.task, shots=shots)
     record = min(args.episodes, 12) if args.plot else 1 if args.gif else 0
     result = ppo.make_evaluate(env, config, record=record)(runner.params, runner.stats, params,
                                                           jax.random.PRNGKey(args.seed))
-    s = ppo.summarise(result)
+    s = ppo.summarise(result, env.config.shots.types)
     s["task"] = env.config.source
+    s["shots"] = (f"measured ({args.split} split of {args.real_shots})" if shots else
+                  f"{env.config.shots.source} (the task's bank)")
     s["env_steps_trained"] = payload["history"][-1]["env_steps"] if payload["history"] else 0
     if args.json:
         print(json.dumps(s, indent=1))
@@ -120,6 +132,9 @@ def cmd_play(args) -> int:
         print(f"legal-return rate {s['legal_rate']:.3f}; landing error to the target {s['landing_error_m']:.3f} m; "
               f"mean return {s['return_mean']:+.3f}")
         print("outcomes: " + ", ".join(f"{k} {v:.3f}" for k, v in s["outcomes"].items()))
+        print(f"shots: {s['shots']}; legal-return rate by shot type: " + ", ".join(
+            f"{k} {v['legal_rate']:.3f} ({v['episodes']})" if v["legal_rate"] is not None else f"{k} - (0)"
+            for k, v in s["by_type"].items()))
     if args.plot:
         from ttsim_jax.env.return_ball import OUTCOME_NAMES
         from ttsim_jax.plots import plot_trajectories

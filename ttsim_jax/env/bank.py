@@ -19,9 +19,14 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     ``$XDG_CACHE_HOME/ttsim_jax`` (default ``~/.cache``), named by a hash of the ``[shots]`` settings,
     the model's parameters and the sampler's source; ``cache=False`` always draws afresh.
 
+    With ``[shots] source = "measured"`` the bank holds measured states instead
+    (:func:`measured_bank`).
+
     Returns:
         (:class:`Ball` (S, 3) float32 numpy fields, (S,) int shot type index into ``config.shots.types``).
     """
+    if config.shots.source == "measured":
+        return measured_bank(model, config)
     import hashlib
     import inspect
 
@@ -68,3 +73,29 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
         except OSError:  # a read-only home: no cache, same bank
             pass
     return bank, types
+
+
+def measured_bank(model: Model, config: TaskConfig):
+    """The bank of measured post-hit states (:mod:`ttsim_jax.data.post_hit_states`): the
+    ``[shots] split`` of the ``types`` in the folder ``measured``, those within ``max_speed`` and
+    ``max_spin`` and clear of the table (centre above it by more than a radius), in a seeded random
+    order, repeated or cut to ``bank`` shots.
+
+    Returns:
+        what :func:`shot_bank` returns; raises :class:`ConfigError` when no state is left.
+    """
+    from ttsim_jax.data.post_hit_states import read_post_hit_states
+
+    c = config.shots
+    s = read_post_hit_states(c.measured, kinds=c.types)
+    keep = {"train": ~s.test, "test": s.test, "all": np.ones(len(s), bool)}[c.split]
+    keep &= (np.linalg.norm(s.vel, axis=-1) <= c.max_speed) & (np.linalg.norm(s.spin, axis=-1) <= c.max_spin)
+    keep &= s.pos[:, 2] > float(model.ball.radius)
+    if not keep.any():
+        raise ConfigError(f"{config.source}: [shots] no measured state of types {list(c.types)} in the {c.split!r} "
+                          f"split of {c.measured} is within max_speed = {c.max_speed} and max_spin = {c.max_spin}")
+    s = s.select(keep)
+    order = np.resize(np.random.default_rng(c.seed).permutation(len(s)), c.bank)
+    index = {name: i for i, name in enumerate(c.types)}
+    f32 = lambda a: np.asarray(a[order], np.float32)  # noqa: E731
+    return Ball(pos=f32(s.pos), vel=f32(s.vel), spin=f32(s.spin)), np.array([index[k] for k in s.kind[order]], np.int32)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +24,16 @@ class ShotsConfig:
     bank: int = 4096
     seed: int = 0
     aim: bool = True
+    source: str = "sampled"
+    measured: str = ""
+    split: str = "train"
+
+
+# Where ``[shots]`` come from: sampled (:mod:`ttsim_jax.shots`) or measured post-hit states
+# (:mod:`ttsim_jax.data.post_hit_states`), whose shot types and splits these are.
+SHOT_SOURCES = ("sampled", "measured")
+MEASURED_TYPES = ("serve", "rally")
+SPLITS = ("train", "test", "all")
 
 
 # The action modes of ``[control] action`` (see :mod:`ttsim_jax.env.intercept`).
@@ -341,8 +352,28 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     from ttsim_jax.shots import SHOT_TYPES
 
     shots = out["shots"]
-    if not shots.types or set(shots.types) - set(SHOT_TYPES):
-        raise ConfigError(f"{source}: [shots] types = {list(shots.types)}: unknown or none; known: {list(SHOT_TYPES)}")
+    if shots.source not in SHOT_SOURCES:
+        raise ConfigError(f"{source}: [shots] source = {shots.source!r}: expected one of {list(SHOT_SOURCES)}")
+    if shots.split not in SPLITS:
+        raise ConfigError(f"{source}: [shots] split = {shots.split!r}: expected one of {list(SPLITS)}")
+    known = SHOT_TYPES if shots.source == "sampled" else MEASURED_TYPES
+    if shots.source == "measured":
+        if "types" not in raw.get("shots", {}):
+            shots = dataclasses.replace(shots, types=MEASURED_TYPES)
+        if not shots.measured:
+            raise ConfigError(f"{source}: [shots] source = \"measured\" needs measured = \"FOLDER\" (a folder of "
+                              "DeepMind's serves.json and rallies.json)")
+        expanded = os.path.expandvars(shots.measured)
+        if "$" in expanded:
+            raise ConfigError(f"{source}: [shots] measured = {shots.measured!r}: set the environment variable it "
+                              "names (the folder of the public measured data)")
+        folder = _beside(source, expanded)
+        if not folder.is_dir():
+            raise ConfigError(f"{source}: [shots] measured = {shots.measured!r}: no such folder ({folder})")
+        out["shots"] = shots = dataclasses.replace(shots, measured=str(folder))
+    if not shots.types or set(shots.types) - set(known):
+        raise ConfigError(f"{source}: [shots] types = {list(shots.types)}: unknown or none; known for source = "
+                          f"{shots.source!r}: {list(known)}")
     control = out["control"]
     ratio = 1.0 / (control.rate_hz * control.physics_dt)
     if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:

@@ -41,7 +41,7 @@ from ttsim_jax.files.cache import compile_notice, enable_compilation_cache
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.bank import shot_bank
-from ttsim_jax.env.config import TaskConfig, load_task_config
+from ttsim_jax.env.config import ShotsConfig, TaskConfig, load_task_config
 from ttsim_jax.env.spaces import OBS_BOUND
 from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
 from ttsim_jax.params import ConfigError, Model, load_model
@@ -222,8 +222,10 @@ class ReturnBall:
         self.latency = self.config.observation.latency_steps
         self._params = None
         # what the compiled programs depend on: the task's settings (not the file they were read
-        # from), the batch and the kernel's options (hashed once: jit hashes it at every call)
-        self._identity = (dataclasses.replace(self.config, source=""), self.num_envs, self.block_size, self.reference)
+        # from, nor where the bank's shots come from: the bank is a parameter), the batch and the
+        # kernel's options (hashed once: jit hashes it at every call)
+        self._identity = (dataclasses.replace(self.config, source="", shots=ShotsConfig(bank=self.config.shots.bank)),
+                          self.num_envs, self.block_size, self.reference)
         self._hash = hash(self._identity)
         # environments made after this one (in another process too) load its compiled programs
         enable_compilation_cache()

@@ -272,9 +272,12 @@ def episode_runner(env: ReturnBall, act, record: int = 0):
     return run
 
 
-def summarise(result: dict) -> dict:
+def summarise(result: dict, shot_types=None) -> dict:
     """Legal-return rate (shots the opponent missed left out), mean landing error [m] of the legal
-    returns, mean return and the share of each outcome, from :func:`make_evaluate`'s result."""
+    returns, mean return and the share of each outcome, from :func:`make_evaluate`'s result; with
+    ``shot_types`` (the task's ``[shots] types``, which ``shot_type`` indexes) also ``by_type``:
+    per shot type its episodes, the counted ones' legal-return rate and the share the opponent
+    missed."""
     import numpy as np
 
     from ttsim_jax.env.return_ball import OUTCOME_NAMES
@@ -283,8 +286,17 @@ def summarise(result: dict) -> dict:
     counted = outcome != SHOT_FAULT
     legal = outcome == LEGAL
     error = np.asarray(result["landing_error"])
-    return {"episodes": int(counted.sum()),
-            "legal_rate": float(legal.sum() / max(counted.sum(), 1)),
-            "landing_error_m": float(error[legal].mean()) if legal.any() else float("nan"),
-            "return_mean": float(np.asarray(result["return"])[counted].mean()) if counted.any() else float("nan"),
-            "outcomes": {name: float((outcome == i).mean()) for i, name in enumerate(OUTCOME_NAMES)}}
+    out = {"episodes": int(counted.sum()),
+           "legal_rate": float(legal.sum() / max(counted.sum(), 1)),
+           "landing_error_m": float(error[legal].mean()) if legal.any() else float("nan"),
+           "return_mean": float(np.asarray(result["return"])[counted].mean()) if counted.any() else float("nan"),
+           "outcomes": {name: float((outcome == i).mean()) for i, name in enumerate(OUTCOME_NAMES)}}
+    if shot_types is not None:
+        kind = np.asarray(result["shot_type"])
+        out["by_type"] = {}
+        for i, name in enumerate(shot_types):
+            k = kind == i
+            n = int((k & counted).sum())
+            out["by_type"][name] = {"episodes": n, "legal_rate": float((k & legal).sum() / n) if n else None,
+                                    "opponent_missed": float((k & ~counted).sum() / k.sum()) if k.any() else None}
+    return out

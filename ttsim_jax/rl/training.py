@@ -35,16 +35,19 @@ def task_path(config: PPOConfig):
     return config.task
 
 
-def build(config: PPOConfig, num_envs: int, task=None):
-    """(environment, its parameters) of a PPO config (or of another ``task``); the same environment
-    object for the same task file and size within a process, so its compiled programs are reused."""
-    env = _task_env(config, num_envs, task)
+def build(config: PPOConfig, num_envs: int, task=None, shots: dict | None = None):
+    """(environment, its parameters) of a PPO config (or of another ``task``, with its ``[shots]``
+    settings replaced by ``shots``, e.g. ``{"source": "measured", ...}``); the same environment
+    object for the same task file, settings and size within a process, so its compiled programs are
+    reused."""
+    env = _task_env(config, num_envs, task, shots)
     return env, env.default_params()
 
 
-def _task_env(config: PPOConfig, num_envs: int, task=None) -> ReturnBall:
+def _task_env(config: PPOConfig, num_envs: int, task=None, shots: dict | None = None) -> ReturnBall:
     task = task or task_path(config)
-    return _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs))
+    overrides = tuple(sorted((f"shots.{k}", tuple(v) if isinstance(v, list) else v) for k, v in (shots or {}).items()))
+    return _env(str(Path(task).resolve()) if Path(task).is_file() else str(task), int(num_envs), overrides)
 
 
 def memory_bytes(config: PPOConfig, num_envs: int, task=None) -> int:
@@ -67,8 +70,9 @@ def require_envs(config: PPOConfig, num_envs: int, what: str, task=None) -> None
 
 
 @functools.lru_cache(maxsize=8)
-def _env(task: str, num_envs: int) -> ReturnBall:
-    return ReturnBall(load_task_config(task), num_envs)
+def _env(task: str, num_envs: int, overrides: tuple = ()) -> ReturnBall:
+    # the overrides' lists travel as tuples (hashable, for the cache); the task file's reader takes lists
+    return ReturnBall(load_task_config(task, {k: list(v) if isinstance(v, tuple) else v for k, v in overrides}), num_envs)
 
 
 def _chunk_record(metrics: dict, env_steps: int, elapsed: float) -> dict:
