@@ -32,8 +32,10 @@ R, M, RHO, G = 0.02, 0.0027, 1.2, 9.81
 AREA = np.pi * R**2
 
 
-def accel(v, w, cd, cm, rho):
-    """Drag and Magnus accelerations of balls with velocity v (N, 3) and spin w (N, 3)."""
+def accel(v, w, cd, cm, rho, wind=(0.0, 0.0, 0.0)):
+    """Drag and Magnus accelerations of balls with velocity v (N, 3) and spin w (N, 3) in air that
+    moves at ``wind`` (m/s, world frame): both act on the velocity relative to the air."""
+    v = v - np.asarray(wind, float)
     speed = np.linalg.norm(v, axis=1, keepdims=True)
     k = 0.5 * rho * AREA / M
     magnus = np.cross(w, v) / np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-9) * speed
@@ -57,10 +59,10 @@ def bounce(v, w, e, mu):
     return v2, w + dw
 
 
-def throws(n, rng, *, cd=0.45, cm=0.25, rho=RHO, e=0.88, mu=0.25, h=1e-4, rate=150.0):
+def throws(n, rng, *, cd=0.45, cm=0.25, rho=RHO, e=0.88, mu=0.25, h=1e-4, rate=150.0, wind=(0.0, 0.0, 0.0)):
     """``n`` launcher throws: (t, pos, spin, n_bounces) per throw, sampled at ``rate`` with 2 % of
     the frames dropped and 1.5 mm of noise on the positions (the spin as the tracker would estimate
-    it without error: the true spin of each sample)."""
+    it without error: the true spin of each sample), in a steady ``wind``."""
     p = np.stack([np.full(n, -1.6), rng.normal(0, 0.15, n), rng.uniform(0.2, 0.35, n)], 1)
     v = np.stack([rng.uniform(4.0, 7.0, n), rng.normal(0, 0.3, n), rng.uniform(0.0, 1.5, n)], 1)
     w = np.stack([rng.normal(0, 20, n), rng.choice([-1.0, 1.0], n) * rng.uniform(30, 150, n), rng.normal(0, 20, n)], 1)
@@ -74,7 +76,7 @@ def throws(n, rng, *, cd=0.45, cm=0.25, rho=RHO, e=0.88, mu=0.25, h=1e-4, rate=1
                 out_t[i].append(k * h)
                 out_p[i].append(p[i].copy())
                 out_w[i].append(w[i].copy())
-        f = lambda vv: accel(vv, w, cd, cm, rho)  # noqa: E731
+        f = lambda vv: accel(vv, w, cd, cm, rho, wind)  # noqa: E731
         k1v = f(v)
         k2v = f(v + 0.5 * h * k1v)
         k3v = f(v + 0.5 * h * k2v)
@@ -97,6 +99,25 @@ def throws(n, rng, *, cd=0.45, cm=0.25, rho=RHO, e=0.88, mu=0.25, h=1e-4, rate=1
         keep[:3] = keep[-3:] = True
         res.append((t[keep], pos[keep] + rng.normal(0, 0.0015, pos[keep].shape), spin[keep], int(bounces[i])))
     return res
+
+
+def sessions(n_sessions, n_throws, rng, **throw_options):
+    """``n_sessions`` tracker sessions of ``n_throws`` throws each (:func:`throws` with
+    ``throw_options``), 2-6 s apart: (multi, single, flights): each session's (t, pos, spin) with
+    its throws one after the other, every throw as a session of its own, and the true flights."""
+    multi, single, flights = [], [], 0
+    for _ in range(n_sessions):
+        t0 = 0.0
+        T, P, S = [], [], []
+        for t, pos, spin, nb in throws(n_throws, rng, **throw_options):
+            T.append(t + t0)
+            P.append(pos)
+            S.append(spin)
+            single.append((t, pos, spin))
+            flights += nb + 1
+            t0 = T[-1][-1] + rng.uniform(2.0, 6.0)
+        multi.append((np.concatenate(T), np.concatenate(P), np.concatenate(S)))
+    return multi, single, flights
 
 
 def write(path: Path, sessions, *, clock_rate=0.0):
@@ -131,19 +152,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     rng = np.random.default_rng(args.seed)
-    multi, single, flights = [], [], 0
-    for s in range(args.sessions):
-        th = throws(args.throws, rng, mu=0.25 * args.friction_scale)
-        t0 = 0.0
-        T, P, S = [], [], []
-        for t, pos, spin, nb in th:
-            T.append(t + t0)
-            P.append(pos)
-            S.append(spin)
-            single.append((t, pos, spin))
-            flights += nb + 1
-            t0 = T[-1][-1] + rng.uniform(2.0, 6.0)
-        multi.append((np.concatenate(T), np.concatenate(P), np.concatenate(S)))
+    multi, single, flights = sessions(args.sessions, args.throws, rng, mu=0.25 * args.friction_scale)
     result = dict(args={k: str(v) for k, v in vars(args).items()}, throws=args.sessions * args.throws, true_flights=flights,
                   load_before=os.getloadavg())
     ttsim = [str(Path(sys.executable).parent / "ttsim")]

@@ -25,8 +25,8 @@ import numpy as np
 from . import schema
 from .dataset import Dataset
 from .errors import DataError, DataWarning
-from .speeds import run_speeds
-from .tracks import GRAVITY, MAX_SPEED, MIN_SAMPLES
+from .speeds import acceleration_excess, run_speeds
+from .tracks import MAX_SPEED, MIN_SAMPLES
 
 #: Largest plausible |coordinate| of a ball or racket in a table-tennis room [m]; a larger value
 #: almost always means millimetres were given as metres.
@@ -48,15 +48,6 @@ MAX_SPIN = MAX_SPEED / schema.BALL_RADIUS
 #: its blade at least this times omega, whatever the axis; so a rate whose rim speed exceeds
 #: FASTEST_BALL (467 rad/s) is borderline, one beyond MAX_SPEED (667 rad/s) an error.
 BLADE_HALF_WIDTH = 0.075
-#: Most drag plus Magnus acceleration per squared air speed [1/m]: rho A / (2 m) = 0.28 for a 40 mm,
-#: 2.7 g ball in air of 1.2 kg/m^3, times |(C_D, C_M)| <= 1.25 (C_D 0.37-0.55 in the paper's table;
-#: lift coefficients of spinning spheres saturate near 0.6, and durr2026 caps its C_M at 1.0).
-AERO_PER_SPEED2 = 0.35
-#: Air speed [m/s] a ball may have on top of its own (indoor draughts; the generator's wind is
-#: within 0.5 m/s).
-DRAUGHT = 1.0
-#: Standard errors of a segment's fitted acceleration beyond the physical bound that make it borderline.
-ACCEL_SIGMAS = 5.0
 #: A labelled table contact must have the ball centre this close to z = ball radius [m].
 TABLE_CONTACT_TOL = 0.03
 #: |quaternion| must be 1 within this.
@@ -501,8 +492,7 @@ def _segment_motion(ds: Dataset, files, want: str):
     fit = (count >= MIN_SAMPLES) & (seg[start] >= 0)
     if not fit.any():
         return
-    a, bound, sigma = _parabola_accelerations(group, t, pos, speed)
-    excess = np.where(fit & np.isfinite(sigma), a - bound - ACCEL_SIGMAS * sigma, -np.inf)
+    a, bound, sigma, excess = acceleration_excess(group, t, pos, speed, fit)
     bad = np.flatnonzero(excess > 0)
     if bad.size:
         k = int(bad[np.argmax(excess[bad])])
@@ -511,38 +501,3 @@ def _segment_motion(ds: Dataset, files, want: str):
             f"beyond their fit's noise; the worst, {run(k)}: |a - g| = {a[k]:.3g} m/s^2 (+- {sigma[k]:.2g}) where "
             f"its speed allows at most {bound[k]:.3g} m/s^2: a contact or a tracking error inside it, wrong time stamps "
             "or units, or z not up?", **at(k))
-
-
-def _parabola_accelerations(group, t, pos, speed):
-    """Per group (contiguous runs of samples), the acceleration of a least-squares parabola in time
-    per axis, the physical bound on it and its standard error.
-
-    Arguments:
-        group: (N,) group index of each sample, runs 0, 1, ...; t: (N,) times [s]; pos: (N, 3) [m].
-        speed: (G,) each group's median sample-to-sample speed [m/s].
-
-    Returns:
-        (G,) |a - g| [m/s^2]; (G,) the bound AERO_PER_SPEED2 (v + DRAUGHT)^2 at the larger of the
-        median speed and the fitted speed at either end; (G,) the standard error of the fitted
-        acceleration per axis (NaN for fewer than 4 samples).
-    """
-    n_groups = len(speed)
-    count = np.bincount(group, minlength=n_groups)
-    start = np.r_[0, np.cumsum(count)[:-1]]
-    tau = t - (np.bincount(group, t, n_groups) / count)[group]  # centred: a well-conditioned fit
-    powers = np.stack([tau**k for k in range(5)], -1)
-    moments = np.stack([np.bincount(group, powers[:, k], n_groups) for k in range(5)], -1)
-    normal = np.stack([moments[:, i:i + 3] for i in range(3)], 1)  # (G, 3, 3)
-    rhs = np.stack([np.stack([np.bincount(group, powers[:, k] * pos[:, ax], n_groups) for ax in range(3)], -1)
-                    for k in range(3)], 1)  # (G, 3 powers, 3 axes)
-    with np.errstate(all="ignore"):
-        inv = np.linalg.pinv(normal)
-        c = inv @ rhs  # offset, velocity, half the acceleration
-        rss = np.maximum(np.bincount(group, np.sum(pos**2, -1), n_groups) - np.sum(c * rhs, axis=(1, 2)), 0.0)
-        dof = np.where(count > 3, 3 * (count - 3), np.nan)
-        sigma = 2.0 * np.sqrt(rss / dof * np.maximum(inv[:, 2, 2], 0.0))
-        a = np.linalg.norm(2.0 * c[:, 2] - np.array([0.0, 0.0, -GRAVITY]), axis=-1)
-        ends = np.stack([np.minimum.reduceat(tau, start), np.maximum.reduceat(tau, start)], -1)
-        v_ends = np.linalg.norm(c[:, None, 1] + 2.0 * c[:, None, 2] * ends[..., None], axis=-1).max(-1)
-    bound = AERO_PER_SPEED2 * (np.maximum(speed, v_ends) + DRAUGHT) ** 2
-    return a, bound, sigma

@@ -161,7 +161,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             (``"problem"``), for scoring other models on the same split.
 
     Returns:
-        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``where``, ``no_data`` ({phase:
+        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``left_out`` ({phase: {reason:
+        count}} of items left out, e.g. flight segments no free flight can give), ``where``, ``no_data`` ({phase:
         reason} of the phases without items: reported as "no data", never as a number),
         ``pooled_sessions`` (per-session effects fitted with one shared set), ``dependence``,
         ``record``, ``limits`` (:func:`ttsim_jax.diagnose.limits.limits`), ``floor`` (per phase the noise floor and the removable gap, or why there is
@@ -193,7 +194,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     if keep is not None:
         keep["problem"] = pb
     tick("noise floor and bounds", 1)
-    out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), settings=dict(
+    out = dict(phases=list(pb.phases), skipped=dict(ph.skipped), left_out=dict(ph.left_out), settings=dict(
         dataclasses.asdict(settings), effects=names, fit=dataclasses.asdict(settings.fit)))
     out["counts"] = {p: (ph.flights.n if p == "flight" else len(getattr(ph, p))) for p in pb.phases}
     if ph.flights is not None:

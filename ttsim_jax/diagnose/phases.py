@@ -122,6 +122,7 @@ class Phases:
     racket: ContactItems | None
     sessions: np.ndarray
     skipped: dict
+    left_out: dict = dataclasses.field(default_factory=dict)
 
 
 def _capacity(n: int) -> int:
@@ -139,7 +140,7 @@ def pad_rows(n: int, multiple: int = 32) -> int:
 
 def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float = 0.5,
             max_samples: int = MAX_SAMPLES, max_segments: int | None = MAX_SEGMENTS, seed: int = 0, *, model=None,
-            spin: str = "measured") -> Flights | None:
+            spin: str = "measured", exclude=()) -> Flights | None:
     """The dataset's flight segments padded to one shape (see :class:`Flights`); None without any.
     Segments longer than ``max_samples`` keep their first ``max_samples`` observations; of more
     than ``max_segments`` segments (None: no limit) a seeded random subset is kept.
@@ -149,7 +150,8 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     data has any; else every segment, with spin 0), ``"auto"`` (every segment: the measured spin
     where there is one, elsewhere the latent spin of :mod:`ttsim_jax.fit.latent_spin` fitted under
     ``model`` from the samples kept), ``"latent"`` (the latent spin everywhere) or ``"zero"``.
-    A segment too short for a latent spin flies with spin 0; :attr:`Flights.spin_source` says which."""
+    A segment too short for a latent spin flies with spin 0; :attr:`Flights.spin_source` says which.
+    The segments of ``exclude`` (ids) are left out."""
     from ttsim_jax.data.segment_batches import dataset_segments
     from ttsim_jax.fit.choices import SPIN_SOURCES
     from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
@@ -165,6 +167,9 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
         return None
     known = conf >= min_spin_conf
     keep = known.copy() if spin == "measured" and known.any() else np.ones(len(ids), bool)
+    keep &= ~np.isin(ids, np.asarray(exclude, np.int64))
+    if not keep.any():
+        return None
     idx = np.flatnonzero(keep)
     if max_segments is not None and len(idx) > max_segments:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_segments, replace=False))
@@ -280,9 +285,19 @@ def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, pha
     sessions = np.unique(np.asarray(ds.sessions["session_id"], np.int64)) if len(ds.sessions["session_id"]) else \
         np.unique(np.asarray(ds.segments["session_id"], np.int64))
     index = {int(s): k for k, s in enumerate(sessions)}
-    skipped = {}
-    fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed, model=model,
-                 spin=spin) if "flight" in phases else None
+    skipped, left_out = {}, {}
+    fl = None
+    if "flight" in phases:
+        from ttsim_jax.data.speeds import non_flights
+
+        # a segment no free flight can give (a ball rolling or resting in it, a contact or a
+        # tracking error) would be scored as the model's flight error: one such segment of
+        # thousands can make the whole phase a gap
+        bad = non_flights(ds)
+        if bad.size:
+            left_out["flight"] = {"no free flight (validation's acceleration check)": int(bad.size)}
+        fl = flights(ds, index, min_samples, fit.min_spin_conf, max_samples, max_segments, seed, model=model,
+                     spin=spin, exclude=bad)
     if fl is None and "flight" in phases:
         skipped["flight"] = f"no flight segment with at least {min_samples} observations"
     tb = rk = None
@@ -294,7 +309,7 @@ def collect(ds, model, fit: ContactFit = ContactFit(), min_samples: int = 5, pha
         rk, why = racket_contacts(ds, model, index, fit)
         if rk is None:
             skipped["racket"] = why
-    return Phases(flights=fl, table=tb, racket=rk, sessions=sessions, skipped=skipped)
+    return Phases(flights=fl, table=tb, racket=rk, sessions=sessions, skipped=skipped, left_out=left_out)
 
 
 # ---------------------------------------------------------------------------------------------- regimes

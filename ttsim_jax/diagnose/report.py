@@ -224,6 +224,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     lines.append("")
     lines += [f"- {p}: no data: {why}" for p, why in no_data.items()]
     lines += [f"- {p}: {why}" for p, why in out["skipped"].items() if p not in no_data]
+    lines += [f"- {p}: {n} left out: {why}" for p, reasons in out.get("left_out", {}).items() for why, n in reasons.items()]
     src = out.get("spin_sources") or {}
     if src.get("latent") or src.get("zero"):
         lines.append("- flight segments' spin: " + ", ".join(f"{k} {n}" for k, n in src.items() if n)
