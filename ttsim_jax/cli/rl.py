@@ -33,6 +33,12 @@ def register(subparsers) -> None:
                         "(default: the config's)")
     p.add_argument("--seed", type=seed, default=None, help="seed (default: the config's)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    d = p.add_argument_group("training across processes (JAX's multi-process runtime; one command per process, "
+                             "the same config and --out for all; process 0 writes the files)")
+    d.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="address of process 0, which coordinates the run (e.g. localhost:12355)")
+    d.add_argument("--num-processes", type=positive_int, default=None, metavar="N", help="processes in the run")
+    d.add_argument("--process-id", type=int, default=None, metavar="I", help="this process's index, 0 to N-1")
     p.set_defaults(func=cmd_train_ppo)
 
     q = subparsers.add_parser(
@@ -71,6 +77,15 @@ def cmd_train_ppo(args) -> int:
     from ttsim_jax.rl.config import load_ppo_config
     from ttsim_jax.rl.training import CHECKPOINT, train
 
+    given = [x is not None for x in (args.coordinator, args.num_processes, args.process_id)]
+    if any(given) and not all(given):
+        raise UsageError("--coordinator, --num-processes and --process-id go together (one command per process)")
+    if all(given):
+        if not 0 <= args.process_id < args.num_processes:
+            raise UsageError(f"--process-id {args.process_id}: must be within 0..{args.num_processes - 1}")
+        from ttsim_jax.rl.distributed import initialize
+
+        initialize(args.coordinator, args.num_processes, args.process_id)
     config = load_ppo_config(args.config)
     t = config.train
     config = dataclasses.replace(config, train=dataclasses.replace(

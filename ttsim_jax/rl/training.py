@@ -15,7 +15,7 @@ import numpy as np
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.return_ball import ReturnBall
 from ttsim_jax.files.atomic import atomic_write
-from ttsim_jax.rl import ppo
+from ttsim_jax.rl import distributed, ppo
 from ttsim_jax.rl.checkpoint import read_checkpoint, restore_runner, save_checkpoint
 from ttsim_jax.rl.config import PPOConfig, load_ppo_config, parse_ppo_config
 from ttsim_jax.sizes import require as require_memory
@@ -157,44 +157,76 @@ def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: 
                  f"(and [train] eval_envs = {t.eval_envs})")
     env, env_params = build(config, config.ppo.num_envs)
     eval_env, eval_params = build(config, t.eval_envs) if t.eval_envs else (None, None)
-    runner = jax.jit(lambda k: ppo.init_runner(env, env_params, config, k))(jax.random.PRNGKey(t.seed))
+    init = lambda k: ppo.init_runner(env, env_params, config, k)  # noqa: E731
+    # several devices (or processes: distributed.initialize): the environments split over all of
+    # them, everything else replicated; the same programs, partitioned by XLA
+    split = distributed.sharded()
+    if split:
+        distributed.check_envs(config.ppo.num_envs, "[ppo] num_envs")
+        mesh = distributed.mesh()
+        whole = distributed.replicated(mesh)
+        env_params = distributed.put(env_params, jax.tree.map(lambda _: whole, env_params))
+        if eval_params is not None:
+            eval_params = distributed.put(eval_params, jax.tree.map(lambda _: whole, eval_params))
+        layout = distributed.shardings(jax.eval_shape(init, jax.random.PRNGKey(0)), config.ppo.num_envs, mesh)
+    host = (lambda tree: distributed.to_host(tree, mesh)) if split else (lambda tree: tree)  # noqa: E731
+    seed_key = (lambda k: distributed.put(k, whole)) if split else (lambda k: k)  # noqa: E731
+    runner = (jax.jit(init, out_shardings=layout) if split else jax.jit(init))(seed_key(jax.random.PRNGKey(t.seed)))
     if payload is not None:
         runner = restore_runner(runner, payload, out / CHECKPOINT)
+        if split:
+            runner = distributed.put(runner, layout)
         # derived state, absent from older checkpoints: made again from the rest
         runner = runner.replace(env_state=runner.env_state.replace(plan=jax.jit(env.plan)(runner.env_state, env_params)))
     chunk = ppo.make_chunk(env, config)
     evaluate = ppo.make_evaluate(eval_env, config) if eval_env else None
     per_chunk = config.batch_size * t.updates_per_chunk
+    writer = jax.process_index() == 0  # one process writes the run's files and prints
 
     def run_eval(record):
-        key = jax.random.fold_in(jax.random.PRNGKey(t.seed + 1), int(runner.update))
-        s = ppo.summarise(evaluate(runner.params, runner.stats, eval_params, key))
+        key = jax.random.fold_in(jax.random.PRNGKey(t.seed + 1), int(host(runner.update)))
+        s = ppo.summarise(host(evaluate(runner.params, runner.stats, eval_params, seed_key(key))))
         record.update(eval_legal_rate=s["legal_rate"], eval_landing_error_m=s["landing_error_m"],
                       eval_return=s["return_mean"], eval_outcomes=s["outcomes"])
         return s
 
     def save():
-        save_checkpoint(out / CHECKPOINT, runner, config, history, elapsed)
+        state = host(runner)  # every process takes part in the gathering; one writes
+        if not writer:
+            return
+        save_checkpoint(out / CHECKPOINT, state, config, history, elapsed)
         atomic_write(out / METRICS, json.dumps(history, indent=1).encode())
         if history:
             plot_curve(history, out / CURVE)
 
+    progress = progress if writer else None
     if progress:  # nothing else is printed until the first chunk of updates is compiled and done
         progress(f"compiling the PPO update of {config.ppo.num_envs} environments (a few minutes the first time, "
                  "cached afterwards) ...")
     n_chunk = 0
     start = time.perf_counter() - elapsed
-    env_steps = int(runner.update) * config.batch_size
+
+    def clock():
+        """Training time so far; with several processes, process 0's (every process stops after
+        the same chunk, or the others would wait for it in the next one's collectives)."""
+        now = time.perf_counter() - start
+        if not split or jax.process_count() == 1:
+            return now
+        from jax.experimental import multihost_utils
+
+        return float(multihost_utils.broadcast_one_to_all(np.float64(now)))
+    env_steps = int(host(runner.update)) * config.batch_size
     while env_steps < t.total_env_steps and elapsed < t.time_limit_s:
         runner, metrics = chunk(runner, env_params)
+        metrics = host(metrics)
         jax.block_until_ready(metrics)
         env_steps += per_chunk
-        elapsed = time.perf_counter() - start
+        elapsed = clock()
         record = _chunk_record(metrics, env_steps, elapsed)
         n_chunk += 1
         if evaluate and t.eval_every_chunks and n_chunk % t.eval_every_chunks == 0:
             run_eval(record)
-            elapsed = time.perf_counter() - start
+            elapsed = clock()
         history.append(record)
         if progress:
             rate = record["train_legal_rate"]
