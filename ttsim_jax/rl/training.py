@@ -158,8 +158,8 @@ def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: 
     env, env_params = build(config, config.ppo.num_envs)
     eval_env, eval_params = build(config, t.eval_envs) if t.eval_envs else (None, None)
     init = lambda k: ppo.init_runner(env, env_params, config, k)  # noqa: E731
-    # several devices (or processes: distributed.initialize): the environments split over all of
-    # them, everything else replicated; the same programs, partitioned by XLA
+    # several processes (distributed.initialize): the environments split over all their devices,
+    # everything else replicated; the same programs, partitioned by XLA
     split = distributed.sharded()
     if split:
         distributed.check_envs(config.ppo.num_envs, "[ppo] num_envs")
