@@ -233,10 +233,11 @@ class Game:
             traj = np.concatenate([np.asarray(res.trajectory.pos), np.asarray(res.trajectory.vel),
                                    np.asarray(res.trajectory.spin)], axis=-1)  # (B, C, 9)
             log = jax.tree.map(np.asarray, res.events)
+            status = np.asarray(res.state.status)
             hits = []
             for b, lane in enumerate(lanes):
                 if lane.session is not None:
-                    h = self._advance(lane, traj[b], jax.tree.map(lambda a: a[b], log))
+                    h = self._advance(lane, traj[b], jax.tree.map(lambda a: a[b], log), int(status[b]))
                     if h is not None:
                         hits.append((lane, *h))
             if hits:
@@ -244,14 +245,24 @@ class Game:
             self._assign(lanes, queue)
         self.bar.close()
 
-    def _advance(self, lane: _Lane, traj, log):
-        """Reads one lane's chunk; returns (k, incoming state) when a racket contact is due."""
+    def _advance(self, lane: _Lane, traj, log, status: int = 0):
+        """Reads one lane's chunk; returns (k, incoming state) when a racket contact is due.
+        ``status``: the kernel's status of the lane's ball at the chunk's end."""
         cfg = self.cfg
         dt, C, s0 = cfg.dt, cfg.chunk_steps, lane.step
         s = lane.session
         n_ev = int(min(log.count, log.kind.shape[0]))
         cut = None  # ("hit", k) or ("end", t_end)
         k_from = 0
+        if n_ev == 0 and status == ev.INVALID:
+            # refused at the chunk's start, unlogged: a ball whose chunk began as it passed through
+            # the net's top (the kernel reports a net crossing, it does not stop the ball) lies
+            # within the net's band; it would stay frozen there, observed, until the flight's time
+            # limit. The tracker loses it here.
+            x = traj[0].astype(np.float64)
+            t_abs = s0 * dt
+            self._event(s, t_abs, "out", "lost", x[:3], x, x, "")
+            n_ev, cut = -1, ("end", t_abs)
         for i in range(n_ev + 1):
             if i < n_ev:
                 t_loc = float(log.time[i])
