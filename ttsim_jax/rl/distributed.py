@@ -78,6 +78,12 @@ def put(tree, sharding_tree):
     return jax.tree.map(one, tree, sharding_tree)
 
 
+def replicate(tree, m: Mesh):
+    """``tree``'s host values (every process holds the same) as global arrays every device holds whole."""
+    whole = replicated(m)
+    return put(tree, jax.tree.map(lambda _: whole, tree))
+
+
 def replicated(m: Mesh):
     """The sharding of a value every device holds whole."""
     return NamedSharding(m, PartitionSpec())

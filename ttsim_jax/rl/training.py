@@ -164,13 +164,12 @@ def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: 
     if split:
         distributed.check_envs(config.ppo.num_envs, "[ppo] num_envs")
         mesh = distributed.mesh()
-        whole = distributed.replicated(mesh)
-        env_params = distributed.put(env_params, jax.tree.map(lambda _: whole, env_params))
+        env_params = distributed.replicate(env_params, mesh)
         if eval_params is not None:
-            eval_params = distributed.put(eval_params, jax.tree.map(lambda _: whole, eval_params))
+            eval_params = distributed.replicate(eval_params, mesh)
         layout = distributed.shardings(jax.eval_shape(init, jax.random.PRNGKey(0)), config.ppo.num_envs, mesh)
     host = (lambda tree: distributed.to_host(tree, mesh)) if split else (lambda tree: tree)  # noqa: E731
-    seed_key = (lambda k: distributed.put(k, whole)) if split else (lambda k: k)  # noqa: E731
+    seed_key = (lambda k: distributed.replicate(k, mesh)) if split else (lambda k: k)  # noqa: E731
     runner = (jax.jit(init, out_shardings=layout) if split else jax.jit(init))(seed_key(jax.random.PRNGKey(t.seed)))
     if payload is not None:
         runner = restore_runner(runner, payload, out / CHECKPOINT)
