@@ -7,7 +7,7 @@ import pytest
 
 from ttsim_jax.data import Dataset, detect_events, filter_segments, find_bounces, validate
 from ttsim_jax.data.flightfit import ballistic_rmse
-from ttsim_jax.data.segment import find_kinks
+from ttsim_jax.data.segment import detect_contacts, find_kinks
 
 
 def test_finds_the_bounces_of_a_synthetic_trajectory(rally):
@@ -100,3 +100,51 @@ def test_default_flight_fit_is_accurate(simulate_flight):
     r = ballistic_rmse(t, pos, np.zeros(3))
     # Isotropic 1 mm noise gives a 3-D RMSE of sqrt(3) mm once the model fits.
     assert r == pytest.approx(np.sqrt(3) * 1e-3, rel=0.25)
+
+
+@pytest.mark.parametrize("after", [0.017, 0.022, 0.028])
+def test_a_hit_a_few_frames_after_a_bounce_is_a_contact(simulate_flight, after):
+    # Blocked or half-volleyed 3-5 frames after the bounce: the wide velocity fits would straddle
+    # the bounce there, yet the bounce's segment must not hold the hit.
+    t, pos, bt, _ = simulate_flight([-1.2, 0.0, 0.25], [5.0, 0.2, -1.0], duration=0.5, noise=0.001, seed=2)
+    assert len(bt) >= 1
+    hit = bt[0] + after
+    t, pos, bt, _ = simulate_flight([-1.2, 0.0, 0.25], [5.0, 0.2, -1.0], duration=0.5, noise=0.001, seed=2,
+                                    hit_at=hit, hit_vel=[-6.0, 0.3, 1.5])
+    found = detect_contacts(t, pos)
+    assert [c.kind for c in found][:2] == ["table", "other"]
+    assert abs(found[0].t - bt[0]) < 1e-3
+    assert abs(found[1].t - hit) < 1.0 / 180  # within a frame
+    assert len(found) == 2  # no echo of the hit further on
+
+
+def _flight_through(pc, v_in, v_out, rate=200.0, span=0.15, noise=0.001, seed=0):
+    """Samples of a ball (gravity only) through the point ``pc`` at t = 0, its velocity changing
+    there from ``v_in`` to ``v_out``."""
+    g = np.array([0.0, 0.0, -9.81])
+    t = np.arange(-span, span, 1.0 / rate) + 0.4 / rate
+    v = np.where((t < 0)[:, None], np.asarray(v_in, float), np.asarray(v_out, float))
+    pos = np.asarray(pc, float) + v * t[:, None] + 0.5 * g * t[:, None] ** 2
+    return t, pos + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
+
+
+def test_a_ball_that_clips_the_tables_edge_is_a_contact():
+    # A ball rising past the side edge glances off it: a velocity change of a third of its speed,
+    # which away from the table reads as timestamp jitter and is no contact.
+    v_in, v_out = [7.0, -1.0, 3.0], [6.6, 1.4, 2.2]
+    rel = np.linalg.norm(np.subtract(v_out, v_in)) / np.linalg.norm(v_in)
+    assert 0.2 < rel < 0.5
+    t, pos = _flight_through([-1.1, 0.78, 0.0], v_in, v_out)
+    found = detect_contacts(t, pos)
+    assert [c.kind for c in found] == ["other"] and abs(found[0].t) < 0.005
+    t, pos = _flight_through([-1.1, 1.5, 0.6], v_in, v_out)
+    assert detect_contacts(t, pos) == []
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_noisy_bounces_make_no_contact_beside_them(simulate_flight, seed):
+    rng = np.random.default_rng(seed)
+    v0 = [rng.uniform(3.0, 8.0), rng.uniform(-0.5, 0.5), rng.uniform(-1.0, 1.0)]
+    t, pos, bt, _ = simulate_flight([-1.4, 0.0, 0.3], v0, duration=0.8, noise=0.002, seed=seed)
+    found = detect_contacts(t, pos)
+    assert [c.kind for c in found if c.kind != "out"] == ["table"] * len(bt)

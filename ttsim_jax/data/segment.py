@@ -150,8 +150,23 @@ def find_bounces(
     return out
 
 
+#: How near [m] a contact point must lie to the table top's outline (horizontally and in height) to
+#: count as a hit on the table's edge (:func:`find_kinks`'s ``edge_rel_dv``).
+EDGE_BAND = schema.BALL_RADIUS + 0.02
+
+
+def at_table_edge(pc) -> bool:
+    """Whether a ball centre ``pc`` touches the table top's edge: within :data:`EDGE_BAND` of the
+    surface's height and of its outline, not over the playing surface's inside."""
+    x, y, z = (abs(float(v)) for v in pc)
+    hx, hy = schema.TABLE_LENGTH / 2, schema.TABLE_WIDTH / 2
+    near_outline = max(x - hx, y - hy) > -EDGE_BAND and x < hx + EDGE_BAND and y < hy + EDGE_BAND
+    return near_outline and z < EDGE_BAND
+
+
 def find_kinks(
-    t, pos, *, window: int = 5, min_dv: float = 2.0, min_rel_dv: float = 0.5, max_gap: float = 0.03, exclude=()
+    t, pos, *, window: int = 5, min_dv: float = 2.0, min_rel_dv: float = 0.5, edge_rel_dv: float = 0.2,
+    max_gap: float = 0.03, exclude=()
 ) -> list[Contact]:
     """Finds abrupt velocity changes (contacts other than table bounces) in one session.
 
@@ -167,6 +182,8 @@ def find_kinks(
         min_rel_dv: least velocity change relative to the speed at the contact. Camera timestamps
             jitter by milliseconds, which at 10 m/s fakes changes of a few m/s; real contacts
             (rackets, edges, the net) change the velocity by a good fraction of the speed.
+        edge_rel_dv: the same at the table's edge (:func:`at_table_edge`): a ball that clips the
+            edge glances off it, and jitter fakes a contact at the edge only where the ball passes it.
         max_gap: largest distance [m] between the two fitted paths where they meet; a larger gap
             means a jump in the measurements, not a contact.
         exclude: sample indices of known contacts (bounces); kinks within ``window`` samples of
@@ -208,11 +225,11 @@ def find_kinks(
             continue
         g_tc = np.array([0.0, 0.0, GRAVITY * tc])
         speed = max(np.linalg.norm(b1[k] - g_tc), np.linalg.norm(b2[k] - g_tc))
-        if dv[k] < min_rel_dv * speed:
-            continue
-        used[k] = True
         pc = a1[k] + b1[k] * tc
         pc[2] -= 0.5 * GRAVITY * tc**2
+        if dv[k] < (edge_rel_dv if at_table_edge(pc) else min_rel_dv) * speed:
+            continue
+        used[k] = True
         taken.append(Contact(_kind_of(pc), float(t0 + tc), pc, int(split - 1), float(dv[k]), _sampling_clean(t, split - 3, split + 2)))
     return sorted(taken, key=lambda c: c.t)
 
@@ -244,7 +261,84 @@ def detect_contacts(t, pos, *, bounce_kw: dict | None = None, kink_kw: dict | No
     )
     floor = [dataclasses.replace(c, kind="out") for c in floor]
     kinks = find_kinks(t, pos, exclude=[c.index for c in bounces + floor] + [c.index + 1 for c in bounces + floor], **(kink_kw or {}))
+    kinks = kinks_beside_bounces(t, pos, bounces + floor, kinks, kink_kw)
     return sorted(bounces + floor + kinks, key=lambda c: c.t)
+
+
+#: Samples per side of the velocity fits that look for a contact right beside a bounce.
+NEAR_WINDOW = 3
+
+
+#: Standard errors by which a velocity change beside a bounce must stand out (short fits are noisy,
+#: and time stamps that jitter by milliseconds fake changes of metres per second).
+KINK_SIGMAS = 5.0
+
+
+def velocity_change_sigmas(t, pos, lo: int, split: int, hi: int) -> float:
+    """How many standard errors apart the velocities of least-squares lines through samples
+    ``lo:split`` and ``split:hi`` are (gravity removed), the errors from the two fits' pooled
+    residuals: jitter and noise scatter the samples about their lines, a contact does not."""
+    if split - lo < 3 or hi - split < 3:
+        return 0.0
+    tau = t[lo:hi] - t[split]
+    p = np.array(pos[lo:hi], np.float64)
+    p[:, 2] += 0.5 * GRAVITY * tau**2
+    slopes, rss, spread, dof = [], 0.0, [], 0
+    for part in (slice(0, split - lo), slice(split - lo, hi - lo)):
+        a, b = _line_fit(tau[part], p[part])
+        rss += float(np.sum((p[part] - (a + b * tau[part, None])) ** 2))
+        spread.append(float(np.sum((tau[part] - tau[part].mean()) ** 2)))
+        slopes.append(b)
+        dof += 3 * (len(tau[part]) - 2)
+    se = np.sqrt(rss / dof * (1.0 / spread[0] + 1.0 / spread[1]))  # per axis
+    return float(np.linalg.norm(slopes[1] - slopes[0]) / max(se * np.sqrt(3.0), 1e-12))
+
+
+def kinks_beside_bounces(t, pos, bounces, kinks, kink_kw: dict | None = None) -> list[Contact]:
+    """The contacts of :func:`find_kinks` with those within a few samples of a bounce added, which
+    it cannot see there: its velocity fits of ``window`` samples per side would straddle the
+    bounce, so it ignores the samples beside one. A ball blocked or half-volleyed 15-30 ms after
+    it bounced (3-6 frames at 200 Hz) is common play; left undetected, the bounce's flight segment
+    holds a racket contact.
+
+    Each stretch between bounces is searched on its own, with :data:`NEAR_WINDOW` samples per side
+    (none of them across a bounce). A contact there within ``window`` samples of a bounce is added;
+    one of ``kinks`` within ``window`` samples of an added one, that the short fits do not find
+    too, is its echo (its wide fits straddled the contact) and is dropped.
+
+    Arguments:
+        t: (T,) times [s]; pos: (T, 3) positions [m].
+        bounces: the session's table and floor bounces (:class:`Contact`); kinks: the contacts
+            :func:`find_kinks` found, bounces excluded.
+        kink_kw: :func:`find_kinks`'s keyword arguments (its ``window`` is the blind distance).
+
+    Returns:
+        The contacts other than bounces (kind ``net``, ``out`` or ``other``).
+    """
+    kw = dict(kink_kw or {})
+    blind = int(kw.pop("window", 5))
+    kw.pop("exclude", None)
+    n = len(t)
+    edges = [0, *sorted({c.index + 1 for c in bounces if 0 < c.index + 1 < n}), n]
+    if len(edges) == 2:
+        return list(kinks)
+    added, short = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        if hi - lo < 2 * NEAR_WINDOW:
+            continue
+        for c in find_kinks(t[lo:hi], pos[lo:hi], window=NEAR_WINDOW, **kw):
+            c = dataclasses.replace(c, index=c.index + lo)
+            short.append(c.index)
+            # within the samples find_kinks excludes beside a bounce (its exclude rule)
+            beside = (lo > 0 and c.index - lo <= blind) or (hi < n and hi - 1 - c.index <= blind)
+            split = c.index + 1
+            if beside and velocity_change_sigmas(t, pos, max(lo, split - blind - 1), split, min(hi, split + blind + 1)) > KINK_SIGMAS:
+                added.append(c)
+    near = lambda i, others, d: any(abs(i - j) <= d for j in others)  # noqa: E731
+    mine = [a.index for a in added]
+    others = [i for i in short if i not in mine]
+    kept = [c for c in kinks if not near(c.index, mine, blind) or near(c.index, others, 1)]
+    return kept + [a for a in added if not near(a.index, [c.index for c in kept], blind)]
 
 
 def detect_events(ds: Dataset, *, bounce_kw: dict | None = None, kink_kw: dict | None = None) -> Dataset:
