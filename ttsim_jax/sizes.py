@@ -26,6 +26,10 @@ _UNITS = {"": 1, "B": 1, "K": 2**10, "KB": 10**3, "KIB": 2**10, "M": 2**20, "MB"
           "G": 2**30, "GB": 10**9, "GIB": 2**30, "T": 2**40, "TB": 10**12, "TIB": 2**40}
 
 
+#: The largest size :func:`parse_size` takes (an exbibyte: beyond any machine's memory).
+MAX_SIZE = 2**60
+
+
 class SizeError(UserError, ValueError):
     """A job whose estimated memory exceeds the budget (the message gives both and the remedy)."""
 
@@ -42,12 +46,14 @@ def parse_size(text: str) -> int:
     value = float(m.group(1)) * _UNITS[m.group(2).upper()]
     if not value >= 1:
         raise ValueError(f"expected a positive size, got {text!r}")
+    if not value <= MAX_SIZE:
+        raise ValueError(f"expected a size of at most {format_size(MAX_SIZE)}, got {text!r}")
     return int(value)
 
 
 def format_size(n: float) -> str:
     """``1.50 GiB``, ``12.0 MiB``, ``3.2 TiB``: a byte count for messages."""
-    for unit, scale in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+    for unit, scale in (("EiB", 2**60), ("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
         if n >= scale:
             return f"{n / scale:.3g} {unit}"
     return f"{int(n)} B"

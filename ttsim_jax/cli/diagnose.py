@@ -14,6 +14,9 @@ import sys
 from ttsim_jax.cli.options import (UsageError, add_spin_option, existing_dir, model_name_or_file, open_fraction,
                                    positive_int, seed, writable_dir)
 
+#: Most Adam steps per candidate ``--steps`` takes (the default converges in 100).
+MAX_STEPS = 100_000
+
 
 def effect_list(text: str) -> tuple:
     """Simulator effects of the catalogue: ``all`` or comma-separated names."""
@@ -144,6 +147,9 @@ def cmd_diagnose(args) -> int:
     if missing:
         raise UsageError(f"ttsim diagnose: {' and '.join(missing)} required (or 'ttsim diagnose selfcheck'); see "
                          "'ttsim diagnose --help'")
+    if args.steps is not None and args.steps > MAX_STEPS:
+        raise UsageError(f"--steps {args.steps:,}: Adam steps per candidate, each a pass over every segment and "
+                         f"contact; at most {MAX_STEPS:,} are taken (the default {Settings().steps} converges)")
     ds = load(args.data)
     model = load_model(args.model, dtype=jnp.float32)
     changes = dict(effects=args.effects, test_fraction=args.test_fraction, seed=args.seed, spin=args.spin)

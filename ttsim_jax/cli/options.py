@@ -133,6 +133,24 @@ def writable_file(text: str) -> Path:
     return path
 
 
+#: The formats a figure is written in (matplotlib's, by file suffix).
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".eps", ".ps")
+
+
+def file_of(*suffixes: str, what: str):
+    """An argparse type: a :func:`writable_file` whose name ends in one of ``suffixes`` (checked
+    while parsing, not after the work that produces it), ``what`` naming it in the message."""
+    def parse(text: str) -> Path:
+        path = writable_file(text)
+        if path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{text}: the name of {what} must end in {' or '.join(suffixes)} "
+                                             "(its format follows the name)" if len(suffixes) < 3 else
+                                             f"{text}: the name of {what} must end in {suffixes[0]} (or one of "
+                                             f"{', '.join(suffixes[1:])}: its format follows the name)")
+        return path
+    return parse
+
+
 def writable_dir(text: str) -> Path:
     """An output directory: a writable directory if it exists, else creatable."""
     path = Path(text)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ttsim_jax.cli.options import (UsageError, command_group, existing_dir, existing_file, positive_float, positive_int,
-                                   seed, text_file, writable_dir, writable_file)
+from ttsim_jax.cli.options import (FIGURE_SUFFIXES, UsageError, command_group, existing_dir, existing_file, file_of,
+                                   positive_float, positive_int, seed, text_file, writable_dir)
 
 
 def register(subparsers) -> None:
@@ -62,8 +62,9 @@ def register(subparsers) -> None:
                         "per shot type (serve, rally)")
     q.add_argument("--split", choices=("test", "train", "all"), default="test",
                    help="with --real-shots: which split of the states (default: %(default)s, the held-out one)")
-    q.add_argument("--plot", type=writable_file, default=None, metavar="PNG", help="draw sample rallies to this PNG")
-    q.add_argument("--gif", type=writable_file, default=None, metavar="GIF",
+    q.add_argument("--plot", type=file_of(*FIGURE_SUFFIXES, what="the figure"), default=None, metavar="PNG",
+                   help="draw sample rallies to this PNG (or another figure format by the name's suffix)")
+    q.add_argument("--gif", type=file_of(".gif", what="the animation"), default=None, metavar="GIF",
                    help="animate the first episode (top and side views of the ball's path and the racket face, "
                         "in real time, every second control step) to this GIF")
     q.add_argument("--json", action="store_true", help="print the results as JSON")

@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from ttsim_jax.cli.options import UsageError, model_name_or_file, positive_float, positive_int, seed, writable_file
+from ttsim_jax.cli.options import (FIGURE_SUFFIXES, UsageError, file_of, model_name_or_file, positive_float, positive_int,
+                                   seed)
 from ttsim_jax.sizes import require as require_memory
 
 
@@ -35,14 +36,19 @@ def register(sub) -> None:
     p.add_argument("--no-aim", action="store_true",
                    help="skip aiming each shot through the model (faster, more shots miss)")
     p.add_argument("--chunk", type=positive_int, default=16384, help="balls simulated per call (default: %(default)s)")
-    p.add_argument("--save", type=writable_file, default=None,
+    p.add_argument("--save", type=file_of(".npz", what="the trajectories file"), default=None,
                    help="write the trajectories (every 5 ms) and event logs to this .npz file")
-    p.add_argument("--plot", type=writable_file, default=None, help="write a PNG of sample trajectories over the table")
+    p.add_argument("--plot", type=file_of(*FIGURE_SUFFIXES, what="the figure"), default=None,
+                   help="write a PNG (or another figure format by the name's suffix: pdf, svg, ...) of sample "
+                        "trajectories over the table")
     p.set_defaults(func=cmd_simulate)
 
 
 #: Largest step and duration ``ttsim simulate`` accepts [s].
 MAX_DT, MAX_DURATION = 0.01, 60.0
+#: Most steps per shot ``ttsim simulate`` takes (they run one after another: 1.5 s at 1 us is
+#: 1.5 million); a step of 1e-9 s would set out on billions and run for days.
+MAX_STEPS = 2_000_000
 #: Event-log slots of each ``ttsim simulate`` shot.
 SIMULATE_EVENTS = 8
 #: Host memory of a shot's sampling and aiming (the numpy draws; the vmapped aiming flights keep
@@ -89,6 +95,10 @@ def cmd_simulate(args) -> int:
     if n_steps < 1:
         raise UsageError(f"--duration {args.duration:g} with --dt {args.dt:g}: less than one step "
                          f"(at least {every * args.dt:g} s are needed)")
+    if n_steps > MAX_STEPS:
+        raise UsageError(f"--duration {args.duration:g} with --dt {args.dt:g}: {n_steps:,} steps per shot, taken one "
+                         f"after another; at most {MAX_STEPS:,} are simulated (a step of {args.duration / MAX_STEPS:.2g} s "
+                         "or more; the flight error at 1e-4 s is already below a micrometre)")
     record_every = every if (args.save or args.plot) else 0
     require_memory(f"--shots {args.shots}" + (" with --save/--plot" if record_every else ""),
                    simulate_bytes(args.shots, n_steps, record_every, chunk=args.chunk, aim=not args.no_aim),

@@ -41,6 +41,9 @@ _REQUIRED = {
 }
 _INTS = {"session_id", "event_id"}
 _STRINGS = {"kind", "config"}
+_INT_RANGE = (int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max))
+#: Columns that come all together or not at all.
+_TOGETHER = {"observations": (("spin_x", "spin_y", "spin_z"),)}
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3}
 #: Below this 90th percentile of sample-to-sample speeds [m/s] the log shows no ball in play (a ball
@@ -90,6 +93,13 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, n
                 raise DataError("missing required column", file=file, row=1, row_label="line", column=h)
         if len(set(header)) != len(header):
             raise DataError("duplicate column names in the header", file=file, row=1, row_label="line", value=",".join(header))
+        for group in _TOGETHER.get(table, ()):
+            given = [h for h in group if h in header]
+            if given and len(given) != len(group):
+                missing = [h for h in group if h not in header]
+                raise DataError(f"{', '.join(given)} without {', '.join(missing)}: a spin needs all three "
+                                "components (or none: the spin is then unmeasured)", file=file, row=1,
+                                row_label="line", column=missing[0])
         cols: dict[str, list] = {h: [] for h in header}
         for row in reader:
             line_no = reader.line_num
@@ -106,6 +116,9 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, n
                     v = int(cell) if h in _INTS else float(cell)
                 except ValueError:
                     raise DataError("not a number" if h not in _INTS else "not an integer", file=file, row=line_no, row_label="line", column=h, value=cell) from None
+                if h in _INTS and not _INT_RANGE[0] <= v <= _INT_RANGE[1]:
+                    raise DataError(f"an id must lie within {_INT_RANGE[0]}..{_INT_RANGE[1]} (64 bits)", file=file,
+                                    row=line_no, row_label="line", column=h, value=cell)
                 cols[h].append(v)
             lines.append(line_no)
     if table == "observations" and not lines:

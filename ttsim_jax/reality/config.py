@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -117,9 +118,19 @@ def check_config(cfg: GeneratorConfig, where: str = "generator config") -> Gener
         bad("games", "must be a positive integer")
     if not isinstance(cfg.seed, int) or cfg.seed < 0:
         bad("seed", "must be a non-negative integer")
-    lo, hi = cfg.rallies_per_game
-    if not (1 <= lo <= hi):
-        bad("rallies_per_game", "must be [low, high] with 1 <= low <= high")
+    def pair(key, least, integer=False):
+        """A (low, high) range: two numbers, ``least`` <= low <= high."""
+        v = getattr(cfg, key)
+        kind = int if integer else (int, float)
+        if not (isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(x, kind) and not isinstance(x, bool)
+                                                                      and math.isfinite(x) for x in v)):
+            bad(key, f"must be [low, high]: two {'integers' if integer else 'numbers'}")
+        if not least <= v[0] <= v[1]:
+            bad(key, f"must be [low, high] with {least:g} <= low <= high")
+
+    pair("rallies_per_game", 1, integer=True)
+    pair("rally_gap", 0.0)
+    pair("hit_distance", 0.1)
     if cfg.rally_hits_mean < 1:
         bad("rally_hits_mean", "must be at least 1")
     if cfg.robot_end not in (1, -1):
@@ -130,7 +141,8 @@ def check_config(cfg: GeneratorConfig, where: str = "generator config") -> Gener
         bad("chunk_steps", "obs_every >= 1, chunk_steps >= 10 and lanes >= 1 are needed")
     if len(cfg.contact_bands) != 3 or min(cfg.contact_bands) < 0 or sum(cfg.contact_bands) <= 0:
         bad("contact_bands", "must be three non-negative probabilities")
-    if not (0.05 < cfg.face[0] < 0.2 and 0.05 < cfg.face[1] < 0.2):
+    if not (isinstance(cfg.face, (tuple, list)) and len(cfg.face) == 2 and 0.05 < cfg.face[0] < 0.2
+            and 0.05 < cfg.face[1] < 0.2):
         bad("face", "semi-axes must be in (0.05, 0.2) m")
     unknown = set(cfg.shot_weights) - set(SHOT_TYPES)
     if unknown:
