@@ -230,6 +230,12 @@ class ReturnBall:
         # environments made after this one (in another process too) load its compiled programs
         enable_compilation_cache()
 
+    def resized(self, num_envs: int) -> "ReturnBall":
+        """The same task over ``num_envs`` environments, on the kernel path of this one (a device's
+        share of a batch split over several: :func:`ttsim_jax.rl.distributed.per_shard`); it takes
+        this one's parameters."""
+        return ReturnBall(self.config, num_envs, block_size=self.block_size, reference=self.reference)
+
     def __eq__(self, other) -> bool:
         return type(other) is type(self) and other._identity == self._identity
 

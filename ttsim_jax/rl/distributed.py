@@ -4,11 +4,10 @@ axis over all devices, and the network's parameters are replicated.
 
 The update is the one-device program (:func:`ttsim_jax.rl.ppo.make_update`) compiled for sharded
 inputs: XLA partitions it, so the loss's mean over all environments, and with it the gradient, is
-averaged across processes by the compiler's own collectives, and a run on N processes computes what
-one process computes with the same total environments and seed (up to the order of float sums).
-Each device holds its share of the environments; process 0 writes the files. The environment
-step is partitioned by XLA as well, and its compaction gathers across devices: correct, and slow
-across processes (see :func:`sharded`); a per-shard environment step is not written yet.
+averaged across processes by the compiler's own collectives, and a run on N devices computes the
+same in one process or spread over several (up to the order of float sums).
+Each device holds its share of the environments and steps them itself (:func:`per_shard`);
+process 0 writes the files.
 
 One command per process (on a CPU, the collectives go through gloo)::
 
@@ -37,15 +36,34 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
 
 
 def sharded() -> bool:
-    """Whether training splits its environments over devices: in a run of several processes.
+    """Whether training splits its environments over devices: where the run has several (one
+    process's, or those of several processes)."""
+    return jax.device_count() > 1
 
-    One process keeps to one device even where it sees several: the environment step's
-    compaction of the rows that reset or touch (:class:`~ttsim_jax.env.return_ball.ReturnBall`)
-    gathers across the whole batch, which partitioned over devices costs collectives every step
-    (on this machine's CPU one process trains at 24,950 env-steps/s on one device, 10,755 on two
-    host devices, and two processes at 545, their collectives through gloo:
-    ``benchmarks/ppo_processes.py``)."""
-    return jax.process_count() > 1
+
+def per_shard(env, mesh: Mesh):
+    """``step(key, state, action, params)`` of ``env`` (one device's share of the environments,
+    :meth:`~ttsim_jax.env.return_ball.ReturnBall.resized`) run on each device over its own
+    environments (``shard_map``), for states and actions split along :data:`AXIS`.
+
+    The environment step compacts the rows that reset or touch a racket; partitioned by XLA over
+    devices that compaction gathers across the whole batch every step (two processes trained at
+    545 env-steps/s against one's 24,950). Each device compacts its own rows instead, and draws
+    its own random numbers (the key folded with its index): a run is then the same for the same
+    seed and number of devices, however many processes hold them."""
+    spec = PartitionSpec(AXIS)
+
+    def local(key, state, action, params):
+        return env.step(jax.random.fold_in(key, jax.lax.axis_index(AXIS)), state, action, params)
+
+    def step(key, state, action, params):
+        # the kernel's batch-wide clock (scalars) is the same on every device
+        state_spec = jax.tree.map(lambda x: spec if x.ndim else PartitionSpec(), state)
+        run = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), state_spec, spec, PartitionSpec()),
+                            out_specs=(spec, state_spec, spec, spec, spec, spec), check_vma=False)
+        return run(key, state, action, params)
+
+    return step
 
 
 def mesh() -> Mesh:

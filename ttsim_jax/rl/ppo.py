@@ -120,10 +120,14 @@ def ppo_loss(net, params, batch, clip_eps, vf_coef, ent_coef):
                    "clip_fraction": average(jnp.abs(ratio - 1.0) > clip_eps)}
 
 
-def make_update(env: ReturnBall, config: PPOConfig):
+def make_update(env: ReturnBall, config: PPOConfig, step=None):
     """``update(runner, env_params) -> (runner, metrics)``: one rollout of ``num_steps`` steps of every
-    environment and ``update_epochs`` passes of minibatch PPO over it (pure; jit it)."""
+    environment and ``update_epochs`` passes of minibatch PPO over it (pure; jit it).
+
+    ``step``: the environment step over the whole batch (default ``env.step``; over several devices
+    :func:`ttsim_jax.rl.distributed.per_shard`)."""
     net, tx, p = network(env, config), optimizer(config), config.ppo
+    step = step or env.step
 
     def env_step(carry, _):
         runner, env_params = carry
@@ -132,7 +136,7 @@ def make_update(env: ReturnBall, config: PPOConfig):
         mean, log_std, value = net.apply(runner.params, nobs)
         action = mean + jnp.exp(log_std) * jax.random.normal(k_act, mean.shape)
         log_prob = gaussian_log_prob(mean, log_std, action)
-        obs, env_state, reward, terminated, truncated, info = env.step(k_env, runner.env_state, action, env_params)
+        obs, env_state, reward, terminated, truncated, info = step(k_env, runner.env_state, action, env_params)
         # a truncated episode is not over for the value: bootstrap from its final observation
         final_value = net.apply(runner.params, runner.stats.normalise(info["final_obs"]))[2]
         learn_reward = reward + p.gamma * jnp.where(truncated & ~terminated, final_value, 0.0)
@@ -195,16 +199,22 @@ def _program_key(config: PPOConfig) -> PPOConfig:
         config.train, total_env_steps=steps, time_limit_s=1.0, seed=0, eval_every_chunks=0, checkpoint_every_chunks=1))
 
 
-def make_chunk(env: ReturnBall, config: PPOConfig):
+def make_chunk(env: ReturnBall, config: PPOConfig, mesh=None):
     """A jitted ``chunk(runner, env_params) -> (runner, metrics)`` running ``updates_per_chunk``
     updates; metrics are (updates_per_chunk,) arrays. The same function for the same environment
-    and settings within a process (compiled once)."""
-    return _make_chunk(env, _program_key(config))
+    and settings within a process (compiled once). ``mesh``: the devices the environments are split
+    over, each stepping its own (:func:`ttsim_jax.rl.distributed.per_shard`), or None."""
+    return _make_chunk(env, _program_key(config), mesh)
 
 
 @functools.lru_cache(maxsize=8)
-def _make_chunk(env: ReturnBall, config: PPOConfig):
-    update = make_update(env, config)
+def _make_chunk(env: ReturnBall, config: PPOConfig, mesh):
+    step = None
+    if mesh is not None:
+        from ttsim_jax.rl.distributed import per_shard
+
+        step = per_shard(env.resized(env.num_envs // mesh.size), mesh)
+    update = make_update(env, config, step)
     n = config.train.updates_per_chunk
 
     @jax.jit

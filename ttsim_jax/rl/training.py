@@ -158,8 +158,8 @@ def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: 
     env, env_params = build(config, config.ppo.num_envs)
     eval_env, eval_params = build(config, t.eval_envs) if t.eval_envs else (None, None)
     init = lambda k: ppo.init_runner(env, env_params, config, k)  # noqa: E731
-    # several processes (distributed.initialize): the environments split over all their devices,
-    # everything else replicated; the same programs, partitioned by XLA
+    # several devices (one process's, or several processes' joined by distributed.initialize): the environments
+    # split over all of them, each stepping its own; everything else replicated, partitioned by XLA
     split = distributed.sharded()
     if split:
         distributed.check_envs(config.ppo.num_envs, "[ppo] num_envs")
@@ -177,7 +177,7 @@ def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: 
             runner = distributed.put(runner, layout)
         # derived state, absent from older checkpoints: made again from the rest
         runner = runner.replace(env_state=runner.env_state.replace(plan=jax.jit(env.plan)(runner.env_state, env_params)))
-    chunk = ppo.make_chunk(env, config)
+    chunk = ppo.make_chunk(env, config, mesh if split else None)
     evaluate = ppo.make_evaluate(eval_env, config) if eval_env else None
     per_chunk = config.batch_size * t.updates_per_chunk
     writer = jax.process_index() == 0  # one process writes the run's files and prints
