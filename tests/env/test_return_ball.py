@@ -432,3 +432,39 @@ def test_latency_shows_the_ball_as_it_was_that_many_steps_ago():
         want = np.concatenate([seen.pos, np.asarray(seen.vel) / 10.0, np.asarray(seen.spin) / 300.0], -1)
         np.testing.assert_allclose(np.asarray(o[:, :9]), want, rtol=1e-6, atol=1e-6)
     assert not np.allclose(np.asarray(balls[4].pos), np.asarray(balls[2].pos))  # the ball moved meanwhile
+
+
+def test_the_observation_names_point_at_what_they_name(vec, run):
+    env = vec.env
+    names = env.observation_names
+    assert len(names) == len(env.observation_fields) == env.obs_dim == 25 and len(set(names)) == len(names)
+    state, out = run[3]
+    obs = np.asarray(env.observe(state))
+    seen, rk = env.seen_ball(state), state.racket
+    col = names.index
+    np.testing.assert_allclose(obs[:, col("ball.pos.z")], np.asarray(seen.pos[:, 2]), atol=1e-6)
+    np.testing.assert_allclose(obs[:, col("ball.vel.x")] * 10.0, np.asarray(seen.vel[:, 0]), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(obs[:, col("ball.spin.y")] * 300.0, np.asarray(seen.spin[:, 1]), rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(obs[:, col("racket.pos.y")], np.asarray(rk.pos[:, 1]), atol=1e-6)
+    np.testing.assert_allclose(obs[:, col("racket.yaw_rate")] * 10.0, np.asarray(rk.rate[:, 1]), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(obs[:, col("time")], np.asarray(state.t) * env.period, atol=1e-6)
+    assert dict(env.observation_fields)["ball.vel.x"] == "10 m/s"
+
+
+@pytest.mark.parametrize("spin, plan", [(False, False), (True, True)])
+def test_the_observation_names_follow_the_observation_settings(spin, plan):
+    import dataclasses
+
+    cfg = load_task_config(TASK, OVERRIDES)
+    cfg = dataclasses.replace(cfg, observation=dataclasses.replace(cfg.observation, spin=spin, plan=plan))
+    env = return_ball.ReturnBall(cfg, 2)
+    assert len(env.observation_names) == env.obs_dim
+    assert ("ball.spin.x" in env.observation_names) == spin and ("plan.exists" in env.observation_names) == plan
+
+
+def test_the_shot_type_codes_name_the_tasks_types(vec, run):
+    env = vec.env
+    assert env.shot_type_names == tuple(load_task_config(TASK, OVERRIDES).shots.types)
+    codes = np.concatenate([np.asarray(out[5]["shot_type"]) for _, out in run])
+    assert codes.min() >= 0 and codes.max() < len(env.shot_type_names)
+    assert return_ball.OUTCOME_NAMES[LEGAL] == "legal" and return_ball.OUTCOME_NAMES[RUNNING] == "running"

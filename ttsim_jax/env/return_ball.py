@@ -379,6 +379,34 @@ class ReturnBall:
                                                        ball.spin)
         return jnp.concatenate([point, v_hit, t_hit[:, None], valid[:, None]], -1).astype(jnp.float32)
 
+    @property
+    def observation_fields(self) -> tuple:
+        """(name, unit) of each entry of an observation, in :meth:`observe`'s order: e.g.
+        ``("ball.vel.x", "10 m/s")`` (the entry is the ball's x velocity in units of 10 m/s, i.e.
+        divided by 10). ``obs[:, env.observation_names.index("racket.pos.z")]`` picks one."""
+        xyz = lambda what, unit: [(f"{what}.{a}", unit) for a in "xyz"]  # noqa: E731
+        out = xyz("ball.pos", "m") + xyz("ball.vel", "10 m/s")
+        if self.config.observation.spin:
+            out += xyz("ball.spin", "300 rad/s")
+        out += xyz("racket.pos", "m") + xyz("racket.vel", "10 m/s")
+        out += [("racket.pitch", "rad"), ("racket.yaw", "rad"), ("racket.pitch_rate", "10 rad/s"),
+                ("racket.yaw_rate", "10 rad/s")]
+        out += xyz("ball_minus_racket", "m") + [("time", "s"), ("bounced", "0/1"), ("hit", "0/1")]
+        if self.config.observation.plan:
+            out += xyz("plan.hit_pos", "m") + xyz("plan.hit_vel", "10 m/s") + [("plan.time_to_hit", "s"),
+                                                                                ("plan.exists", "0/1")]
+        return tuple(out)
+
+    @property
+    def shot_type_names(self) -> tuple:
+        """What ``info["shot_type"]`` codes: the task's ``[shots] types``, by index."""
+        return tuple(self.config.shots.types)
+
+    @property
+    def observation_names(self) -> tuple:
+        """The name of each entry of an observation (:attr:`observation_fields`)."""
+        return tuple(n for n, _ in self.observation_fields)
+
     def observe(self, state: EnvState):
         """(B, obs_dim) float32: ball position, velocity / 10 [, spin / 300] (as
         :meth:`seen_ball`: noisy and ``latency_steps`` control steps old), racket position,
