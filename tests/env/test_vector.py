@@ -131,3 +131,41 @@ def test_cleanrl_style_example_trains_a_few_updates(example, capsys):
     assert out["iterations"] == 2 and np.isfinite(out["loss"])
     assert out["episodes"] >= 1 and all(np.isfinite(out["returns"]))
     assert "iteration 2/2" in capsys.readouterr().out
+
+
+ASYNC = """
+import sys
+import gymnasium
+import ttsim_jax
+env = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=2, vectorization_mode="async", task="return_ball_accel",
+                         overrides={"shots.bank": 16, "shots.aim": False})
+assert env.single_observation_space.shape == (25,)
+if sys.argv[1] == "step":
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert obs.shape == (2, 25) and reward.shape == (2,) and info["outcome"].shape == (2,)
+env.close()
+print("done")
+"""
+
+
+def _async(what: str, timeout: float):
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", ASYNC, what], capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0 and "done" in out.stdout, out.stdout[-2000:] + out.stderr[-3000:]
+    # the workers are forked (the default start method) after this process made an environment for
+    # the spaces: JAX warns when it forks with its backend's threads running, which the workers
+    # would deadlock on
+    assert "os.fork() was called" not in out.stderr, out.stderr[-3000:]
+
+
+def test_async_vector_mode_forks_its_workers_before_jax_starts():
+    _async("make", timeout=120)
+
+
+@pytest.mark.slow
+def test_async_vector_mode_steps():
+    _async("step", timeout=900)

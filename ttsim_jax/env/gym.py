@@ -240,13 +240,23 @@ class ReturnBallEnv(gymnasium.Env):
 
     def __init__(self, task=None, overrides: dict | None = None, render_mode: str | None = None):
         self.env = ReturnBall(load_task_config(task, overrides), 1)
-        self.params = self.env.default_params()
+        self._params = None
         self.render_mode = _render_mode(render_mode, self.metadata["render_modes"])
         self.metadata = dict(self.metadata, render_fps=self.env.config.control.rate_hz)
         self._trails = _Trails(self.env, self.params, 1) if self.render_mode else None
         self.observation_space = observation_space(self.env)
         self.action_space = action_space(self.env)
         self._state = None
+
+    @property
+    def params(self):
+        """The task's :class:`~ttsim_jax.env.return_ball.EnvParams`, made on first use: an
+        environment only made and closed (as gymnasium's ``AsyncVectorEnv`` does in its own
+        process, for the spaces, before it forks its workers) starts no JAX backend, whose
+        threads a forked worker would deadlock on."""
+        if self._params is None:
+            self._params = self.env.default_params()
+        return self._params
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
