@@ -80,3 +80,25 @@ def test_whole_loop_jit_example_runs(example, capsys):
     out = example("functional_loop").main(["--task", TASK, "--bank", "32", "--num-envs", "2", "--steps", "4"])
     assert out["env_steps_per_s"] > 0 and np.isfinite(out["mean_reward"])
     assert "2 environments x 4 steps" in capsys.readouterr().out
+
+
+def test_a_gymnax_style_loop_runs_from_make():
+    from ttsim_jax.env import make
+
+    env, params = make("ReturnBall-v0", task=load_task_config(TASK, OVERRIDES))
+    assert env == SingleReturnBall(load_task_config(TASK, OVERRIDES))  # the compiled programs above are reused
+    obs_space, act_space = env.observation_space(params), env.action_space(params)
+    assert obs_space.shape == (env.obs_dim,) == (len(env.observation_names),) and act_space.shape == (5,)
+    key = jax.random.PRNGKey(0)
+    obs, state = jax.jit(env.reset)(key, params)
+    step = jax.jit(env.step)
+    total = 0.0
+    for i in range(4):
+        k_act, k_step = jax.random.split(jax.random.fold_in(key, i))
+        action = jax.random.uniform(k_act, act_space.shape, minval=act_space.low, maxval=act_space.high)
+        obs, state, reward, terminated, truncated, info = step(k_step, state, action, params)
+        assert obs_space.contains(np.asarray(obs)) and np.isfinite(float(reward))
+        total += float(reward)
+    assert np.isfinite(total)
+    with pytest.raises(ValueError, match="ReturnBall-v0"):
+        make("CartPole-v1")

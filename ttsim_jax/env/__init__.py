@@ -11,6 +11,6 @@ from ttsim_jax.lazy import exports
 
 _NAMES = {**dict.fromkeys(["TaskConfig", "load_task_config"], "ttsim_jax.env.config"),
           **dict.fromkeys(["EnvParams", "EnvState", "OUTCOME_NAMES", "ReturnBall"], "ttsim_jax.env.return_ball"),
-          "SingleReturnBall": "ttsim_jax.env.single"}
+          **dict.fromkeys(["SingleReturnBall", "make"], "ttsim_jax.env.single")}
 __getattr__, __dir__ = exports(__name__, _NAMES)
 __all__ = list(_NAMES)

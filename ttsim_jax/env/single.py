@@ -71,6 +71,24 @@ class SingleReturnBall:
         """The task file's parameters (shared with the batched form: the same shot bank)."""
         return self.batched.default_params()
 
+    def observation_space(self, params: EnvParams | None = None):
+        """The observation's Box (obs_dim,) (gymnax's signature: the same for any ``params``); its
+        entries are named by :attr:`observation_names`."""
+        from ttsim_jax.env.spaces import observation_space
+
+        return observation_space(self.batched)
+
+    def action_space(self, params: EnvParams | None = None):
+        """The action's Box (5,) in [-1, 1] (gymnax's signature: the same for any ``params``)."""
+        from ttsim_jax.env.spaces import action_space
+
+        return action_space(self.batched)
+
+    @property
+    def observation_names(self) -> tuple:
+        """The name of each observation entry (:attr:`~ttsim_jax.env.return_ball.ReturnBall.observation_fields`)."""
+        return self.batched.observation_names
+
     def reset(self, key, params: EnvParams):
         """A fresh episode: (obs (obs_dim,) float32, :class:`~ttsim_jax.env.return_ball.EnvState`)."""
         obs, state = self.batched.reset(key, params)
@@ -98,3 +116,26 @@ class SingleReturnBall:
         obs, state, reward, terminated, truncated, info = step(key, batch(state), action[None], params)
         return (obs[0], unbatch(state), reward[0], terminated[0], truncated[0],
                 {k: v[0] for k, v in info.items()})
+
+
+#: The environments :func:`make` knows, by gymnax-style name.
+ENV_IDS = ("ReturnBall-v0",)
+
+
+def make(name: str = "ReturnBall-v0", *, task: TaskConfig | str | None = None, reference: bool = True):
+    """gymnax's ``make``: ``env, params = make("ReturnBall-v0")``, then ``env.reset(key, params)``
+    and ``env.step(key, state, action, params)`` (:class:`SingleReturnBall`; vmap them for a batch).
+
+    Arguments:
+        name: ``"ReturnBall-v0"`` (or gymnasium's ``"ttsim/ReturnBall-v0"``).
+        task: a :class:`~ttsim_jax.env.config.TaskConfig`, a task file or a bundled task name
+            (default ``return_ball``); reference: as :class:`SingleReturnBall`.
+
+    Returns:
+        (the environment, its default parameters).
+    """
+    bare = name.split("/", 1)[1] if name.startswith("ttsim/") else name
+    if bare not in ENV_IDS:
+        raise ValueError(f"unknown environment {name!r}; known: {', '.join(ENV_IDS)}")
+    env = SingleReturnBall(task, reference=reference)
+    return env, env.default_params()
