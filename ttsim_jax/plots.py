@@ -115,12 +115,20 @@ def save_figure(fig, path, *, tight: bool = True) -> Path:
     Returns:
         The path written.
     """
+    import io
+
+    from ttsim_jax.files.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if tight:
-        fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    pyplot().close(fig)
+    buf = io.BytesIO()
+    try:
+        if tight:
+            fig.tight_layout()
+        fig.savefig(buf, format=path.suffix.lstrip(".").lower() or "png", dpi=110)
+    finally:
+        pyplot().close(fig)
+    # drawn in memory, written whole: a full disk leaves no truncated figure (nor a previous one broken)
+    atomic_write(path, buf.getvalue(), "a figure")
     return path
 
 

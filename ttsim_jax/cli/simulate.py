@@ -142,11 +142,16 @@ def cmd_simulate(args) -> int:
     print(f"aiming {t_aim:.1f} s; simulation {t_sim:.2f} s (first call {t_first:.2f} s, includes compilation); "
           f"throughput {steady_balls * n_steps / steady:,.0f} ball-steps/s (compiled)")
     if args.save:
-        args.save.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(args.save, labels=labels, times=results[0].times,
+        import io
+
+        from ttsim_jax.files.atomic import atomic_write
+
+        buf = io.BytesIO()
+        np.savez_compressed(buf, labels=labels, times=results[0].times,
                             pos=cat(lambda r: r.trajectory.pos), vel=cat(lambda r: r.trajectory.vel),
                             spin=cat(lambda r: r.trajectory.spin), event_kind=kinds, event_pos=pre,
                             event_time=cat(lambda r: r.events.time))
+        atomic_write(args.save, buf.getvalue(), "the trajectories")
         print(f"trajectories written to {args.save}")
     if args.plot:
         from ttsim_jax.plots import plot_trajectories

@@ -142,10 +142,16 @@ def save_gif(frames: list, path, seconds_per_frame: float, hold: float = 1.0):
 
     from PIL import Image
 
+    import io
+
+    from ttsim_jax.files.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     images = [Image.fromarray(f) for f in frames]
     ms = max(20, int(round(seconds_per_frame * 100)) * 10)
     durations = [ms] * (len(images) - 1) + [max(ms, int(hold * 1000))]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=durations, loop=0, optimize=False)
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=durations, loop=0,
+                   optimize=False)
+    atomic_write(path, buf.getvalue(), "an animation")
     return path

@@ -21,7 +21,36 @@ import secrets
 import shutil
 from pathlib import Path
 
+from ttsim_jax.errors import UserError
+
 _RENAME_EXCHANGE = 2  # linux/fs.h
+#: Why a write fails that the user must act on (a full disk or quota, a read-only or forbidden
+#: place, a file beyond the filesystem's size): one ``error:`` line, not a traceback.
+_REFUSED = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG}
+
+
+class WriteError(UserError, OSError):
+    """A write that failed for want of room or permission; the message names the path and the
+    reason, and nothing half-written is left behind (any previous output is whole)."""
+
+    def __str__(self) -> str:
+        return self.args[0] if self.args else "a write failed"
+
+
+def write_error(e: OSError, path, what: str = "") -> WriteError | None:
+    """``e`` as a :class:`WriteError` naming ``path`` (and ``what`` was being written), or None
+    when it is not a refused write (:data:`_REFUSED`; pyarrow's errors carry no errno, only the
+    system's message)."""
+    if isinstance(e, WriteError):
+        return e
+    reason = e.strerror or str(e)
+    if e.errno not in _REFUSED and not any(os.strerror(n) in str(e) for n in _REFUSED):
+        return None
+    for n in _REFUSED:
+        if os.strerror(n) in str(e):
+            reason = os.strerror(n)
+    return WriteError(f"cannot write {path}{f' ({what})' if what else ''}: {reason}; nothing was left half-written"
+                      + (", any previous version is kept" if Path(path).exists() else ""))
 _AT_FDCWD = -100
 
 
@@ -113,17 +142,24 @@ def probe_writable(directory) -> str | None:
     return None
 
 
-def atomic_write(path, data: bytes) -> None:
+def atomic_write(path, data: bytes, what: str = "") -> None:
     """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
     then os.replace, so a crash leaves either the old file or the new one, never a partial one.
 
     Arguments:
         path: destination file.
         data: the bytes.
+        what: what the file holds, for the message of a failed write.
+
+    Raises:
+        WriteError: a full disk, a read-only or forbidden place (the temporary is removed).
     """
     path = Path(os.path.abspath(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_leftovers(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_leftovers(path)
+    except OSError as e:
+        raise (write_error(e, path, what) or e) from None
     tmp = _temp_name(path)
     try:
         with open(tmp, "xb") as f:
@@ -131,9 +167,11 @@ def atomic_write(path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and (refused := write_error(e, path, what)) is not None:
+            raise refused from None
         raise
     fsync_directory(path.parent)
 
@@ -187,19 +225,28 @@ def atomic_directory(target, keep=()):
         The temporary directory (a :class:`~pathlib.Path`) to write into.
     """
     target = Path(os.path.realpath(target))
-    target.parent.mkdir(parents=True, exist_ok=True)
-    remove_leftovers(target)
-    tmp = _temp_name(target)
-    tmp.mkdir()
     try:
-        yield tmp
-        for name in keep:
-            src = target / name
-            if src.is_dir() and not src.is_symlink():
-                shutil.copytree(src, tmp / name, symlinks=True, copy_function=_link_or_copy)
-            elif src.exists() or src.is_symlink():
-                _link_or_copy(src, tmp / name)
-        _sync_tree(tmp)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        remove_leftovers(target)
+        tmp = _temp_name(target)
+        tmp.mkdir()
+    except OSError as e:
+        raise (write_error(e, target) or e) from None
+    try:
+        try:
+            yield tmp
+        except OSError as e:  # a writer of the body (pyarrow, numpy) on a full disk
+            raise (write_error(e, target) or e) from None
+        try:
+            for name in keep:
+                src = target / name
+                if src.is_dir() and not src.is_symlink():
+                    shutil.copytree(src, tmp / name, symlinks=True, copy_function=_link_or_copy)
+                elif src.exists() or src.is_symlink():
+                    _link_or_copy(src, tmp / name)
+            _sync_tree(tmp)
+        except OSError as e:
+            raise (write_error(e, target) or e) from None
         if target.exists():
             if not _exchange(tmp, target):
                 aside = _temp_name(target)

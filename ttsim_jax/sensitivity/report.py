@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttsim_jax.plots import save_figure
 from ttsim_jax.sensitivity import budgets
 from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, Jacobian
 
@@ -186,10 +187,7 @@ def heatmaps(jac: Jacobian, shots, sens: dict, ok_group: dict, path, groups=None
         ax.set_xlabel("speed leaving the racket [m/s]")
         ax.set_ylabel("topspin [rad/s]")
     fig.suptitle(f"|d {jac.target} / d input group| x typical change")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def budget_bars(summary: dict, sources: list, path) -> Path:
@@ -213,10 +211,7 @@ def budget_bars(summary: dict, sources: list, path) -> Path:
     ax.set_xlim(0, 115)
     ax.set_xlabel("share of landing variance [%] (label: median landing std)")
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=min(4, len(sources)), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def _num(a):

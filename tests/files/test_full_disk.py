@@ -1,0 +1,91 @@
+"""A write that fails for want of room or permission (a full disk, a read-only place) ends in one
+error line naming the path, leaves no temporary behind and keeps any previous output whole."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ttsim_jax.cli import main
+from ttsim_jax.files import atomic
+from ttsim_jax.files.atomic import WriteError, atomic_directory, atomic_write
+
+SAMPLE = Path(__file__).resolve().parents[2] / "ttsim_jax" / "data" / "sample" / "games"
+
+
+@pytest.fixture
+def full_disk(monkeypatch):
+    """Every flush to disk fails as on a full filesystem (``ENOSPC``)."""
+    def fsync(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync)
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+def test_a_file_written_on_a_full_disk_keeps_the_old_one_and_no_temporary(tmp_path, full_disk):
+    target = tmp_path / "model.toml"
+    target.write_bytes(b"old")
+    with pytest.raises(WriteError, match=r"cannot write .*model\.toml \(a model\): No space left on device"):
+        atomic_write(target, b"new" * 1000, "a model")
+    assert target.read_bytes() == b"old" and leftovers(tmp_path) == []
+
+
+def test_a_directory_whose_writer_finds_the_disk_full_is_not_swapped_in(tmp_path):
+    target = tmp_path / "dataset"
+    target.mkdir()
+    (target / "a.parquet").write_bytes(b"old")
+    # pyarrow's error carries no errno, only the system's message
+    with pytest.raises(WriteError, match="No space left on device"):
+        with atomic_directory(target) as tmp:
+            (tmp / "a.parquet").write_bytes(b"half")
+            raise OSError("IOError: No space left on device. Detail: [errno 28]")
+    assert (target / "a.parquet").read_bytes() == b"old" and leftovers(tmp_path) == []
+
+
+def test_other_os_errors_are_not_taken_for_a_full_disk(tmp_path):
+    with pytest.raises(OSError) as caught:
+        with atomic_directory(tmp_path / "d"):
+            raise OSError(errno.EIO, "Input/output error")
+    assert not isinstance(caught.value, WriteError)
+
+
+def test_a_command_on_a_full_disk_says_so_in_one_line(tmp_path, full_disk, capsys):
+    out = tmp_path / "upgraded"
+    assert main(["data", "upgrade", str(SAMPLE), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: cannot write {out}"), err
+    assert "No space left on device" in err[0]
+    assert leftovers(tmp_path) == [] and not out.exists()
+
+
+def test_a_figure_is_written_whole_or_not_at_all(tmp_path, full_disk):
+    from ttsim_jax.plots import pyplot, save_figure
+
+    fig, ax = pyplot().subplots()
+    ax.plot(np.arange(3))
+    with pytest.raises(WriteError, match="a figure"):
+        save_figure(fig, tmp_path / "f.png")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_read_only_folder_is_one_error_too(tmp_path):
+    if os.geteuid() == 0:
+        pytest.skip("root writes into read-only folders")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        with pytest.raises(WriteError, match="Permission denied"):
+            atomic_write(ro / "x.json", b"{}", "a report")
+    finally:
+        ro.chmod(0o700)
+        shutil.rmtree(ro)
