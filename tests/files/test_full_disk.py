@@ -89,3 +89,15 @@ def test_a_read_only_folder_is_one_error_too(tmp_path):
     finally:
         ro.chmod(0o700)
         shutil.rmtree(ro)
+
+
+def test_any_write_the_atomic_writers_miss_still_ends_in_one_line(tmp_path, monkeypatch, capsys):
+    from ttsim_jax.cli import data as data_cli
+
+    def refuse(args):  # a command writing a report with plain open() on a full disk
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "report.md"))
+
+    monkeypatch.setattr(data_cli, "cmd_info", refuse)
+    assert main(["data", "info", str(SAMPLE)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: cannot write {tmp_path / 'report.md'}: No space left on device"]

@@ -37,10 +37,11 @@ class WriteError(UserError, OSError):
         return self.args[0] if self.args else "a write failed"
 
 
-def write_error(e: OSError, path, what: str = "") -> WriteError | None:
+def write_error(e: OSError, path, what: str = "", atomic: bool = True) -> WriteError | None:
     """``e`` as a :class:`WriteError` naming ``path`` (and ``what`` was being written), or None
     when it is not a refused write (:data:`_REFUSED`; pyarrow's errors carry no errno, only the
-    system's message)."""
+    system's message). ``atomic``: the write went through this module's writers, so nothing of
+    it is left behind (the message says so)."""
     if isinstance(e, WriteError):
         return e
     reason = e.strerror or str(e)
@@ -49,8 +50,10 @@ def write_error(e: OSError, path, what: str = "") -> WriteError | None:
     for n in _REFUSED:
         if os.strerror(n) in str(e):
             reason = os.strerror(n)
-    return WriteError(f"cannot write {path}{f' ({what})' if what else ''}: {reason}; nothing was left half-written"
-                      + (", any previous version is kept" if Path(path).exists() else ""))
+    text = f"cannot write {path}{f' ({what})' if what else ''}: {reason}"
+    if atomic:
+        text += "; nothing was left half-written" + (", any previous version is kept" if Path(path).exists() else "")
+    return WriteError(text)
 _AT_FDCWD = -100
 
 
