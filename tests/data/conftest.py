@@ -105,6 +105,26 @@ def simulate_flight():
     return simulate
 
 
+def forget_file_sums(path) -> None:
+    """Drops the whole-file checksums from dataset ``path``'s metadata.json, as a writer that keeps
+    none writes it (before schema 1.4, or another tool rewriting a table on purpose)."""
+    import json
+
+    from ttsim_jax.data.io import FILE_SUMS_KEY, METADATA_FILE, METADATA_SUM_KEY
+
+    file = Path(path) / METADATA_FILE
+    meta = json.loads(file.read_text())
+    meta.pop(FILE_SUMS_KEY, None)
+    meta.pop(METADATA_SUM_KEY, None)
+    file.write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+
+
+@pytest.fixture
+def forget_sums():
+    """The :func:`forget_file_sums` function."""
+    return forget_file_sums
+
+
 @pytest.fixture
 def real_root():
     """Root of the public measured data; skips the test when it is absent."""

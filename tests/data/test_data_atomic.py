@@ -18,7 +18,7 @@ import pytest
 
 from ttsim_jax.data import DataError, load, save
 from ttsim_jax.reality import Generated, load_truth, write
-from ttsim_jax.data.io import METADATA_FILE, dataset_id, table_path
+from ttsim_jax.data.io import FILE_SUMS_KEY, METADATA_FILE, METADATA_SUM_KEY, dataset_id, table_path
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -201,6 +201,8 @@ def _strip_ids(path: Path, version: str = "1.0") -> None:
     """Turns a dataset into one as written before ids existed."""
     meta = json.loads((path / METADATA_FILE).read_text())
     meta.pop("dataset_id")
+    meta.pop(FILE_SUMS_KEY, None)  # nor whole-file checksums
+    meta.pop(METADATA_SUM_KEY, None)
     meta["schema_version"] = version
     (path / METADATA_FILE).write_text(json.dumps(meta))
     for f in path.glob("*.parquet"):

@@ -61,7 +61,7 @@ def test_import_csv_then_info(parser, rally, tmp_path, capsys):
     assert "validation:    ok" in capsys.readouterr().out
 
 
-def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
+def test_info_reports_problems(parser, small_dataset, tmp_path, capsys, forget_sums):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -74,6 +74,7 @@ def test_info_reports_problems(parser, small_dataset, tmp_path, capsys):
     x = t.column("x").to_numpy().copy()
     x[3] = np.inf
     pq.write_table(t.set_column(t.column_names.index("x"), "x", pa.array(x)), f)
+    forget_sums(tmp_path / "ds")  # rewritten on purpose
     assert run(parser, ["data", "info", str(tmp_path / "ds")]) == 1
     text = capsys.readouterr().out
     assert "1 problem" in text and "row 3" in text and "'x'" in text

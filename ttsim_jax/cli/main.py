@@ -114,14 +114,6 @@ def main(argv=None) -> int:
     except (UserError, *PATH_ERRORS) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except OSError as e:  # a write outside the atomic writers on a full disk or a read-only place
-        from ttsim_jax.files.atomic import write_error
-
-        refused = write_error(e, e.filename or "a file", atomic=False)
-        if refused is None:
-            raise
-        print(f"error: {refused}", file=sys.stderr)
-        return 2
     except MemoryError as e:  # an allocation the size checks did not foresee: still no traceback
         what = str(e).split(" for an array")[0] or "an allocation failed"  # numpy: "Unable to allocate 8 GiB"
         print(f"error: ttsim {args.command}: out of memory ({what}); ask for fewer shots, games, environments "
@@ -130,6 +122,14 @@ def main(argv=None) -> int:
     except BrokenPipeError:  # the reader went away (``ttsim data info DIR | head``): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except OSError as e:  # a write outside the atomic writers on a full disk or a read-only place
+        from ttsim_jax.files.atomic import write_error
+
+        refused = write_error(e, e.filename or "a file", atomic=False)
+        if refused is None:
+            raise
+        print(f"error: {refused}", file=sys.stderr)
+        return 2
     finally:
         warnings.showwarning = shown
         if args.memory_budget is not None:

@@ -30,6 +30,7 @@ so a crash leaves the old dataset or the new one, never a mix.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
@@ -53,6 +54,9 @@ METADATA_FILE = "metadata.json"
 TRUTH_FILES = ("truth.json", "truth_events.parquet", "truth_rackets.parquet", "truth_observations.parquet")
 #: Key of the dataset id in metadata.json and truth.json.
 ID_KEY = "dataset_id"
+#: metadata.json's keys of the SHA-256 of every other file of the dataset ({name: hex}) and of its
+#: own content (from schema 1.4): a flip anywhere is refused on load, not only in data pages.
+FILE_SUMS_KEY, METADATA_SUM_KEY = "file_sha256", "metadata_sha256"
 _VERSION_KEY = b"ttsim.schema_version"
 _ID_KEY = b"ttsim.dataset_id"
 _ARROW = {"int64": pa.int64(), "float64": pa.float64(), "string": pa.string()}
@@ -105,13 +109,16 @@ def read_parquet(file, dataset_id: str | None = None, table: str | None = None) 
         raise DataError(f"table file '{table or file.name}' is missing", file=file, table=table)
     try:
         t = pq.read_table(file, page_checksum_verification=True)
-    except (pa.ArrowInvalid, OSError) as e:
-        if "checksum" in str(e).lower():
-            raise DataError(f"corrupted: a page checksum does not match its data; restore the file from a copy "
-                            f"or write the dataset again ({e})", file=file, table=table) from None
-        raise DataError(f"not a readable Parquet file; corrupted or truncated? ({e})", file=file, table=table) from None
-    if dataset_id is not None:
         found = (t.schema.metadata or {}).get(_ID_KEY, b"").decode()
+    except (pa.ArrowException, OSError, UnicodeDecodeError, ValueError) as e:
+        # a damaged footer or schema fails in many ways (thrift, flatbuffers, a bit width beyond 64,
+        # undecodable metadata): each is the same damage to the user
+        why = " ".join(str(e).split())  # one line
+        if "checksum" in why.lower():
+            raise DataError(f"corrupted: a page checksum does not match its data; restore the file from a copy "
+                            f"or write the dataset again ({why})", file=file, table=table) from None
+        raise DataError(f"not a readable Parquet file; corrupted or truncated? ({why})", file=file, table=table) from None
+    if dataset_id is not None:
         if found != dataset_id:
             where = f"dataset {found}" if found else "no dataset (it carries no id)"
             expected = f"dataset {dataset_id}" if dataset_id else "a dataset written without ids"
@@ -159,9 +166,9 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
             fields = [pa.field(c.name, _ARROW[c.dtype], nullable=False) for c in cols]
             write_parquet(pa.Table.from_arrays(arrays, schema=pa.schema(fields)), table_path(tmp, name), dataset_id,
                           table=name)
-        _write_metadata(tmp, ds.metadata.to_dict(), dataset_id)
         if extra is not None:
             extra(tmp, dataset_id)
+        _write_metadata(tmp, ds.metadata.to_dict(), dataset_id)  # last: it holds every file's checksum
     return path
 
 
@@ -181,11 +188,48 @@ def _kept_entries(path: Path, overwrite: bool) -> list[str]:
     return [name for name in entries if name not in owned_files()]
 
 
+def _sha256(file: Path) -> str:
+    h = hashlib.sha256()
+    with open(file, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _metadata_sum(meta: dict) -> str:
+    """The checksum of ``metadata.json``'s content, its own checksum left out."""
+    body = {k: v for k, v in meta.items() if k != METADATA_SUM_KEY}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
 def _write_metadata(directory: Path, meta: dict, dataset_id: str) -> None:
-    """Writes ``metadata.json`` of the current schema version with ``dataset_id``."""
+    """Writes ``metadata.json`` of the current schema version with ``dataset_id`` and the SHA-256
+    of every other file in ``directory`` and of its own content."""
     meta = dict(meta, schema_version=schema.SCHEMA_VERSION)
     meta[ID_KEY] = dataset_id
+    meta[FILE_SUMS_KEY] = {p.name: _sha256(p) for p in sorted(directory.iterdir())
+                           if p.is_file() and p.name != METADATA_FILE}
+    meta[METADATA_SUM_KEY] = _metadata_sum(meta)
     (directory / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+
+
+def verify_files(path, names) -> None:
+    """Refuses any of the files ``names`` of dataset directory ``path`` whose SHA-256 is not the
+    one its metadata.json recorded (:func:`check_file_sums`; nothing to check before schema 1.4)."""
+    check_file_sums(path, _metadata_dict(path)[0].get(FILE_SUMS_KEY, {}), names)
+
+
+def check_file_sums(path, sums: dict, names=None) -> None:
+    """Refuses a file of dataset directory ``path`` whose SHA-256 is not the one ``metadata.json``
+    recorded (``sums``) when the dataset was written: a bit flipped where no page checksum looks
+    (a footer, a schema, a truth file). ``names``: the files to check (default: all recorded)."""
+    for name in sorted(sums if names is None else set(names) & set(sums)):
+        file = Path(path) / name
+        if file.is_file() and _sha256(file) != sums[name]:
+            raise DataError("corrupted: its checksum differs from the one recorded in metadata.json when the dataset "
+                            "was written; restore it from a copy or write the dataset again (a file rewritten on "
+                            f"purpose: remove its entry from {METADATA_FILE}'s {FILE_SUMS_KEY} and the "
+                            f"{METADATA_SUM_KEY} line)", file=file)
 
 
 def _check_version(version, file, column="schema_version") -> None:
@@ -219,6 +263,12 @@ def _metadata_dict(path) -> tuple[dict, Path]:
     if schema.parse_version(d["schema_version"]) >= _ID_VERSION and not isinstance(d.get(ID_KEY), str):
         raise DataError(f"missing or invalid dataset id (required from schema version "
                         f"{'.'.join(map(str, _ID_VERSION))} on)", file=file, column=ID_KEY, value=d.get(ID_KEY))
+    if METADATA_SUM_KEY in d and d[METADATA_SUM_KEY] != _metadata_sum(d):
+        raise DataError("corrupted or edited: its content differs from the checksum recorded when the dataset was "
+                        "written; restore it from a copy or write the dataset again (edited on purpose: remove the "
+                        f"{METADATA_SUM_KEY} line)", file=file, column=METADATA_SUM_KEY)
+    if not isinstance(d.get(FILE_SUMS_KEY, {}), dict):
+        raise DataError("must map file names to checksums", file=file, column=FILE_SUMS_KEY)
     return d, file
 
 
@@ -226,6 +276,8 @@ def _metadata_and_id(path) -> tuple[Metadata, str]:
     d, file = _metadata_dict(path)
     d = dict(d)
     ident = d.pop(ID_KEY, "")  # identifies the files on disk, not the data
+    d.pop(FILE_SUMS_KEY, None)  # so do the checksums
+    d.pop(METADATA_SUM_KEY, None)
     return Metadata.from_dict(d, file=file), ident
 
 
@@ -311,6 +363,8 @@ def load(path, *, validate: bool = True) -> Dataset:
         from .validate import validate as check
 
         check(ds, files)
+    # after the reads and the checks, which say where inside a table the damage lies
+    verify_files(path, [table_path(path, n).name for n in tables])
     key = (os.path.realpath(path), ident)
     if key not in _WARNED:
         _WARNED.add(key)

@@ -29,8 +29,8 @@ from ttsim_jax.physics.dimensions import FLOOR_Z, NET_HEIGHT, TABLE_LENGTH, TABL
 #: a newer reader fills with their defaults, or reads as empty, in older files) or metadata keys.
 #: 1.1 added the dataset id and page checksums (docs/data_format.md, "Integrity"); 1.2 the
 #: ``contact_states`` table and the rackets' ``config`` column; 1.3 the metadata's ``left_out``
-#: counts (what the import mended or left out).
-SCHEMA_VERSION = "1.3"
+#: counts (what the import mended or left out); 1.4 the SHA-256 of every file and of the metadata itself.
+SCHEMA_VERSION = "1.4"
 
 #: Name written into every dataset's metadata; data in any other frame must be converted first.
 CANONICAL_FRAME = "ttsim-table-centre-v1"

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ttsim_jax.data.io import ID_KEY, dataset_id, read_parquet, read_truth_json, save, write_parquet
+from ttsim_jax.data.io import ID_KEY, dataset_id, read_parquet, read_truth_json, save, verify_files, write_parquet
 
 from .assembly import Generated
 
@@ -129,5 +129,7 @@ def load_truth(path: str | Path) -> Truth:
         return {c: (np.array(t.column(c).to_pylist(), object) if str(t.column(c).type) == "string" else t.column(c).to_numpy())
                 for c in t.column_names}
 
-    return Truth(info=info, events=table("truth_events.parquet"),
-                 rackets=table("truth_rackets.parquet"), observations=table("truth_observations.parquet"))
+    out = Truth(info=info, events=table("truth_events.parquet"),
+                rackets=table("truth_rackets.parquet"), observations=table("truth_observations.parquet"))
+    verify_files(path, ["truth.json", "truth_events.parquet", "truth_rackets.parquet", "truth_observations.parquet"])
+    return out
