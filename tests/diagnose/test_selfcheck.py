@@ -111,6 +111,8 @@ def test_outside_case_is_wrong_only_when_explained_and_located_by_a_gap_above_th
     assert partly["outcome"] == "partly explained by worn_ball, located in racket"
     full = SC.score("outside_log", ["racket_edge"], stand_in, NO_WHERE, oracle, dict(level="explained", gaps=[]))
     assert full["wrong_explained"] and not full["phase_right"] and full["outcome"] == "explained by worn_ball, not located"
+    quiet = SC.score("outside_log", ["table_unevenness"], [], NO_WHERE, oracle, dict(level="no gap", gaps=[]))
+    assert quiet["outcome"] == "no gap, not located" and not quiet["wrong_explained"]
     s = SC.summary([dict(partly, kind="outside_log"), dict(full, kind="outside_oneway")])
     assert (s["n_outside"], s["outside_wrong_explained"], s["outside_located_rate"]) == (2, 1, 0.5)
     assert [SC.verdict_of(dict(r, kind="outside")) for r in (partly, full)] == ["right", "wrong"]

@@ -280,7 +280,8 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         out.update(located=located, phase=located[0] if located else None, level=level,
                    phase_right=bool(set(located) & set(true_phases)), rank1=False,
                    wrong_explained=level == "explained")
-        out["outcome"] = (level if level == "unexplained" else f"{level} by {top}") + \
+        out["outcome"] = (f"{level} by {top}" if top and level.endswith("explained") and level != "unexplained"
+                          else level) + \
             (", located in " + "+".join(located) if located else ", not located")
         return out
     if not detectable:
