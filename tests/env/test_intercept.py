@@ -18,7 +18,8 @@ from ttsim_jax import Ball, init_state, load_model, rollout
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import load_task_config
-from ttsim_jax.env.return_ball import ReturnBall, intercept_params, jit_reset, jit_step_env
+from ttsim_jax.env.intercept import intercept_params
+from ttsim_jax.env.return_ball import ReturnBall, jit_reset, jit_step_env
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics.racket import racket_contact
 from ttsim_jax.state import Racket

@@ -40,6 +40,8 @@ of fixed-point steps; no data-dependent loop).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -50,6 +52,10 @@ from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
 from ttsim_jax.physics.numerics import component_norm, safe_norm
 from ttsim_jax.state import Racket
+
+if TYPE_CHECKING:
+    from ttsim_jax.env.config import TaskConfig
+    from ttsim_jax.params import Model
 
 # Fixed-point steps of the mirror law's normal (each shrinks its error about threefold).
 MIRROR_STEPS = 8
@@ -379,3 +385,32 @@ def track(p: InterceptParams, limits, start, target, racket, prediction, ball_sp
     angle_accel = k * (angle - racket.angle) - c * racket.rate
     out = jnp.concatenate([accel / limits.max_accel, angle_accel / limits.max_angle_accel], -1)
     return jnp.clip(jnp.nan_to_num(out), -1.0, 1.0)
+
+
+def intercept_params(model: Model, config: TaskConfig) -> InterceptParams:
+    """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
+    nominal ``table.e0`` and racket contact coefficients, the return's arc its drag)."""
+    c = config.intercept
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return InterceptParams(
+        x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
+        angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
+        min_height=f32(c.min_height), x_min=f32(config.racket.workspace_lo[0]),
+        drag=f32(drag_per_speed2(model)), e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
+        e_slope=f32(model.racket.e1), grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
+        grip_slope=f32(model.racket.et1 / (1.0 + model.racket.kappa)),
+        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius),
+        table=model.table if c.bounce == "model" else None,
+        aero=model.aero if c.magnus else None, contact=model.racket, mass=f32(model.ball.mass),
+        face=f32(config.racket.face), air=model.aero if c.air else None)
+
+
+def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
+    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), read from
+    :func:`ttsim_jax.physics.aero.acceleration` along a horizontal flight (gravity and buoyancy act
+    across it, a spinless ball has no Magnus force)."""
+    from ttsim_jax.physics.aero import acceleration
+
+    zero = jnp.zeros(3, jnp.float32)
+    a = acceleration(model.aero, model.ball.radius, model.ball.mass, zero, zero.at[0].set(speed), zero, 0.0)
+    return -float(a[0]) / speed ** 2

@@ -42,7 +42,7 @@ from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.env.config import ShotsConfig, TaskConfig, load_task_config
-from ttsim_jax.env.spaces import OBS_BOUND
+from ttsim_jax.env.spaces import OBS_BOUND, observation_fields
 from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
 from ttsim_jax.params import ConfigError, Model, load_model
 from ttsim_jax.physics import events as ev
@@ -148,35 +148,6 @@ class EnvParams:
     reward: dict
     target: jnp.ndarray
     intercept: intercept.InterceptParams
-
-
-def intercept_params(model: Model, config: TaskConfig) -> intercept.InterceptParams:
-    """The tracker's settings of a task (``[intercept]``; the predicted bounce and stroke use the model's
-    nominal ``table.e0`` and racket contact coefficients, the return's arc its drag)."""
-    c = config.intercept
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return intercept.InterceptParams(
-        x_hit=f32(c.x_hit), flight=f32(c.flight_time), offset=f32([c.offset_y, c.offset_z]),
-        angle=f32([c.pitch, c.yaw]), swing_time=f32(c.swing_time), omega=f32(c.omega),
-        min_height=f32(c.min_height), x_min=f32(config.racket.workspace_lo[0]),
-        drag=f32(drag_per_speed2(model)), e_table=f32(model.table.e0), e_racket=f32(model.racket.e0),
-        e_slope=f32(model.racket.e1), grip=f32((1.0 + model.racket.et0) / (1.0 + model.racket.kappa)),
-        grip_slope=f32(model.racket.et1 / (1.0 + model.racket.kappa)),
-        gravity=f32(-model.aero.gravity[2]), radius=f32(model.ball.radius),
-        table=model.table if c.bounce == "model" else None,
-        aero=model.aero if c.magnus else None, contact=model.racket, mass=f32(model.ball.mass),
-        face=f32(config.racket.face), air=model.aero if c.air else None)
-
-
-def drag_per_speed2(model: Model, speed: float = 8.0) -> float:
-    """The ball's drag deceleration per squared speed [1/m] (spinless, at ``speed`` [m/s]), read from
-    :func:`ttsim_jax.physics.aero.acceleration` along a horizontal flight (gravity and buoyancy act
-    across it, a spinless ball has no Magnus force)."""
-    from ttsim_jax.physics.aero import acceleration
-
-    zero = jnp.zeros(3, jnp.float32)
-    a = acceleration(model.aero, model.ball.radius, model.ball.mass, zero, zero.at[0].set(speed), zero, 0.0)
-    return -float(a[0]) / speed ** 2
 
 
 def _set_leaf(model, path: str, value):
@@ -299,7 +270,7 @@ class ReturnBall:
             rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
             limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
             noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
-            target=f32(w.target_point), intercept=intercept_params(self._planning_model(model), c))
+            target=f32(w.target_point), intercept=intercept.intercept_params(self._planning_model(model), c))
 
     def _planning_model(self, model: Model) -> Model:
         """The model the tracker plans its stroke with: the task's, or, with a ``racket_config`` and
@@ -381,21 +352,10 @@ class ReturnBall:
 
     @property
     def observation_fields(self) -> tuple:
-        """(name, unit) of each entry of an observation, in :meth:`observe`'s order: e.g.
-        ``("ball.vel.x", "10 m/s")`` (the entry is the ball's x velocity in units of 10 m/s, i.e.
-        divided by 10). ``obs[:, env.observation_names.index("racket.pos.z")]`` picks one."""
-        xyz = lambda what, unit: [(f"{what}.{a}", unit) for a in "xyz"]  # noqa: E731
-        out = xyz("ball.pos", "m") + xyz("ball.vel", "10 m/s")
-        if self.config.observation.spin:
-            out += xyz("ball.spin", "300 rad/s")
-        out += xyz("racket.pos", "m") + xyz("racket.vel", "10 m/s")
-        out += [("racket.pitch", "rad"), ("racket.yaw", "rad"), ("racket.pitch_rate", "10 rad/s"),
-                ("racket.yaw_rate", "10 rad/s")]
-        out += xyz("ball_minus_racket", "m") + [("time", "s"), ("bounced", "0/1"), ("hit", "0/1")]
-        if self.config.observation.plan:
-            out += xyz("plan.hit_pos", "m") + xyz("plan.hit_vel", "10 m/s") + [("plan.time_to_hit", "s"),
-                                                                                ("plan.exists", "0/1")]
-        return tuple(out)
+        """(name, unit) of each entry of an observation, in :meth:`observe`'s order
+        (:func:`~ttsim_jax.env.spaces.observation_fields`): ``obs[:, env.observation_names.index(
+        "racket.pos.z")]`` picks one."""
+        return observation_fields(self.config.observation)
 
     @property
     def shot_type_names(self) -> tuple:
