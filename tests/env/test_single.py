@@ -86,19 +86,20 @@ def test_a_gymnax_style_loop_runs_from_make():
     from ttsim_jax.env import make
 
     env, params = make("ReturnBall-v0", task=load_task_config(TASK, OVERRIDES))
-    assert env == SingleReturnBall(load_task_config(TASK, OVERRIDES))  # the compiled programs above are reused
+    assert env == SingleReturnBall(load_task_config(TASK, OVERRIDES))
     obs_space, act_space = env.observation_space(params), env.action_space(params)
     assert obs_space.shape == (env.obs_dim,) == (len(env.observation_names),) and act_space.shape == (5,)
-    key = jax.random.PRNGKey(0)
-    obs, state = jax.jit(env.reset)(key, params)
-    step = jax.jit(env.step)
+    # vmapped over two environments as the first test: the same programs (the compilation cache has them)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    step = jax.jit(jax.vmap(env.step_env, in_axes=(0, 0, 0, None)))
     total = 0.0
     for i in range(4):
-        k_act, k_step = jax.random.split(jax.random.fold_in(key, i))
-        action = jax.random.uniform(k_act, act_space.shape, minval=act_space.low, maxval=act_space.high)
-        obs, state, reward, terminated, truncated, info = step(k_step, state, action, params)
-        assert obs_space.contains(np.asarray(obs)) and np.isfinite(float(reward))
-        total += float(reward)
+        k_act, k_step = jax.random.split(jax.random.fold_in(keys[0], i))
+        action = jax.random.uniform(k_act, (2,) + act_space.shape, minval=act_space.low, maxval=act_space.high)
+        obs, state, reward, terminated, truncated, info = step(jax.random.split(k_step, 2), state, action, params)
+        assert all(obs_space.contains(np.asarray(o)) for o in obs) and np.isfinite(np.asarray(reward)).all()
+        total += float(np.sum(reward))
     assert np.isfinite(total)
     with pytest.raises(ValueError, match="ReturnBall-v0"):
         make("CartPole-v1")
