@@ -57,6 +57,9 @@ def cmd_generate(args) -> int:
     out = args.out
     if out.exists() and any(out.iterdir()) and not args.force:
         raise UsageError(f"--out {out}: exists and is not empty; pass --force to overwrite it")
+    from ttsim_jax.data.io import kept_entries
+
+    kept_entries(out, overwrite=True)  # a folder that is no dataset is refused before the generation, not after
     cfg = make_config(args.preset, args.config, games=args.games, seed=args.seed, effects=args.effects,
                       lanes=args.lanes, truth_observations=False if args.no_truth_observations else None)
     gen = generate(cfg, progress=not args.quiet)

@@ -151,7 +151,7 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
         from .validate import validate as check
 
         check(ds)
-    keep = _kept_entries(path, overwrite)
+    keep = kept_entries(path, overwrite)
     dataset_id = str(uuid.uuid4())
     with atomic_directory(path, keep=keep) as tmp:
         for name, cols in schema.TABLES.items():
@@ -172,7 +172,7 @@ def save(ds: Dataset, path, *, overwrite: bool = False, validate: bool = True,
     return path
 
 
-def _kept_entries(path: Path, overwrite: bool) -> list[str]:
+def kept_entries(path: Path, overwrite: bool) -> list[str]:
     """Entries of an existing directory ``path`` that replacing its dataset keeps (see :func:`save`);
     raises if it may not be replaced."""
     if not path.exists():
@@ -474,7 +474,7 @@ def upgrade(path, out=None, *, overwrite: bool = False) -> Path:
     elif os.path.realpath(target) == os.path.realpath(path):
         raise FileExistsError(f"{target} is the dataset being upgraded; leave out the output to upgrade in place")
     else:
-        keep = _kept_entries(target, overwrite)
+        keep = kept_entries(target, overwrite)
     new_id = str(uuid.uuid4())
     with atomic_directory(target, keep=keep) as tmp:
         for name, data in tables.items():
