@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import re
 import warnings
 from pathlib import Path
@@ -116,6 +117,9 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, n
                     v = int(cell) if h in _INTS else float(cell)
                 except ValueError:
                     raise DataError("not a number" if h not in _INTS else "not an integer", file=file, row=line_no, row_label="line", column=h, value=cell) from None
+                if h not in _INTS and not math.isfinite(v):  # refused here, at its line, not after the whole file
+                    raise DataError("NaN or infinite value", file=file, row=line_no, row_label="line", column=h,
+                                    value=cell)
                 if h in _INTS and not _INT_RANGE[0] <= v <= _INT_RANGE[1]:
                     raise DataError(f"an id must lie within {_INT_RANGE[0]}..{_INT_RANGE[1]} (64 bits)", file=file,
                                     row=line_no, row_label="line", column=h, value=cell)
