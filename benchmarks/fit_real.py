@@ -68,9 +68,9 @@ def main(argv=None) -> int:
 
     enable_compilation_cache()  # as the ttsim command does
     from ttsim_jax import load_model
-    from ttsim_jax.data.flightfit import fit_segments
+    from ttsim_jax.fit.flightfit import fit_segments
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
     from ttsim_jax.evaluate.report import reduction, reduction_ci
     from ttsim_jax.evaluate.stages import EvaluateSettings, flight_stage
     from ttsim_jax.fit.flight import flight_rmse

@@ -3,14 +3,14 @@
 Fits 200 SpinDOE flight segments (those with a measured spin; initial position, initial velocity,
 C_D and C_M per segment) twice in one process:
 
-* batched: :func:`ttsim_jax.data.flightfit.fit_segments`, the vmapped Levenberg-Marquardt solver, one
+* batched: :func:`ttsim_jax.fit.flightfit.fit_segments`, the vmapped Levenberg-Marquardt solver, one
   compiled call per group of up to 16 segments of similar length; timed from cold (tracing and
   compilation included: the first call of the process) and warm;
 * scipy: ``scipy.optimize.least_squares(method="lm")`` per segment over the same residual function
-  (:func:`ttsim_jax.data.flightfit.residual`, jitted, the segment padded to the same capacity) from the
+  (:func:`ttsim_jax.fit.flightfit.residual`, jitted, the segment padded to the same capacity) from the
   same start, with the Jacobian either by scipy's finite differences (``jac="2-point"``, the plain
   use; the residual runs in float64 so that the differences mean something) or by the jitted
-  forward-mode Jacobian :func:`ttsim_jax.data.flightfit.jacobian` (``jac="jax"``, float32 like the
+  forward-mode Jacobian :func:`ttsim_jax.fit.flightfit.jacobian` (``jac="jax"``, float32 like the
   batched fit); timed with and without the compilation of those functions, which are compiled with
   the batched fit's XLA options (``aero.COMPILER_OPTIONS``) so that the cold times compare alike;
 * jaxopt (for the choice of solver): ``jaxopt.LevenbergMarquardt`` over the same residual,
@@ -60,8 +60,8 @@ def main(argv=None) -> int:
     from scipy.optimize import least_squares
 
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.data import flightfit as A
-    from ttsim_jax.data import segment_batches as B
+    from ttsim_jax.fit import flightfit as A
+    from ttsim_jax.fit import segment_batches as B
 
     ds = import_source(args.data, "spindoe")
     ids, times, positions, spins, conf = B.dataset_segments(ds)

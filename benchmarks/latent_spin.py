@@ -39,7 +39,7 @@ def real_root() -> Path:
 
 
 def segments(ds, min_samples):
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
 
     ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     session_of = dict(zip(np.asarray(ds.segments["segment_id"]).tolist(), np.asarray(ds.segments["session_id"]).tolist()))

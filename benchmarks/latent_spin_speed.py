@@ -1,11 +1,11 @@
 """Speed of the latent-spin fit against the flight fits it sits beside, on the same segments, one run.
 
-``--segments`` flight segments of conti2026's physics (``data.synthetic_segments``: 143 Hz,
+``--segments`` flight segments of conti2026's physics (``reality.synthetic_segments``: 143 Hz,
 0.3-0.6 s, 4-16 m/s, 50-500 rad/s, 2 mm of noise), fitted three ways in one process:
 
 * **latent spin** (:func:`ttsim_jax.fit.latent_spin.fit_latent_spin`): (p0, v0, w) per segment
   under conti2026's flight (its C_D and C_M tables), two starts;
-* **flight fit** (:func:`ttsim_jax.data.flightfit.fit_segments`): (p0, v0, C_D, C_M) per segment
+* **flight fit** (:func:`ttsim_jax.fit.flightfit.fit_segments`): (p0, v0, C_D, C_M) per segment
   with the measured spin, the identification's fit;
 * **evaluate's flight fit** (:func:`ttsim_jax.fit.flight.flight_rmse`): v0 per segment under
   conti2026's flight with the measured spin, what ``ttsim evaluate --stages flight`` runs for a
@@ -42,8 +42,8 @@ def main(argv=None) -> int:
     import numpy as np
 
     from ttsim_jax import load_model
-    from ttsim_jax.data.flightfit import fit_segments
-    from ttsim_jax.data.synthetic_segments import synthetic_segments
+    from ttsim_jax.fit.flightfit import fit_segments
+    from ttsim_jax.reality.synthetic_segments import synthetic_segments
     from ttsim_jax.fit.flight import flight_rmse
     from ttsim_jax.fit.latent_spin import fit_latent_spin
 

@@ -38,8 +38,8 @@ def real_root() -> Path:
 
 def kept_segments(ds, sessions=None, need_spin=True):
     """Segments of ``ds`` the paper would keep, optionally only from ``sessions``."""
-    from ttsim_jax.data.flightfit import fit_segments
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.flightfit import fit_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
 
     ids, times, positions, spins, conf = dataset_segments(ds, min_samples=5)
     session_of = dict(zip(ds.segments["segment_id"], ds.segments["session_id"]))

@@ -156,9 +156,9 @@ def main(argv=None):
     result = dict(args={k: str(v) for k, v in vars(args).items()}, throws=args.sessions * args.throws, true_flights=flights,
                   load_before=os.getloadavg())
     ttsim = [str(Path(sys.executable).parent / "ttsim")]
-    for name, sessions in (("multi", multi), ("single", single)):
+    for name, logs in (("multi", multi), ("single", single)):
         folder = args.work / name
-        write(folder / "csv", sessions, clock_rate=args.clock_rate)
+        write(folder / "csv", logs, clock_rate=args.clock_rate)
         secs = run(ttsim + ["data", "import", str(folder / "csv"), "--source", "csv", "--out", str(folder / "ds"), "--force"],
                    folder / "import.log")
         from ttsim_jax.data import load

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 jax.config.update("jax_enable_x64", True)
@@ -62,3 +63,51 @@ def real_data() -> Path:
 @pytest.fixture(params=[jnp.float32, jnp.float64], ids=["f32", "f64"])
 def dtype(request):
     return request.param
+
+
+# A ball of radius 0.02 m over the ITTF table, for the tests of segmentation and of the flight fit.
+RADIUS = 0.02
+
+
+def simulate(p0, v0, *, duration, rate=180.0, kd=0.11, e=0.9, hit_at=None, hit_vel=None, seed=None, noise=0.0, t0=0.0):
+    """Ball flight with drag and table bounces at z = radius, sampled at ``rate``.
+
+    Returns:
+        t (T,), pos (T, 3), bounce_times list, bounce_positions list.
+    """
+    h = 1e-4
+    p = np.array(p0, float)
+    v = np.array(v0, float)
+    g = np.array([0.0, 0.0, -9.81])
+    t_out, p_out, bt, bp = [], [], [], []
+    n_steps = int(round(duration / h))
+    every = int(round(1.0 / (rate * h)))
+    hit_done = False
+    for k in range(n_steps + 1):
+        t = k * h
+        if k % every == 0:
+            t_out.append(t0 + t)
+            p_out.append(p.copy())
+        if hit_at is not None and not hit_done and t >= hit_at:
+            v = np.array(hit_vel, float)
+            hit_done = True
+        v = v + h * (g - kd * np.linalg.norm(v) * v)
+        p_new = p + h * v
+        if p_new[2] < RADIUS and v[2] < 0 and abs(p_new[0]) < 1.37 and abs(p_new[1]) < 0.7625:
+            frac = (p[2] - RADIUS) / (p[2] - p_new[2])
+            bt.append(t0 + t + frac * h)
+            bp.append(p + frac * (p_new - p))
+            p_new = p + frac * h * v
+            p_new[2] = RADIUS
+            v = np.array([v[0] * 0.85, v[1] * 0.85, -e * v[2]])
+        p = p_new
+    pos = np.array(p_out)
+    if noise:
+        pos = pos + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
+    return np.array(t_out), pos, bt, [np.asarray(b) for b in bp]
+
+
+@pytest.fixture
+def simulate_flight():
+    """The :func:`simulate` function (fixtures avoid importing conftest by name)."""
+    return simulate

@@ -10,9 +10,6 @@ import pytest
 
 from ttsim_jax.data import Dataset, Metadata
 
-RADIUS = 0.02
-
-
 def real_data_root() -> Path:
     """Where the public measured data lives: $TTSIM_REAL_DATA, else ../shared/data/real."""
     env = os.environ.get("TTSIM_REAL_DATA")
@@ -21,55 +18,17 @@ def real_data_root() -> Path:
     return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
 
 
-def simulate(p0, v0, *, duration, rate=180.0, kd=0.11, e=0.9, hit_at=None, hit_vel=None, seed=None, noise=0.0, t0=0.0):
-    """Ball flight with drag and table bounces at z = radius, sampled at ``rate``.
-
-    Returns:
-        t (T,), pos (T, 3), bounce_times list, bounce_positions list.
-    """
-    h = 1e-4
-    p = np.array(p0, float)
-    v = np.array(v0, float)
-    g = np.array([0.0, 0.0, -9.81])
-    t_out, p_out, bt, bp = [], [], [], []
-    n_steps = int(round(duration / h))
-    every = int(round(1.0 / (rate * h)))
-    hit_done = False
-    for k in range(n_steps + 1):
-        t = k * h
-        if k % every == 0:
-            t_out.append(t0 + t)
-            p_out.append(p.copy())
-        if hit_at is not None and not hit_done and t >= hit_at:
-            v = np.array(hit_vel, float)
-            hit_done = True
-        v = v + h * (g - kd * np.linalg.norm(v) * v)
-        p_new = p + h * v
-        if p_new[2] < RADIUS and v[2] < 0 and abs(p_new[0]) < 1.37 and abs(p_new[1]) < 0.7625:
-            frac = (p[2] - RADIUS) / (p[2] - p_new[2])
-            bt.append(t0 + t + frac * h)
-            bp.append(p + frac * (p_new - p))
-            p_new = p + frac * h * v
-            p_new[2] = RADIUS
-            v = np.array([v[0] * 0.85, v[1] * 0.85, -e * v[2]])
-        p = p_new
-    pos = np.array(p_out)
-    if noise:
-        pos = pos + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
-    return np.array(t_out), pos, bt, [np.asarray(b) for b in bp]
-
-
 @pytest.fixture
-def rally():
+def rally(simulate_flight):
     """One serve-like flight with two table bounces: (t, pos, bounce_times, bounce_positions)."""
-    return simulate([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.9)
+    return simulate_flight([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.9)
 
 
 @pytest.fixture
-def small_dataset():
+def small_dataset(simulate_flight):
     """A valid dataset with observations, all event kinds used by a rally, a racket state."""
-    t1, p1, bt1, bp1 = simulate([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.6)
-    t2, p2, bt2, bp2 = simulate([1.4, 0.0, 0.35], [-6.0, 0.3, 0.0], duration=0.5, t0=10.0)
+    t1, p1, bt1, bp1 = simulate_flight([-1.5, 0.1, 0.30], [3.5, -0.1, 0.2], duration=0.6)
+    t2, p2, bt2, bp2 = simulate_flight([1.4, 0.0, 0.35], [-6.0, 0.3, 0.0], duration=0.5, t0=10.0)
     session = np.r_[np.zeros(len(t1), int), np.ones(len(t2), int)]
     t = np.r_[t1, t2]
     pos = np.r_[p1, p2]
@@ -97,12 +56,6 @@ def small_dataset():
         metadata=Metadata(source="unit test", equipment={"ball": "40+", "table": {"length": 2.74}}, notes="synthetic"),
     )
     return ds
-
-
-@pytest.fixture
-def simulate_flight():
-    """The :func:`simulate` function (fixtures avoid importing conftest by name)."""
-    return simulate
 
 
 def forget_file_sums(path) -> None:

@@ -11,6 +11,7 @@ import pytest
 from ttsim_jax.data import read_csv
 from ttsim_jax.data.segment import segments_from_events
 from ttsim_jax.data.tracks import find_breaks, tracking_report
+from ttsim_jax.fit.flightfit import ballistic_rmse_many
 
 
 def throws(simulate, n, *, seed, t0=0.0, pause=(1.5, 3.0), noise=0.002, rate=120.0):
@@ -130,7 +131,7 @@ def test_short_tracks_are_left_out_and_reported(tmp_path, simulate_flight):
     ds = read_csv(write_sessions(tmp_path, [(np.r_[t1, lone_t, t2], np.r_[p1, lone_p, p2])]))
     left = ds.observations["segment_id"] < 0
     np.testing.assert_array_equal(np.flatnonzero(left), len(t1) + np.arange(3))
-    rep = tracking_report(ds, fit=False)
+    rep = tracking_report(ds)
     (s,) = rep.sessions
     assert s["tracks"] == 3 and s["breaks"]["pause"] == 2 and s["left_out"] == 3
     assert "3 samples left out (in tracks of fewer than 5 samples between breaks)" in str(rep)
@@ -154,11 +155,12 @@ def test_labelled_events_and_a_pause(tmp_path, simulate_flight):
 def test_report_warns_about_a_segment_no_flight_fits(rally, tmp_path):
     t, pos, bt, _ = rally
     ds = read_csv(write_sessions(tmp_path, [(t, pos)]), detect=False)  # the bounces stay inside one segment
-    rep = tracking_report(ds)
+    rep = tracking_report(ds, rmse_many=ballistic_rmse_many)
     assert rep.unfit == [0]
     assert "session 0, t = 0.000 to" in rep.warnings[0] and "fits no ballistic flight" in rep.warnings[0]
     assert "import with --filter" in str(rep)
-    assert tracking_report(read_csv(tmp_path)).unfit == []
+    assert tracking_report(read_csv(tmp_path), rmse_many=ballistic_rmse_many).unfit == []
+    assert tracking_report(ds).unfit == []  # no fit asked for
 
 
 def test_diagnosis_refuses_a_phase_with_non_finite_errors():

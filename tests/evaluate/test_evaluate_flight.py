@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ttsim_jax import load_model
-from ttsim_jax.data.synthetic_segments import synthetic_segments
+from ttsim_jax.reality.synthetic_segments import synthetic_segments
 from ttsim_jax.fit.flight import flight_rmse
 
 

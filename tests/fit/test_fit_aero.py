@@ -1,4 +1,4 @@
-"""Aerodynamic identification (ttsim_jax.data.flightfit, ttsim_jax.fit.aero_forms) on synthetic segments
+"""Aerodynamic identification (ttsim_jax.fit.flightfit, ttsim_jax.fit.aero_forms) on synthetic segments
 from known parameters: the per-segment fit, the regression into the paper's forms, the config."""
 
 import jax
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ttsim_jax import load_model
-from ttsim_jax.data import flightfit as A
-from ttsim_jax.data import segment_batches as B
-from ttsim_jax.data.synthetic_segments import synthetic_segments
+from ttsim_jax.fit import flightfit as A
+from ttsim_jax.fit import segment_batches as B
+from ttsim_jax.reality.synthetic_segments import synthetic_segments
 from ttsim_jax.fit import aero_forms as F
 from ttsim_jax.physics import aero as P
 

@@ -121,3 +121,19 @@ def test_what_was_fitted_is_written_when_a_later_stage_fails(tmp_path, monkeypat
     assert info["fitted"] == ["aero"] and info["partial"]
     assert info["failed"]["stage"] == "table" and "the table solver broke" in info["failed"]["error"]
     assert info["model_toml"] == out.with_suffix(".toml").read_text()
+
+
+def test_too_few_racket_contacts_skip_the_racket_stage_with_the_count(sample, tmp_path, capsys):
+    keep = np.zeros(len(sample.rackets["event_id"]), bool)
+    keep[:5] = True  # five racket states: fewer than the stage needs for its parameters
+    kept = set(np.asarray(sample.rackets["event_id"])[keep].tolist())
+    is_other = (sample.events["kind"] == "racket") & ~np.isin(sample.events["event_id"], list(kept))
+    data = tmp_path / "five_rackets"
+    save(sample.replace(events=dict(sample.events, kind=np.where(is_other, "other", sample.events["kind"])),
+                        rackets=select_rows(sample.rackets, keep)), data)
+    out = tmp_path / "fitted"
+    assert main(["fit", "--data", str(data), "--out", str(out), "--stages", "racket", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "racket: skipped: 3 usable racket contacts (5 racket events" in captured.out
+    assert "nothing to fit" in captured.err and "at least 10 are needed" in captured.err
+    assert not out.with_suffix(".toml").exists()

@@ -5,6 +5,7 @@ import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.fit import racket as R
+from ttsim_jax.reality import synthetic_stages as S
 
 N = 3000
 
@@ -15,7 +16,7 @@ def model():
 
 
 def _fit(model, noise_vel, noise_spin):
-    x, y = R.synthetic_arrays(model.racket, float(model.ball.radius), float(model.ball.mass), N, seed=4,
+    x, y = S.synthetic_arrays(model.racket, float(model.ball.radius), float(model.ball.mass), N, seed=4,
                               noise_vel=noise_vel, noise_spin=noise_spin)
     # Started from durr2026 (a "nakashima" racket: a neutral start, not the truth).
     return R.fit_racket(x, y, load_model("durr2026").replace(ball=model.ball))
@@ -52,7 +53,7 @@ def test_a_parameter_beyond_its_physical_range_is_held_at_the_bound(model):
     """Contacts whose normal spin grows (e_s = 1.1, beyond the [0, 1] a model file allows): the free
     fit finds e_s > 1; the fit holds it at 1, refits the others, and the written model loads."""
     truth = model.racket.replace(e_s=model.racket.e_s * 0 + 1.1)
-    x, y = R.synthetic_arrays(truth, float(model.ball.radius), float(model.ball.mass), N, seed=4)
+    x, y = S.synthetic_arrays(truth, float(model.ball.radius), float(model.ball.mass), N, seed=4)
     fit = R.fit_racket(x, y, load_model("durr2026").replace(ball=model.ball))
     assert fit.values["e_s"] == 1.0 and fit.stderr["e_s"] == 0.0
     assert len(fit.bounds) == 1 and fit.bounds[0].startswith("e_s = 1 (the free fit: 1.1")

@@ -13,6 +13,7 @@ import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.fit import table as T
+from ttsim_jax.reality import synthetic_stages as S
 from ttsim_jax.physics import table as tbl
 
 N = 2000
@@ -30,7 +31,7 @@ def truth():
     res[0, 2, 2] = 0.0
     res[0, :, 1] = res[2, :, 1] = 0.0
     table = model.table.replace(residual=jnp.asarray(res, jnp.float32))
-    clean = T.synthetic_bounces(table, 0.02, N, seed=3)
+    clean = S.synthetic_bounces(table, 0.02, N, seed=3)
     v, w = clean["true_vel_in"], clean["true_spin_in"]
     heading = v[:, :2] / np.linalg.norm(v[:, :2], axis=1, keepdims=True)
     local = [np.linalg.norm(v[:, :2], axis=1), 0.0 * v[:, 0], v[:, 2],  # R v, R w: the residual's features
@@ -50,7 +51,7 @@ def truth():
 @pytest.fixture(scope="module")
 def noisy_fit(truth):
     model, table, _ = truth
-    data = T.synthetic_bounces(table, 0.02, N, seed=1, noise_vel=NOISE_VEL, noise_spin=NOISE_SPIN)
+    data = S.synthetic_bounces(table, 0.02, N, seed=1, noise_vel=NOISE_VEL, noise_spin=NOISE_SPIN)
     fit = T.fit_table(data["vel_in"], data["spin_in"], data["vel_out"], data["spin_out"], model)
     print(f"\ntable fit ({N} bounces, noise {NOISE_VEL} m/s, {NOISE_SPIN} rad/s): e0 {fit.e0:.4f} +- "
           f"{fit.stderr_e0:.4f} (true {float(table.e0):.4f}), e1 {fit.e1:.4f} +- {fit.stderr_e1:.4f} "
@@ -85,7 +86,7 @@ def test_noiseless_bounces_give_the_exact_model_and_skip_bounded_ones(truth):
     """Without noise the fit is exact, which needs the bounces where the simulator bounds the
     residual left out: the fit finds them from its own matrices."""
     model, table, res = truth
-    data = T.synthetic_bounces(table, 0.02, N, seed=2)
+    data = S.synthetic_bounces(table, 0.02, N, seed=2)
     assert np.all(data["weight"] == 1.0)  # the residual creates no energy on rally-like bounces
     # so the first 100 become grazing drives with backspin (10-16 m/s, v_z -0.25 to -0.1 m/s), on
     # most of which the raw residual would create energy and the simulator bounds it
@@ -145,7 +146,7 @@ def test_a_restitution_above_one_is_held_at_the_bound(truth):
     model, table, _ = truth
     steep = table.replace(e0=jnp.asarray(1.06, jnp.float32), e1=jnp.asarray(0.05, jnp.float32),
                           residual=jnp.zeros_like(table.residual))
-    data = T.synthetic_bounces(steep, 0.02, N, seed=4, noise_vel=NOISE_VEL, noise_spin=NOISE_SPIN)
+    data = S.synthetic_bounces(steep, 0.02, N, seed=4, noise_vel=NOISE_VEL, noise_spin=NOISE_SPIN)
     fit = T.fit_table(data["vel_in"], data["spin_in"], data["vel_out"], data["spin_out"], model)
     assert fit.unconstrained["e0"] == pytest.approx(1.06, abs=0.02)
     assert fit.e0 == pytest.approx(float(model.table.e_max), abs=1e-6) and fit.stderr_e0 == 0.0

@@ -13,7 +13,7 @@ from ttsim_jax.files import checkpoint as container
 from ttsim_jax.files.checkpoint import CHECKPOINT_MAGIC, CheckpointError, read_container, write_container
 from ttsim_jax.fit.network_config import TrainConfig
 from ttsim_jax.fit.network_training import train_residual
-from ttsim_jax.fit.synthetic_contacts import make_synthetic_contacts
+from ttsim_jax.reality.synthetic_contacts import make_synthetic_contacts
 from ttsim_jax.physics.network import ResidualConfig, init_model, residual_outputs
 from ttsim_jax.physics.network_checkpoint import checkpoint_metadata, load_residual, model_arrays, save_residual
 

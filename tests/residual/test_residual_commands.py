@@ -11,7 +11,7 @@ from ttsim_jax.cli import main
 from ttsim_jax.cli import residual as commands
 from ttsim_jax.data import save
 from ttsim_jax.fit.network_config import load_train_config
-from ttsim_jax.fit.synthetic_contacts import true_residual
+from ttsim_jax.reality.synthetic_contacts import true_residual
 from ttsim_jax.physics.network_checkpoint import checkpoint_metadata, load_residual
 from ttsim_jax.reality import synthetic_contact_dataset
 

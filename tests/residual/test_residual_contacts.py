@@ -8,7 +8,7 @@ from ttsim_jax import Racket, load_model
 from ttsim_jax.data import Dataset
 from ttsim_jax.data.contact_states import ContactFit
 from ttsim_jax.fit.racket_arrays import contact_arrays
-from ttsim_jax.fit.synthetic_contacts import racket_base_fn, true_residual
+from ttsim_jax.reality.synthetic_contacts import racket_base_fn, true_residual
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.rotations import matrix_to_quat, quat_to_matrix
 from ttsim_jax.reality import synthetic_contact_dataset

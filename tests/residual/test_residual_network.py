@@ -7,7 +7,7 @@ import pytest
 
 from ttsim_jax.errors import ConfigError
 from ttsim_jax.fit.network_stats import kmeans
-from ttsim_jax.fit.synthetic_contacts import sample_racket_inputs
+from ttsim_jax.reality.synthetic_contacts import sample_racket_inputs
 from ttsim_jax.physics.network import (PAPER_BETA, ResidualConfig, beta_from_distance, gathered_residual, init_model,
                                        residual_outputs)
 

@@ -9,7 +9,7 @@ import pytest
 from ttsim_jax import Ball, Execution, Racket, init_state, load_model, rollout, simulate
 from ttsim_jax.fit.network_config import TrainConfig
 from ttsim_jax.fit.network_training import train_residual
-from ttsim_jax.fit.synthetic_contacts import make_synthetic_contacts, racket_base_fn
+from ttsim_jax.reality.synthetic_contacts import make_synthetic_contacts, racket_base_fn
 from ttsim_jax.physics.network import ResidualConfig, residual_outputs
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.events import RACKET, TABLE

@@ -12,7 +12,7 @@ from ttsim_jax.fit.network_config import TrainConfig, load_residual_config, load
 from ttsim_jax.fit.network_evaluation import calibrate_sigma, evaluate_residual
 from ttsim_jax.fit.network_stats import ONE_SIGMA_COVERAGE, calibration_scale, population_batch_stats
 from ttsim_jax.fit.network_training import split_by_contact, train_residual
-from ttsim_jax.fit.synthetic_contacts import (make_synthetic_contacts, racket_base_fn, sample_racket_inputs,
+from ttsim_jax.reality.synthetic_contacts import (make_synthetic_contacts, racket_base_fn, sample_racket_inputs,
                                               standin_base_fn)
 from ttsim_jax.physics.network import PAPER_BETA, ResidualConfig, ResidualNet, init_variables, residual_outputs
 

@@ -88,9 +88,10 @@ def cmd_import(args) -> int:
     from ttsim_jax.data.errors import DataWarning
     from ttsim_jax.data.importers import import_source
     from ttsim_jax.data.io import parquet_files, save, unprotected_files
-    from ttsim_jax.data.segment import filter_segments
     from ttsim_jax.data.summary import format_info, info
     from ttsim_jax.data.tracks import tracking_report
+    from ttsim_jax.fit.flightfit import ballistic_rmse_many
+    from ttsim_jax.fit.segment_filter import filter_segments
 
     if args.out.exists() and not args.force and (not args.out.is_dir() or any(args.out.iterdir())):
         raise UsageError(f"--out {args.out}: exists and is not empty; pass --force to replace it")
@@ -106,7 +107,7 @@ def cmd_import(args) -> int:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if len(ds.observations["t"]):  # a rig's contact states (tt_rackets) hold no flights to check
         print("fitting a flight to every segment to check it ...", flush=True)
-        print(tracking_report(ds))
+        print(tracking_report(ds, rmse_many=ballistic_rmse_many))
     if args.filter:
         conf = None if args.min_spin_conf < 0 else args.min_spin_conf
         ds, report = filter_segments(ds, min_spin_conf=conf, max_rmse=args.max_rmse)
@@ -154,7 +155,7 @@ def _spin_check(ds, model_name: str) -> dict:
 
     import numpy as np
 
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
     from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
     from ttsim_jax.fit.spin_check import check_record_spin
     from ttsim_jax.params import load_model

@@ -3,7 +3,10 @@
 Main entry points::
 
     from ttsim_jax.data import Dataset, load, save, validate, import_source
-    from ttsim_jax.data import detect_events, filter_segments, segment_batch, iter_segment_batches
+    from ttsim_jax.data import detect_events, segment_batch, iter_segment_batches
+
+The flight fit and the paper's segment filter that runs it are in :mod:`ttsim_jax.fit`
+(``ttsim_jax.fit.segment_filter.filter_segments``).
 
 See ``docs/data_format.md`` for the format.
 """
@@ -19,8 +22,7 @@ _NAMES = {
     **dict.fromkeys(["import_source"], "ttsim_jax.data.importers"),
     **dict.fromkeys(["load", "save"], "ttsim_jax.data.io"),
     **dict.fromkeys(["BALL_RADIUS", "CANONICAL_FRAME", "EVENT_KINDS", "SCHEMA_VERSION"], "ttsim_jax.data.schema"),
-    **dict.fromkeys(["FilterReport", "detect_events", "filter_segments", "find_bounces", "segments_from_events"],
-                    "ttsim_jax.data.segment"),
+    **dict.fromkeys(["detect_events", "find_bounces", "segments_from_events"], "ttsim_jax.data.segment"),
     **dict.fromkeys(["problems", "validate"], "ttsim_jax.data.validate"),
 }
 __getattr__, __dir__ = exports(__name__, _NAMES)

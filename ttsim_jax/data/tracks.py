@@ -24,6 +24,7 @@ track, and a track too short to fit a flight (``min_samples``) is left out of ev
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 
@@ -229,13 +230,15 @@ class TrackingReport:
         return "\n".join(lines)
 
 
-def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_samples: int = MIN_SAMPLES) -> TrackingReport:
+def tracking_report(ds, *, rmse_many: Callable | None = None, max_rmse: float = MAX_RMSE, min_samples: int = MIN_SAMPLES) -> TrackingReport:
     """What segmentation found per session, and the segments that no ballistic flight fits.
 
     Arguments:
         ds: a segmented dataset (:func:`ttsim_jax.data.segment.segments_from_events`).
-        fit: fit the constant-coefficient flight model to every segment (one batched fit; compiles
-            once) and warn about those beyond ``max_rmse``.
+        rmse_many: ``rmse_many(times, positions, spins) -> (S,) RMSE [m]`` of a flight fitted to each
+            segment, to warn about those beyond ``max_rmse``; the CLI passes the batched
+            constant-coefficient fit, :func:`ttsim_jax.fit.flightfit.ballistic_rmse_many` (it
+            compiles once). None: no fit.
         max_rmse: RMSE [m] beyond which a segment is not one ballistic flight.
         min_samples: the segmentation's shortest track (for the text).
 
@@ -259,14 +262,12 @@ def tracking_report(ds, *, fit: bool = True, max_rmse: float = MAX_RMSE, min_sam
             left_out=int(np.sum(obs["segment_id"][a:b] < 0)),
         ))
     unfit = []
-    if fit and len(seg["segment_id"]):
-        from .flightfit import ballistic_rmse_many
-
+    if rmse_many is not None and len(seg["segment_id"]):
         rows = ds.segment_rows()
         usable = [k for k, r in enumerate(rows) if len(r) >= 3]
         if usable:
             spins = np.stack([seg[f"spin_{a}"] for a in "xyz"], -1)[usable]
-            rmse = ballistic_rmse_many([obs["t"][rows[k]] for k in usable], [pos[rows[k]] for k in usable], spins)
+            rmse = rmse_many([obs["t"][rows[k]] for k in usable], [pos[rows[k]] for k in usable], spins)
             for j, (k, r) in enumerate(zip(usable, rmse)):
                 if not (r <= max_rmse):  # NaN too: a fit that failed
                     unfit.append(int(seg["segment_id"][k]))

@@ -152,7 +152,7 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     ``model`` from the samples kept), ``"latent"`` (the latent spin everywhere) or ``"zero"``.
     A segment too short for a latent spin flies with spin 0; :attr:`Flights.spin_source` says which.
     The segments of ``exclude`` (ids) are left out."""
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
     from ttsim_jax.fit.choices import SPIN_SOURCES
     from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
 

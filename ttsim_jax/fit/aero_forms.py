@@ -1,6 +1,6 @@
 """Per-segment aerodynamic coefficients -> the paper's functional forms -> a model config.
 
-The per-segment fits of :mod:`ttsim_jax.data.flightfit` give one constant (C_D, C_M) per segment, each
+The per-segment fits of :mod:`ttsim_jax.fit.flightfit` give one constant (C_D, C_M) per segment, each
 associated with the segment's effective speed (drag: sum |v|^3 / sum |v|^2; Magnus: the
 sin-weighted one) and its spin rate. This module regresses them into the paper's forms:
 

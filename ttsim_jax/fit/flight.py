@@ -6,7 +6,7 @@ given samples. Per segment: the initial position is the first observation (or, w
 ``fit_position``, fitted too), the spin the measured one, the initial velocity is fitted
 (Gauss-Newton on the positions, through the model's own flight stage and coefficient models), and
 the error is the 3-D position RMSE over the segment's samples, sqrt(mean_i |p_model(t_i) - p_i|^2).
-Segments are batched like the identification's fits (:func:`ttsim_jax.data.segment_batches.batches`);
+Segments are batched like the identification's fits (:func:`ttsim_jax.fit.segment_batches.batches`);
 one compilation per model family.
 """
 
@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.data.flightfit import Air, initial_guess, integrate
-from ttsim_jax.data.segment_batches import BATCH, batches, dataset_segments
+from ttsim_jax.fit.flightfit import Air, initial_guess, integrate
+from ttsim_jax.fit.segment_batches import BATCH, batches, dataset_segments
 from ttsim_jax.fit.choices import SPIN_SOURCES
 from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve

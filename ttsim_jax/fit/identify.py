@@ -9,7 +9,7 @@ Stages:
 1. *select*: segments with at least ``min_samples`` observations and a spin confidence of at least
    ``min_spin_conf`` (C_D depends on the spin ratio, so segments without a measured spin cannot be
    placed in the table); sessions of the held-out split (``test_fraction``) are set aside.
-2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.data.flightfit.fit_segments`; segments
+2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.fit.flightfit.fit_segments`; segments
    whose fit RMSE exceeds ``max_rmse`` are dropped (the paper's 20 mm filter).
 3. *regress*: C_D into the base model's breakpoint table, C_M into its piecewise form
    (:mod:`ttsim_jax.fit.aero_forms`), weighted by the fits' standard errors.
@@ -24,8 +24,8 @@ from typing import Callable
 
 import numpy as np
 
-from ttsim_jax.data.flightfit import Air, SegmentFits, fit_segments
-from ttsim_jax.data.segment_batches import dataset_segments
+from ttsim_jax.fit.flightfit import Air, SegmentFits, fit_segments
+from ttsim_jax.fit.segment_batches import dataset_segments
 from ttsim_jax.fit import aero_forms
 
 
@@ -36,7 +36,7 @@ class AeroIdentification:
     Attributes:
         base: path of the base model config.
         association: how segment coefficients are placed in the forms (``averaged`` or ``v_eff``).
-        segment_ids: (S,) ids of the fitted segments; fits: their :class:`~ttsim_jax.data.flightfit.SegmentFits`.
+        segment_ids: (S,) ids of the fitted segments; fits: their :class:`~ttsim_jax.fit.flightfit.SegmentFits`.
         used: (S,) bool, segments that entered the regression.
         counts: stage -> number of segments (``segments``, ``too_short``, ``low_spin_conf``,
             ``held_out``, ``fitted``, ``rmse``, ``used``).

@@ -5,7 +5,7 @@ C_M (rho_a / rho_b) w x v bends a 0.3 s flight at 8 m/s and 200 rad/s by tens of
 segment, theta = (p0, v0, w) is fitted to the samples under the model's own flight (its drag and
 Magnus coefficient models, tables included; the spin may change in flight through the model's
 effects), by the same Levenberg-Marquardt solver as the per-segment flight fit
-(:func:`ttsim_jax.data.flightfit.levenberg_marquardt`), batched and jitted the same way.
+(:func:`ttsim_jax.fit.flightfit.levenberg_marquardt`), batched and jitted the same way.
 
 What the positions show: the two spin components across the velocity, through the Magnus force.
 The component along the velocity exerts no force (w x v = 0); it acts only through C_D(Sp) and
@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax.data.flightfit import COMPILER_OPTIONS, levenberg_marquardt, parabola
-from ttsim_jax.data.segment_batches import batches
+from ttsim_jax.fit.flightfit import COMPILER_OPTIONS, levenberg_marquardt, parabola
+from ttsim_jax.fit.segment_batches import batches
 from ttsim_jax.physics.aero import coefficients, flight_step
 
 #: Prior width of the spin component along the segment's direction of flight [rad/s]: the
@@ -93,7 +93,7 @@ def normal_equations(model, theta, tau, pos, mask, n, noise, prior):
     """Cost, J^T J (9, 9), J^T r (9,) of the scaled position residuals plus the spin prior, and the
     velocities (T, 3) at the sample times: the state's sensitivities to (v0, w0) ride along one
     integration (forward mode, one RK4 step at a time), as in
-    :func:`ttsim_jax.data.flightfit.normal_equations`. ``prior``: (3, 3) precision of the spin."""
+    :func:`ttsim_jax.fit.flightfit.normal_equations`. ``prior``: (3, 3) precision of the spin."""
     dtype = theta.dtype
     dts = jnp.diff(tau)
     eye3 = jnp.eye(3, dtype=dtype)
@@ -272,7 +272,7 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
 def dataset_latent_spin(ds, model, *, min_samples: int = 8, **options) -> tuple[np.ndarray, LatentSpin]:
     """(segment_ids (S,), :class:`LatentSpin`) of every segment of a dataset with at least
     ``min_samples`` observations; ``options`` as for :func:`fit_latent_spin`."""
-    from ttsim_jax.data.segment_batches import dataset_segments
+    from ttsim_jax.fit.segment_batches import dataset_segments
 
     ids, times, positions, _, _ = dataset_segments(ds, min_samples)
     return ids, fit_latent_spin(times, positions, model, min_samples=min_samples, **options)

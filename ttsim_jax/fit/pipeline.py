@@ -396,7 +396,7 @@ class _Run:
         if kept.sum() < 2 * len(racket_fit.PARAMETERS):
             raise _Skip(f"{int(kept.sum())} usable racket contacts ({arrays.n_contacts} racket events; skipped: "
                         f"{counts['skipped'] or 'none'}; {counts['held_out']} held out); at least "
-                        f"{2 * len(RF.PARAMETERS)} are needed")
+                        f"{2 * len(racket_fit.PARAMETERS)} are needed")
         fit = racket_fit.fit_racket(arrays.x[kept], arrays.y_obs[kept], self.model)
         tick = self.tick("racket")
         if tick is not None:

@@ -197,24 +197,3 @@ def racket_section(base: racket_stage.RacketParams, result: RacketFit) -> dict:
     lines += [f'kappa = {{ value = {f(base.kappa)}, unit = "1" }}',
               f'e_max = {{ value = {f(base.e_max)}, unit = "1" }}']
     return {"racket": "\n".join(lines) + "\n"}
-
-
-def synthetic_arrays(params: racket_stage.RacketParams, radius: float, mass: float, n: int, *, seed: int = 0,
-                     noise_vel: float = 0.0, noise_spin: float = 0.0, max_speed: float = 15.0,
-                     max_spin: float = 600.0):
-    """Racket-frame arrays (x (n, 8), y_obs (n, 6)) of contacts through the base model ``params``.
-
-    Pre-contact states from :func:`ttsim_jax.fit.racket_arrays.draw_contact_states`;
-    Gaussian noise ``noise_vel`` [m/s] / ``noise_spin`` [rad/s] on every component of both states.
-    """
-    from ttsim_jax.fit.racket_arrays import draw_contact_states
-
-    v, w, d = draw_contact_states(np.random.default_rng(seed), n, max_speed, max_spin)
-    x = np.concatenate([v, w, d], 1)
-    vp, wp = predict(params, jnp.asarray(x, jnp.float32), jnp.float32(radius), jnp.float32(mass))
-    y = np.concatenate([np.asarray(vp), np.asarray(wp)], 1).astype(np.float64)
-    rng = np.random.default_rng(seed + 1)
-    noise = np.concatenate([np.full(3, noise_vel), np.full(3, noise_spin)])
-    x[:, :6] += rng.normal(size=(n, 6)) * noise
-    y += rng.normal(size=(n, 6)) * noise
-    return x, y

@@ -19,7 +19,6 @@ The states come from the observations alone, or from the dataset's directly meas
 states (:mod:`ttsim_jax.data.contact_states`, settings
 :class:`~ttsim_jax.data.contact_states.ContactFit`); contacts lacking what is needed are skipped
 and counted by reason (:data:`~ttsim_jax.data.contact_states.SKIP_REASONS`).
-:func:`draw_contact_states` draws racket-frame pre-contact states for synthetic contacts.
 
 :func:`ttsim_jax.reality.synthetic_contact_dataset` makes a dataset of flights into known racket
 states with a known post-contact law, for tests and for checking the pipeline end to end.
@@ -28,7 +27,6 @@ states with a known post-contact law, for tests and for checking the pipeline en
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
@@ -167,7 +165,6 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
     # float32, which cannot hold absolute times to the sub-millisecond).
     ev = ds.events
     rows = ds.event_rows(event_ids)
-    t_c = np.asarray(ev["t"], np.float64)[rows] if n else np.zeros(0)
     p_c = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1) if n else np.zeros((0, 3))
     sess = np.asarray(ev["session_id"], np.int64)[rows] if n else np.zeros(0, np.int64)
     rk = ds.rackets
@@ -218,27 +215,3 @@ def _segment_ids(seg_ids, rows) -> np.ndarray:
     out = np.full(len(rows), -1, np.int64)
     out[rows >= 0] = seg_ids[rows[rows >= 0]]
     return out
-
-
-# ----------------------------------------------------------------------------------------------
-# Random pre-contact states
-
-
-def draw_contact_states(rng: np.random.Generator, n: int, max_speed: float = 15.0, max_spin: float = 600.0):
-    """Random racket-frame pre-contact states: (v~ (n, 3), w~ (n, 3), d (n, 2)).
-
-    Speed 1..max_speed m/s within 60 degrees of the face normal (v~_x < 0), spin up to ``max_spin``
-    rad/s in a uniform direction, d uniform over a 7.5 cm disc.
-    """
-    rad = 0.075 * np.sqrt(rng.uniform(0.0, 1.0, n))
-    phi = rng.uniform(0.0, 2 * math.pi, n)
-    d = np.stack([rad * np.cos(phi), rad * np.sin(phi)], 1)
-    speed = rng.uniform(1.0, max_speed, n)
-    cos_t = rng.uniform(0.5, 1.0, n)
-    sin_t = np.sqrt(1.0 - cos_t**2)
-    psi = rng.uniform(0.0, 2 * math.pi, n)
-    v_t = speed[:, None] * np.stack([-cos_t, sin_t * np.cos(psi), sin_t * np.sin(psi)], 1)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    w_t = rng.uniform(0.0, max_spin, n)[:, None] * direction
-    return v_t, w_t, d

@@ -97,8 +97,9 @@ class LassoSettings:
 
 
 @jax.jit
-def _contact(table, radius, vel, spin):
-    """(v+, w+, residual weight) of the full table model for (N, 3) surface-frame states."""
+def predicted_bounces(table, radius, vel, spin):
+    """(v+, w+, residual weight) of the full table model for (N, 3) surface-frame states (pad them
+    to :func:`padded_size` rows with :func:`pad_rows`, so that sizes share a compilation)."""
 
     def one(v, w):
         bv, bw, dv, dw = table_stage.residual_terms(table, radius, v, w)
@@ -244,7 +245,7 @@ _COMPONENTS = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")
 def _errors(table, radius, vel, spin, vel_out, spin_out, rows) -> dict:
     """Component -> median |model - observed| over ``rows`` (all bounces go through the model:
     one compiled shape)."""
-    vp, wp, _ = _contact(table, radius, vel, spin)
+    vp, wp, _ = predicted_bounces(table, radius, vel, spin)
     err = np.abs(np.concatenate([np.asarray(vp), np.asarray(wp)], 1) - np.concatenate([vel_out, spin_out], 1))[rows]
     return {c: float(np.median(err[:, k])) if len(err) else float("nan") for k, c in enumerate(_COMPONENTS)}
 
@@ -261,10 +262,10 @@ def bounce_errors(table, radius, vel_in, spin_in, vel_out, spin_out) -> dict:
     """
     n = len(vel_in)
     size = padded_size(n)
-    vin, win = (jnp.asarray(_pad(np.asarray(a, np.float64).reshape(-1, 3), size) if n else np.zeros((size, 3)),
+    vin, win = (jnp.asarray(pad_rows(np.asarray(a, np.float64).reshape(-1, 3), size) if n else np.zeros((size, 3)),
                             jnp.float32) for a in (vel_in, spin_in))
     out = [np.asarray(a, np.float64).reshape(-1, 3) for a in (vel_out, spin_out)]
-    out = [_pad(a, size) if n else np.zeros((size, 3)) for a in out]
+    out = [pad_rows(a, size) if n else np.zeros((size, 3)) for a in out]
     return _errors(table, jnp.asarray(radius, jnp.float32), vin, win, out[0], out[1], np.arange(size) < n)
 
 
@@ -373,7 +374,7 @@ def padded_size(n: int) -> int:
     return max(-(-n // PAD), 1) * PAD
 
 
-def _pad(a, size: int):
+def pad_rows(a, size: int):
     """``a`` with its first row repeated up to ``size`` rows (finite values for the padding)."""
     a = np.asarray(a)
     return np.concatenate([a, np.repeat(a[:1], size - len(a), axis=0)]) if size > len(a) else a
@@ -408,10 +409,10 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
         raise ValueError(f"fit_table: {n} bounces; at least {2 * settings.folds} are needed for "
                          f"{settings.folds}-fold cross-validation")
     real = np.arange(padded_size(n)) < n
-    vin, win, vout, wout = (_pad(a, len(real)) for a in (vin, win, vout, wout))
+    vin, win, vout, wout = (pad_rows(a, len(real)) for a in (vin, win, vout, wout))
     jv, jw, jvo, jwo = (jnp.asarray(a, jnp.float32) for a in (vin, win, vout, wout))
     weights = real.astype(np.float64)
-    folds = _pad(np.random.default_rng(settings.seed).permutation(n) % settings.folds, len(real))
+    folds = pad_rows(np.random.default_rng(settings.seed).permutation(n) % settings.folds, len(real))
     penalty, mask = _masks()
     e_min, e_max = float(m.table.e_min), float(m.table.e_max)
     e0, e1 = _restitution_ols(vin[:, 2], vout[:, 2], weights, e_min, e_max)
@@ -464,7 +465,7 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
         if k < passes - 1:  # the next pass leaves out the bounces the fitted residual is bounded on
             fitted = table.replace(e0=jnp.asarray(e0, table.e0.dtype), e1=jnp.asarray(e1, table.e1.dtype),
                                    residual=jnp.asarray(residual, table.residual.dtype))
-            bounded = np.asarray(_contact(fitted, radius, jv, jw)[2]) < 0.999
+            bounded = np.asarray(predicted_bounces(fitted, radius, jv, jw)[2]) < 0.999
             n_bounded = int((bounded & real).sum())
             weights = np.where(bounded | ~real, 0.0, 1.0)
     act = weights > 0
@@ -501,35 +502,3 @@ def table_sections(table, result: TableFit) -> dict:
     res += "".join(f'{name} = {{ value = {toml_array(result.residual[k])}, unit = "{UNITS[name]}" }}\n'
                    for k, name in enumerate(MATRICES))
     return {"table": head, "table.residual": res}
-
-
-def synthetic_bounces(table, radius: float, n: int, *, seed: int = 0, noise_vel: float = 0.0,
-                      noise_spin: float = 0.0) -> dict:
-    """Bounces with known parameters: rally-like incoming states through the table model.
-
-    Incoming: heading uniform, horizontal speed 2-12 m/s, v_z from -7 to -2.5 m/s, spin in the
-    local frame up to 150 (about the heading), 500 (top/back spin) and 300 rad/s (about z); the
-    outgoing state from :func:`~ttsim_jax.physics.table.local_contact` with ``table``. Gaussian
-    noise of ``noise_vel`` [m/s] and ``noise_spin`` [rad/s] is added to every component of both.
-
-    Returns:
-        dict of float64 (n, 3) arrays ``vel_in``, ``spin_in``, ``vel_out``, ``spin_out`` (noisy) and
-        ``true_*`` (without noise), and ``weight`` (n,) the residual's fade x bound factor.
-    """
-    rng = np.random.default_rng(seed)
-    heading = rng.uniform(-np.pi, np.pi, n)
-    vh = rng.uniform(2.0, 12.0, n)
-    c, s = np.cos(heading), np.sin(heading)
-    vel = np.stack([vh * c, vh * s, rng.uniform(-7.0, -2.5, n)], 1)
-    w_loc = np.stack([rng.uniform(-150, 150, n), rng.uniform(-500, 500, n), rng.uniform(-300, 300, n)], 1)
-    spin = np.stack([w_loc[:, 0] * c - w_loc[:, 1] * s, w_loc[:, 0] * s + w_loc[:, 1] * c, w_loc[:, 2]], 1)
-    size = padded_size(n)
-    vp, wp, lam = (np.asarray(a, np.float64)[:n] for a in _contact(table, jnp.asarray(radius, jnp.float32),
-                                                                    jnp.asarray(_pad(vel, size), jnp.float32),
-                                                                    jnp.asarray(_pad(spin, size), jnp.float32)))
-    out = dict(true_vel_in=vel, true_spin_in=spin, true_vel_out=vp, true_spin_out=wp, weight=lam)
-    for k in ("vel_in", "vel_out"):
-        out[k] = out["true_" + k] + rng.normal(0.0, noise_vel, (n, 3))
-    for k in ("spin_in", "spin_out"):
-        out[k] = out["true_" + k] + rng.normal(0.0, noise_spin, (n, 3))
-    return out

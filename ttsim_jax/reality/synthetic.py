@@ -16,10 +16,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.data.dataset import Dataset, Metadata
-from ttsim_jax.fit.racket_arrays import draw_contact_states, model_and_name
+from ttsim_jax.fit.racket_arrays import model_and_name
 from ttsim_jax.kernel.step import ball_properties
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.rotations import matrix_to_quat
+
+from .synthetic_stages import draw_contact_states
 
 
 def _flight(p, v, w, times, kd, km, substeps=20):
@@ -162,7 +164,7 @@ def synthetic_rig_dataset(laws: dict, n: int, seed: int = 0, model="conti2026", 
             or the updated base model's (e0, e1, et0, et1, e_s) over ``model``'s racket.
         n: bounces per configuration; seed: seeds the incoming states (one stream per configuration).
         model: its ball's radius and mass, and the base of a law given as five numbers.
-        max_speed, max_spin: the incoming states' bounds (:func:`~ttsim_jax.fit.racket_arrays.draw_contact_states`).
+        max_speed, max_spin: the incoming states' bounds (:func:`~ttsim_jax.reality.synthetic_stages.draw_contact_states`).
 
     Returns:
         The dataset (racket face centre at the tt_rackets importer's position, normal along world z,

@@ -1,5 +1,5 @@
 """A synthetic racket-contact set with a known residual, and the experiment that checks that
-training the residual network recovers it (``python -m ttsim_jax.fit.synthetic_contacts``).
+training the residual network recovers it (``python -m ttsim_jax.reality.synthetic_contacts``).
 
 Inputs are drawn over plausible racket-frame states (:func:`sample_racket_inputs`), the base model
 is the paper's updated racket model (:func:`standin_base_fn`) or the simulator's own
@@ -222,7 +222,7 @@ def recovery_experiment(n_contacts: int = 20000, seed: int = 0, config: Residual
 def main(argv=None):
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m ttsim_jax.fit.synthetic_contacts",
+    ap = argparse.ArgumentParser(prog="python -m ttsim_jax.reality.synthetic_contacts",
                                  description="Synthetic recovery experiment for the racket residual network.")
     ap.add_argument("--config", help="residual TOML (default: the paper's settings)")
     ap.add_argument("--contacts", type=int, default=20000)

@@ -1,5 +1,5 @@
 """Flight segments from known parameters, sampled like a tracking system: the truth against which
-the flight fit (:mod:`ttsim_jax.data.flightfit`) and the aerodynamic identification are checked."""
+the flight fit (:mod:`ttsim_jax.fit.flightfit`) and the aerodynamic identification are checked."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from ttsim_jax.physics.aero import AeroParams, ConstantCoefficient, flight_step
 
-from .flightfit import CD_0, CM_0
+from ttsim_jax.fit.flightfit import CD_0, CM_0
 
 
 def synthetic_segments(aero: AeroParams, radius, mass, n: int, *, seed: int = 0, coefficients=None,

@@ -1,4 +1,4 @@
-"""Flight segments as padded arrays for the compiled flight fit (:mod:`ttsim_jax.data.flightfit`).
+"""Flight segments as padded arrays for the compiled flight fit (:mod:`ttsim_jax.fit.flightfit`).
 
 Segments have different lengths. They are padded to a *capacity* (the smallest of ``CAPACITIES``
 that holds them; padded samples repeat the last time, so their steps have dt = 0, and carry mask
@@ -27,7 +27,7 @@ GROUP = 16
 
 
 def dataset_segments(ds, min_samples: int = 5):
-    """The flight segments of a dataset as lists for :func:`~ttsim_jax.data.flightfit.fit_segments`.
+    """The flight segments of a dataset as lists for :func:`~ttsim_jax.fit.flightfit.fit_segments`.
 
     Arguments:
         ds: a :class:`~ttsim_jax.data.Dataset` with segments.
@@ -60,7 +60,7 @@ def capacity(n: int) -> int:
 
 def pack(times: Sequence[np.ndarray], positions: Sequence[np.ndarray], spins, rows: Sequence[int], size: int,
          batch: int, dtype=np.float32):
-    """Pads segments ``rows`` into arrays (batch, size) for :func:`~ttsim_jax.data.flightfit.fit_batch`; unused rows are empty."""
+    """Pads segments ``rows`` into arrays (batch, size) for :func:`~ttsim_jax.fit.flightfit.fit_batch`; unused rows are empty."""
     tau = np.zeros((batch, size), dtype)
     pos = np.zeros((batch, size, 3), dtype)
     mask = np.zeros((batch, size), dtype)
@@ -114,7 +114,7 @@ def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_s
 
 def grouped_batches(times, positions, spins, batch: int = BATCH, group: int = GROUP, dtype=np.float32):
     """The groups of :func:`batches` (at most ``group`` rows each), ``batch // rows`` to a
-    :func:`~ttsim_jax.data.flightfit.fit_batch` call. Every group of one capacity has the same shape: one compilation.
+    :func:`~ttsim_jax.fit.flightfit.fit_batch` call. Every group of one capacity has the same shape: one compilation.
 
     Yields:
         (idx, rows, (tau, pos, mask, spin), n_max): the segments' indices and their rows in the

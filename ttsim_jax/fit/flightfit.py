@@ -27,7 +27,7 @@ whole batch is one compiled call:
   that would only confirm convergence. Every iteration is one forward pass with tangents and no
   branch; a group's loop ends when all its segments have converged, or after ``ITERATIONS``.
 
-Segments are padded and grouped for the compiled calls by :mod:`ttsim_jax.data.segment_batches`.
+Segments are padded and grouped for the compiled calls by :mod:`ttsim_jax.fit.segment_batches`.
 
 After the fit, each segment's effective speeds (the paper's force-averaged velocities) are computed
 along the fitted trajectory at the observation times:
