@@ -138,6 +138,8 @@ def summarise(result: dict) -> dict:
                     per[n][c]["reduction_median_pct"] = reduction(per[ref][c]["median"], per[n][c]["median"])
             out["table"] = dict(n_bounces=t["n_bounces"], n_used=len(t["event_id"]),
                                 n_with_spin_in=int(np.sum(t["spin_known"][:, 0])),
+                                spin_sources=spin_source_counts(t.get("spin_source", np.where(
+                                    t["spin_known"][:, 0], "measured", "zero"))),
                                 n_with_spin=int(np.sum(t["spin_known"].all(1))), skip_counts=t["skip_counts"],
                                 units=dict(velocity="m/s", spin="rad/s"), models=per)
     if "racket" in result:
@@ -170,6 +172,8 @@ def summarise(result: dict) -> dict:
                 per[n].update(not_hit=int(np.sum(~g["hit"][n])),
                               no_landing=int(np.sum(g["hit"][n] & ~np.isfinite(g["error"][n]))))
             out["landing"] = dict(n_contacts=g["n_contacts"], n_used=len(g["event_id"]), skip_counts=g["skip_counts"],
+                                  spin_sources=spin_source_counts(g.get("spin_source", np.full(len(g["event_id"]),
+                                                                                               "measured"))),
                                   unit="m", models=per)
     return tidy(out)
 
@@ -231,8 +235,8 @@ def _table_contacts_md(t: dict, names: list, figures: dict) -> list:
     rows = [[n] + [_cell(per[c], c[0] == "v") for c in COMPONENTS] for n, per in t["models"].items()]
     reductions = [[n] + [_num(per[c]["reduction_median_pct"], ".0f") for c in COMPONENTS]
                   for n, per in t["models"].items()]
-    return ([f"{t['n_used']} of {t['n_bounces']} bounces used; {t['n_with_spin_in']} with a measured pre-bounce spin "
-             "(the others enter the models with spin 0), spin errors for the "
+    return ([f"{t['n_used']} of {t['n_bounces']} bounces used; pre-bounce spin: {_sources_text(t['spin_sources'])}; "
+             "spin errors for the "
              f"{t['n_with_spin']} with measured spins on both sides. Skipped: "
              f"{counts_text(t['skip_counts'], TABLE_SKIP_REASONS)}.",
              "Median |error| (bias: median signed error), velocity in m/s, spin in rad/s; world frame.", ""]
@@ -258,10 +262,17 @@ def _racket_md(r: dict, names: list, figures: dict) -> list:
             + [f"![predicted against measured outgoing spin]({figures['racket_spin']})", ""])
 
 
+def _sources_text(counts: dict) -> str:
+    """'12 measured, 30 latent (the incoming segment's, fitted under each model), 1 spin 0'."""
+    words = dict(measured="measured", latent="latent (the incoming segment's, fitted under each model)", zero="spin 0")
+    return ", ".join(f"{counts.get(k, 0)} {w}" for k, w in words.items() if counts.get(k, 0)) or "none"
+
+
 def _landing_md(g: dict, names: list, figures: dict) -> list:
     rows = [[n, str(m["n"]), _num(m["median"], ".3f"), _num(m["p75"], ".3f"), _reduction(m, "median"),
              _reduction(m, "p75"), str(m["not_hit"]), str(m["no_landing"])] for n, m in g["models"].items()]
-    return ([f"{g['n_used']} of {g['n_contacts']} racket contacts used. Skipped: "
+    return ([f"{g['n_used']} of {g['n_contacts']} racket contacts used; incoming spin: "
+             f"{_sources_text(g['spin_sources'])}. Skipped: "
              f"{counts_text(g['skip_counts'], LANDING_SKIP_REASONS)}. Simulated from the last observation before the "
              "contact with the measured racket state until the table plane.", ""]
             + _table_md(["model", "n", "median [m]", "75th pct [m]", "median reduction [%] [95 % CI]",

@@ -12,7 +12,9 @@ and writes the figures (PNG), a Markdown report and every number.
 2. *table*: per table bounce, the model's table contact (the rally kernel's
    :func:`~ttsim_jax.kernel.step.respond`) applied to the measured pre-bounce state, minus the
    measured post-bounce state, per component (v_x, v_y, v_z, w_x, w_y, w_z; spin components only
-   where both segments have a measured spin; an unmeasured pre-bounce spin enters as 0). States
+   where both segments have a measured spin). An unmeasured pre-bounce spin enters as the
+   incoming segment's latent spin, fitted under each model (``spin="auto"``, the default; see
+   :class:`EvaluateSettings`), or as 0 (``"measured"``, ``"zero"``). States
    are estimated as for the racket residual's training data
    (:func:`ttsim_jax.data.contact_states.estimate_contact`: polynomial fits next to the contact, the
    segments' spins).
@@ -21,7 +23,7 @@ and writes the figures (PNG), a Markdown report and every number.
    (:func:`ttsim_jax.fit.racket_arrays.contact_arrays`), grouped by contact distance (0-5, 5-8,
    > 8 cm); every model is scored on the same contacts (those usable for all).
 4. *landing*: from the state at the last observation before a racket contact (fitted on the
-   incoming samples; the segment's spin) the model is rolled out (:func:`ttsim_jax.rollout`) with
+   incoming samples; the segment's spin, measured or latent as for the table stage) the model is rolled out (:func:`ttsim_jax.rollout`) with
    the data's racket state (moving at its measured velocity) until the ball reaches the table
    plane (z = one radius, whether or not it meets the table); the landing point is compared with
    the measured one (the next table event, or where the outgoing observations cross the plane).
@@ -69,7 +71,7 @@ TABLE_SKIP_REASONS = {
 LANDING_SKIP_REASONS = {
     "no_incoming_segment": "no flight segment ends at the racket contact",
     "few_incoming_samples": "fewer than min_samples observations before the contact within max_span",
-    "low_spin_conf_in": "incoming segment's spin confidence below min_spin_conf",
+    "low_spin_conf_in": "incoming segment's spin confidence below min_spin_conf (with spin = \"measured\")",
     "bad_fit": "polynomial fit RMSE above max_fit_rmse",
     "no_outgoing_segment": "no flight segment starts at the racket contact",
     "no_measured_landing": "the outgoing flight neither ends on the table nor crosses the table plane",
@@ -93,7 +95,10 @@ class EvaluateSettings:
             simulator's usual type, whatever JAX's default float is.
         spin: where a flight segment's spin comes from (``"auto"``: the measured one where there is
             one, the latent spin fitted from the segment's samples elsewhere; ``"measured"``,
-            ``"latent"``, ``"zero"``: see :func:`ttsim_jax.fit.flight.segment_rmse`).
+            ``"latent"``, ``"zero"``: see :func:`ttsim_jax.fit.flight.segment_rmse`), in every
+            stage: the table and landing stages take the incoming segment's spin the same way
+            (with ``"measured"``, a bounce without a measured spin enters with spin 0 and a racket
+            contact without one is skipped).
     """
 
     fit: ContactFit = ContactFit()
@@ -182,8 +187,10 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
     Returns:
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``spin_known`` (N, 2) bool (before,
         after), ``pre``, ``post`` (N, 6) estimated world-frame (v, w) before / after (the pre-bounce
-        spin 0 where not measured), ``error`` {name: (N, 6) predicted minus measured, NaN spin
-        unless both spins are measured}, ``skip_counts`` {reason: n}.
+        spin 0 where not measured), ``spin_in`` {name: (N, 3) the pre-bounce spin each model was
+        given} and ``spin_source`` (N,) where it came from (:func:`incoming_spins`), ``error``
+        {name: (N, 6) predicted minus measured, NaN spin unless both spins are measured},
+        ``skip_counts`` {reason: n}.
     """
     ev = ds.events
     rows = np.flatnonzero((np.asarray(ev["kind"]).astype(str) == "table") & settings.keep(ev["session_id"]))
@@ -209,17 +216,63 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
     p_c = c.pos[at]
     pre = np.concatenate([c.vel_in[g], np.where(spin_known[:, :1], c.spin_in[g], 0.0)], 1)
     post = np.concatenate([c.vel_out[g], c.spin_out[g]], 1)
+    spin_in, source = incoming_spins(ds, models, c.in_row[g], spin_known[:, 0], c.spin_in[g], settings.spin)
     error = {}
     for name, model in models:
         dtype = model.ball.radius.dtype
         vel, spin = _table_response(model.replace(name=""), jnp.asarray(p_c[good], dtype), jnp.asarray(pre[:, :3], dtype),
-                                    jnp.asarray(pre[:, 3:], dtype))
+                                    jnp.asarray(spin_in[name], dtype))
         e = np.concatenate([np.asarray(vel, np.float64), np.asarray(spin, np.float64)], 1) - post
         e[~spin_known.all(1), 3:] = np.nan
         error[name] = e
         tick()
-    return dict(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, error=error, skip_counts=skip_counts,
-                n_bounces=len(rows))
+    return dict(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, spin_in=spin_in, spin_source=source,
+                error=error, skip_counts=skip_counts, n_bounces=len(rows))
+
+
+def incoming_spins(ds, models: list, seg_rows: np.ndarray, known: np.ndarray, measured: np.ndarray,
+                   spin: str) -> tuple[dict, np.ndarray]:
+    """The spin each model gives a contact's incoming segment, by ``spin`` (as for the flight stage).
+
+    Arguments:
+        ds: the dataset; models: [(name, Model)].
+        seg_rows: (N,) rows of the incoming segments in ``ds.segments``.
+        known: (N,) bool, the segment's spin is measured with confidence; measured: (N, 3) that spin.
+        spin: one of :data:`~ttsim_jax.fit.choices.SPIN_SOURCES`.
+
+    Returns:
+        ({name: (N, 3) spin [rad/s]}, source (N,) ``"measured"``, ``"latent"`` or ``"zero"``). A
+        latent spin is the segment's fitted spin (:mod:`ttsim_jax.fit.latent_spin`, under each
+        model); a segment too short for one, or whose fit failed, gives spin 0.
+    """
+    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+    from ttsim_jax.fit.latent_spin import fit_latent_spin
+
+    n = len(seg_rows)
+    use_measured = known & (spin in ("auto", "measured"))
+    base = np.where(use_measured[:, None], measured, 0.0)
+    source = np.where(use_measured, "measured", "zero").astype("U8")
+    want = (~use_measured) if spin == "auto" else np.full(n, spin == "latent")
+    rows = np.flatnonzero(want)
+    out = {name: base.copy() for name, _ in models}
+    if not len(rows):
+        return out, source
+    seg = ds.segments
+    obs_rows = ds.segment_rows(np.asarray(seg["segment_id"])[seg_rows[rows]])
+    times = [np.asarray(ds.observations["t"], np.float64)[r] for r in obs_rows]
+    positions = [ds.positions[r] for r in obs_rows]
+    long_enough = np.array([len(t) >= LATENT_MIN_SAMPLES for t in times], bool)
+    fitted = np.zeros(len(rows), bool)
+    for name, model in models:
+        ls = fit_latent_spin([t for t, k in zip(times, long_enough) if k],
+                             [p for p, k in zip(positions, long_enough) if k], model, min_samples=LATENT_MIN_SAMPLES)
+        at = rows[long_enough]
+        out[name][at] = np.where(ls.ok[:, None], ls.spin, 0.0)
+        out[name][rows[~long_enough]] = 0.0
+        fitted[np.flatnonzero(long_enough)[ls.ok]] = True
+    source[rows[fitted]] = "latent"
+    source[rows[~fitted]] = "zero"
+    return out, source
 
 
 def counts_text(counts: dict, reasons: dict) -> str:
@@ -304,8 +357,10 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
     """The racket contacts of a dataset set up for the landing evaluation.
 
     Returns:
-        dict with ``event_id`` (N,), ``t0`` (N,) time of the last observation before the contact,
-        ``ball`` (N, 9) fitted (position, velocity) there and the incoming spin, ``t_contact``
+        dict with ``event_id`` (N,), ``in_row`` (N,) the incoming segment's row, ``spin_known``
+        (N,) whether its spin is measured, ``t0`` (N,) time of the last observation before the
+        contact, ``ball`` (N, 9) fitted (position, velocity) there and the incoming segment's
+        measured spin (zeros without one: :func:`landing_stage` sets each model's), ``t_contact``
         (N,), ``racket`` (N, 18) (position, rotation matrix (9), velocity, angular velocity), ``measured``
         (N, 2) landing point, ``skip_counts``, ``n_contacts``.
     """
@@ -321,7 +376,7 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
     index = ds.observation_index()
     seg = ds.segments
     counts = {k: 0 for k in LANDING_SKIP_REASONS}
-    out = dict(event_id=[], t0=[], ball=[], t_contact=[], racket=[], measured=[])
+    out = dict(event_id=[], in_row=[], spin_known=[], t0=[], ball=[], t_contact=[], racket=[], measured=[])
     for i in np.flatnonzero(sel):
         t_c = float(ev["t"][rows[i]])
         if in_rows[i] < 0:
@@ -332,7 +387,7 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
             counts["few_incoming_samples"] += 1
             continue
         spin, conf = index.spin(in_rows[i])
-        if conf < fit.min_spin_conf:
+        if conf < fit.min_spin_conf and settings.spin == "measured":
             counts["low_spin_conf_in"] += 1
             continue
         p0, v0, r = fit_contact_state(t, p, t[-1], fit.degree)
@@ -357,6 +412,8 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
         racket = np.concatenate([[rk[k][i] for k in ("x", "y", "z")], quat_to_matrix(q).ravel(),
                                  [rk[k][i] for k in ("vx", "vy", "vz")], [rk[k][i] for k in ("wx", "wy", "wz")]])
         out["event_id"].append(int(ids[i]))
+        out["in_row"].append(int(in_rows[i]))
+        out["spin_known"].append(conf >= fit.min_spin_conf)
         out["t0"].append(float(t[-1]))
         out["ball"].append(np.concatenate([p0, v0, spin]))
         out["t_contact"].append(t_c)
@@ -365,6 +422,8 @@ def landing_cases(ds, settings: EvaluateSettings, radius: float) -> dict:
     res = {k: np.asarray(v, np.float64).reshape((len(v),) + ((9,) if k == "ball" else (18,) if k == "racket" else
                                                               (2,) if k == "measured" else ())) for k, v in out.items()}
     res["event_id"] = res["event_id"].astype(np.int64)
+    res["in_row"] = res["in_row"].astype(np.int64)
+    res["spin_known"] = res["spin_known"].astype(bool)
     res["skip_counts"] = {k: v for k, v in counts.items() if v}
     res["n_contacts"] = int(sel.sum())
     return res
@@ -461,7 +520,8 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
     Returns:
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``measured`` (N, 2), ``landing``
         {name: (N, 2)}, ``error`` {name: (N,) distance [m], NaN where the simulated ball was not
-        hit or did not land}, ``hit`` {name: (N,) bool}, ``skip_counts``, ``n_contacts``.
+        hit or did not land}, ``hit`` {name: (N,) bool}, ``spin_source`` (N,) where each incoming
+        spin came from (:func:`incoming_spins`), ``skip_counts``, ``n_contacts``.
     """
     from ttsim_jax.kernel.step import ball_properties
 
@@ -475,13 +535,17 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
             tick()
         return dict(skipped=f"none of the {cases['n_contacts']} racket contacts is usable "
                     f"({counts_text(cases['skip_counts'], LANDING_SKIP_REASONS)})")
+    spins, source = incoming_spins(ds, models, cases["in_row"], cases["spin_known"], cases["ball"][:, 6:],
+                                   settings.spin)
     landing, hit, error = {}, {}, {}
     for name, model in models:
-        landing[name], hit[name] = simulate_landing(model, cases, settings)
+        ball = cases["ball"].copy()
+        ball[:, 6:] = spins[name]
+        landing[name], hit[name] = simulate_landing(model, dict(cases, ball=ball), settings)
         error[name] = np.linalg.norm(landing[name] - cases["measured"], axis=1)
         tick()
     return dict(event_id=cases["event_id"], measured=cases["measured"], landing=landing, error=error, hit=hit,
-                skip_counts=cases["skip_counts"], n_contacts=cases["n_contacts"])
+                spin_source=source, skip_counts=cases["skip_counts"], n_contacts=cases["n_contacts"])
 
 
 # ---------------------------------------------------------------------------------------------- all
