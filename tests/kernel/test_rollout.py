@@ -180,6 +180,7 @@ def test_until_events_freezes_each_ball_at_its_event(model, whole):
         rollout(model, init_state(shots()), N, 1e-3, max_events=2, until_events=3)
 
 
+@pytest.mark.slow  # 33 s of compilation; test_lean_step_equals_reference_step checks the same on 64 shots
 def test_lean_step_equals_reference_on_thousands_of_shots():
     """Event sequences of 2,048 random shots with two rackets, float32: the lean step (exact
     detection only where a gap changes sign, in a small buffer that overflows on busy steps) and the
