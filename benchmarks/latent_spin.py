@@ -5,7 +5,10 @@
   across the direction of flight against the measured spin's part there (the angle between them and
   the magnitude error), by the measured spin's size, by the size of its component along the
   flight (which the positions do not show) and by segment length; and the spin check
-  (``ttsim_jax.fit.spin_check``) of the measured spin against the latent one.
+  (``ttsim_jax.fit.spin_check``) of the measured spin against the latent one. And per table
+  bounce whose incoming segment has a measured spin, the spin fitted across the bounce
+  (``ttsim_jax.fit.bounce_spin``: both segments as one flight through the model's table law)
+  against the measured one, beside the incoming segment's own latent spin.
 * **MPI launcher recordings** (``intelligent-soft-robots/ball_prediction``, BSD-3-Clause; no spin
   measured): the latent spin's top/backspin component per file against the files' names
   (``mn5008_topspin``, ``mn5008_backspin``, ``mn5008_no_spin``), and the held-out flight error.
@@ -114,6 +117,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
+    from ttsim_jax.fit.bounce_spin import bounce_pairs, fit_bounce_spin
     from ttsim_jax.fit.latent_spin import fit_latent_spin
     from ttsim_jax.fit.spin_check import check_spin
 
@@ -164,6 +168,39 @@ def main(argv=None) -> int:
                               per_segment=dict(angle_deg=ang.round(2).tolist(), magnitude_error=mag.round(4).tolist(),
                                                spin=w.round(1).tolist(), along=par.round(1).tolist(), n=n.tolist()))
 
+    # ------------------------------------------------- SpinDOE: across the bounce, spin withheld
+    print("SpinDOE: fitting the spin across each bounce ...", file=sys.stderr)
+    pairs = bounce_pairs(ds)
+    conf_in = np.asarray(ds.segments["spin_conf"])[pairs["in_row"]]
+    long_in = np.array([len(t) >= args.min_samples for t in pairs["times_in"]], bool)
+    sel = cut(np.flatnonzero((conf_in >= 0.5) & long_in))
+    t0 = time.time()
+    bs = fit_bounce_spin([pairs["times_in"][i] for i in sel], [pairs["positions_in"][i] for i in sel],
+                         [pairs["times_out"][i] for i in sel], [pairs["positions_out"][i] for i in sel],
+                         pairs["t_contact"][sel], model)
+    bounce_s = time.time() - t0
+    measured_in = np.stack([np.asarray(ds.segments[f"spin_{a}"])[pairs["in_row"][sel]] for a in "xyz"], 1)
+    u = bs.v0 / np.maximum(np.linalg.norm(bs.v0, axis=1, keepdims=True), 1e-9)
+    across = lambda x: x - np.sum(x * u, 1, keepdims=True) * u  # noqa: E731
+    w_in = np.linalg.norm(measured_in, axis=1)
+    bounce_rows = {}
+    for label, est in (("one segment", bs.single), ("across the bounce", bs.spin_in)):
+        a = angle_deg(across(est), across(measured_in))
+        m = np.linalg.norm(across(est), axis=1) / np.maximum(np.linalg.norm(across(measured_in), axis=1), 1e-9) - 1.0
+        full = np.linalg.norm(est, axis=1) / np.maximum(w_in, 1e-9) - 1.0
+        rows = {}
+        for name, cond in (("|w| >= 100 rad/s", w_in >= 100), ("|w| 100-200", (w_in >= 100) & (w_in < 200)),
+                           ("|w| 200-400", (w_in >= 200) & (w_in < 400)), ("|w| >= 400", w_in >= 400),
+                           ("|w| >= 100, within 45 degrees", (w_in >= 100) & (a <= 45))):
+            c = cond & bs.ok
+            rows[name] = dict(n=int(c.sum()), median_angle_deg=float(np.median(a[c])) if c.any() else None,
+                              median_abs_magnitude_error=float(np.median(np.abs(m[c]))) if c.any() else None,
+                              median_signed_magnitude_error=float(np.median(m[c])) if c.any() else None,
+                              median_abs_size_error=float(np.median(np.abs(full[c]))) if c.any() else None)
+        bounce_rows[label] = rows
+    results["spindoe_bounce"] = dict(pairs=int(len(sel)), fitted=int(bs.ok.sum()), fit_seconds=bounce_s,
+                                     median_rmse_mm=float(np.nanmedian(bs.rmse) * 1e3), rows=bounce_rows)
+
     # ------------------------------------------------------------------ MPI and TT3D: no spin
     for name, folder, source in (("mpi", "mpi_ball_prediction", "mpi"), ("tt3d", "tt3d", "tt3d")):
         print(f"{name}: importing, fitting ...", file=sys.stderr)
@@ -203,6 +240,15 @@ def main(argv=None) -> int:
         if r["n"]:
             print(f"| {k} | {r['n']} | {r['median_angle_deg']:.1f} deg | {100 * r['median_abs_magnitude_error']:.0f} % |")
     print("\nSpinDOE " + results["spindoe"]["spin_check_summary"])
+    print("\nSpinDOE across the bounce (" + str(results["spindoe_bounce"]["pairs"]) + " bounces):")
+    print("| fit | segments | n | median angle | median magnitude error across the flight (signed) | median size error |")
+    print("|---|---|---|---|---|---|")
+    for label, rows in results["spindoe_bounce"]["rows"].items():
+        for k, r in rows.items():
+            if r["n"]:
+                print(f"| {label} | {k} | {r['n']} | {r['median_angle_deg']:.1f}° | "
+                      f"{100 * r['median_abs_magnitude_error']:.0f} % ({100 * r['median_signed_magnitude_error']:+.0f} %) | "
+                      f"{100 * r['median_abs_size_error']:.0f} % |")
     print("\n| data | segments | held-out RMSE, latent spin | spin 0 | less |\n|---|---|---|---|---|")
     for name in ("mpi", "tt3d"):
         r = results[name]

@@ -185,12 +185,16 @@ def test_bounces_and_landings_without_measured_spin_take_the_incoming_latent_spi
     g_l, g_z = latent["landing"], zero["landing"]
     assert len(g_l["event_id"]) == len(measured["landing"]["event_id"]) >= 5 and set(g_l["spin_source"]) == {"latent"}
     assert "low_spin_conf_in" in g_z["skipped"]
-    # Their landings miss by more than with the true spin: after a bounce the segments into the
-    # racket are short, and under durr2026's Magnus law a small and a large spin bend a flight
-    # alike, so the latent spin's size is often off (427 rad/s read as 37), and the racket turns
-    # spin into velocity. Still closer than spin 0 (medians 1.1 against 1.8 m when written).
-    assert np.all(g_l["hit"][TRUTH])
+    # After a bounce the segment into the racket is short, and under durr2026's Magnus law a small
+    # and a large spin bend a flight alike (427 rad/s read as 37 from the segment alone); a racket
+    # turns spin into velocity, so such a spin lands metres off (a median of 1.1 m, against 1.8 m
+    # from spin 0, when fitted from that segment alone). Fitted across the bounce before it, the
+    # spin's size is told: 10 of 13 landings come that way, their median error 3 mm and the worst
+    # 23 cm when written.
+    assert np.all(g_l["hit"][TRUTH]) and g_l["through_bounce"].sum() >= 0.5 * len(g_l["event_id"])
+    through = g_l["through_bounce"]
+    assert np.median(g_l["error"][TRUTH][through]) < 0.01 and np.max(g_l["error"][TRUTH][through]) < 0.3
     zero_spin = evaluate_models(blind, [TRUTH], EvaluateSettings(spin="zero"), stages=("landing",))["landing"]
-    assert np.nanmedian(g_l["error"][TRUTH]) < np.nanmedian(zero_spin["error"][TRUTH])
+    assert np.nanmedian(g_l["error"][TRUTH]) < 0.1 * np.nanmedian(zero_spin["error"][TRUTH])
     text = markdown(summarise(latent), FIGURES)
     assert f"pre-bounce spin: {n} latent" in text and "incoming spin: " in text

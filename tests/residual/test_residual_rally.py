@@ -159,6 +159,7 @@ def test_sampled_correction_depends_on_the_ball_not_on_its_buffer_slot(setup):
                                atol=1e-9)
 
 
+@pytest.mark.slow  # 34 s; accelerators' buffering (a CPU never takes it), the network-free case stays in the default run
 def test_single_buffering_runs_the_network_on_the_racket_rows_only(setup):
     """Accelerators' buffering evaluates the network on B/256 rows, those with a racket contact
     (``step.NET_FRACTION``): its events, sampled draws included, equal the CPU loop's (the network on

@@ -50,6 +50,8 @@ from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.fit.network_evaluation import contact_errors
 from ttsim_jax.fit.racket_arrays import contact_arrays
 
+from .spins import incoming_spins
+
 STAGES = ("flight", "table", "racket", "landing")
 REFERENCE = "nakashima2011"
 #: Face semi-axes [m] of the racket in the landing rollouts: larger than any real blade, so that a
@@ -188,7 +190,7 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``spin_known`` (N, 2) bool (before,
         after), ``pre``, ``post`` (N, 6) estimated world-frame (v, w) before / after (the pre-bounce
         spin 0 where not measured), ``spin_in`` {name: (N, 3) the pre-bounce spin each model was
-        given} and ``spin_source`` (N,) where it came from (:func:`incoming_spins`), ``error``
+        given} and ``spin_source`` (N,) where it came from (:func:`~ttsim_jax.evaluate.spins.incoming_spins`), ``error``
         {name: (N, 6) predicted minus measured, NaN spin unless both spins are measured},
         ``skip_counts`` {reason: n}.
     """
@@ -216,7 +218,7 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
     p_c = c.pos[at]
     pre = np.concatenate([c.vel_in[g], np.where(spin_known[:, :1], c.spin_in[g], 0.0)], 1)
     post = np.concatenate([c.vel_out[g], c.spin_out[g]], 1)
-    spin_in, source = incoming_spins(ds, models, c.in_row[g], spin_known[:, 0], c.spin_in[g], settings.spin)
+    spin_in, source, _ = incoming_spins(ds, models, c.in_row[g], spin_known[:, 0], c.spin_in[g], settings.spin)
     error = {}
     for name, model in models:
         dtype = model.ball.radius.dtype
@@ -228,51 +230,6 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
         tick()
     return dict(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, spin_in=spin_in, spin_source=source,
                 error=error, skip_counts=skip_counts, n_bounces=len(rows))
-
-
-def incoming_spins(ds, models: list, seg_rows: np.ndarray, known: np.ndarray, measured: np.ndarray,
-                   spin: str) -> tuple[dict, np.ndarray]:
-    """The spin each model gives a contact's incoming segment, by ``spin`` (as for the flight stage).
-
-    Arguments:
-        ds: the dataset; models: [(name, Model)].
-        seg_rows: (N,) rows of the incoming segments in ``ds.segments``.
-        known: (N,) bool, the segment's spin is measured with confidence; measured: (N, 3) that spin.
-        spin: one of :data:`~ttsim_jax.fit.choices.SPIN_SOURCES`.
-
-    Returns:
-        ({name: (N, 3) spin [rad/s]}, source (N,) ``"measured"``, ``"latent"`` or ``"zero"``). A
-        latent spin is the segment's fitted spin (:mod:`ttsim_jax.fit.latent_spin`, under each
-        model); a segment too short for one, or whose fit failed, gives spin 0.
-    """
-    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
-    from ttsim_jax.fit.latent_spin import fit_latent_spin
-
-    n = len(seg_rows)
-    use_measured = known & (spin in ("auto", "measured"))
-    base = np.where(use_measured[:, None], measured, 0.0)
-    source = np.where(use_measured, "measured", "zero").astype("U8")
-    want = (~use_measured) if spin == "auto" else np.full(n, spin == "latent")
-    rows = np.flatnonzero(want)
-    out = {name: base.copy() for name, _ in models}
-    if not len(rows):
-        return out, source
-    seg = ds.segments
-    obs_rows = ds.segment_rows(np.asarray(seg["segment_id"])[seg_rows[rows]])
-    times = [np.asarray(ds.observations["t"], np.float64)[r] for r in obs_rows]
-    positions = [ds.positions[r] for r in obs_rows]
-    long_enough = np.array([len(t) >= LATENT_MIN_SAMPLES for t in times], bool)
-    fitted = np.zeros(len(rows), bool)
-    for name, model in models:
-        ls = fit_latent_spin([t for t, k in zip(times, long_enough) if k],
-                             [p for p, k in zip(positions, long_enough) if k], model, min_samples=LATENT_MIN_SAMPLES)
-        at = rows[long_enough]
-        out[name][at] = np.where(ls.ok[:, None], ls.spin, 0.0)
-        out[name][rows[~long_enough]] = 0.0
-        fitted[np.flatnonzero(long_enough)[ls.ok]] = True
-    source[rows[fitted]] = "latent"
-    source[rows[~fitted]] = "zero"
-    return out, source
 
 
 def counts_text(counts: dict, reasons: dict) -> str:
@@ -521,7 +478,8 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
         dict: ``skipped`` (a reason) or ``event_id`` (N,), ``measured`` (N, 2), ``landing``
         {name: (N, 2)}, ``error`` {name: (N,) distance [m], NaN where the simulated ball was not
         hit or did not land}, ``hit`` {name: (N,) bool}, ``spin_source`` (N,) where each incoming
-        spin came from (:func:`incoming_spins`), ``skip_counts``, ``n_contacts``.
+        spin came from and ``through_bounce`` (N,) whether a latent one was fitted across the
+        bounce before (:func:`~ttsim_jax.evaluate.spins.incoming_spins`), ``skip_counts``, ``n_contacts``.
     """
     from ttsim_jax.kernel.step import ball_properties
 
@@ -535,8 +493,8 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
             tick()
         return dict(skipped=f"none of the {cases['n_contacts']} racket contacts is usable "
                     f"({counts_text(cases['skip_counts'], LANDING_SKIP_REASONS)})")
-    spins, source = incoming_spins(ds, models, cases["in_row"], cases["spin_known"], cases["ball"][:, 6:],
-                                   settings.spin)
+    spins, source, bounce = incoming_spins(ds, models, cases["in_row"], cases["spin_known"], cases["ball"][:, 6:],
+                                           settings.spin, through_bounce=True)
     landing, hit, error = {}, {}, {}
     for name, model in models:
         ball = cases["ball"].copy()
@@ -545,7 +503,8 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
         error[name] = np.linalg.norm(landing[name] - cases["measured"], axis=1)
         tick()
     return dict(event_id=cases["event_id"], measured=cases["measured"], landing=landing, error=error, hit=hit,
-                spin_source=source, skip_counts=cases["skip_counts"], n_contacts=cases["n_contacts"])
+                spin_source=source, through_bounce=bounce, skip_counts=cases["skip_counts"],
+                n_contacts=cases["n_contacts"])
 
 
 # ---------------------------------------------------------------------------------------------- all

@@ -248,9 +248,15 @@ def _lm_step(h, g, lam):
     return step, -(2.0 * g @ step + step @ h @ step)
 
 
-def levenberg_marquardt(normal: Callable, theta0, iterations: int = ITERATIONS, tol: float = TOL):
+def levenberg_marquardt(normal: Callable, theta0, iterations: int = ITERATIONS, tol: float = TOL,
+                        stop_on_failure: bool = True):
     """Levenberg-Marquardt from ``theta0`` over normal equations ``normal(theta) -> (cost, J^T J,
     J^T r, aux)`` (jit- and vmap-able; under vmap the loop runs until every problem has converged).
+
+    ``stop_on_failure`` (static): a step that does not lower the cost ends the fit (right for a
+    smooth cost near its minimum, and it saves iterations); False retries with ten times the
+    damping instead, for costs with kinks (a bounce's friction regimes), until the predicted gain
+    falls below ``tol`` or the iterations run out.
 
     Returns:
         (theta, cost, J^T J, aux at theta, iterations taken).
@@ -263,7 +269,7 @@ def levenberg_marquardt(normal: Callable, theta0, iterations: int = ITERATIONS, 
         cand = theta + step
         c_new, h_new, g_new, a_new = normal(cand)
         ok = jnp.isfinite(c_new) & (c_new < cost) & jnp.all(jnp.isfinite(cand))
-        stalled = (c_new >= cost * (1.0 - tol)) & (k > 0)
+        stalled = (c_new >= cost * (1.0 - tol)) & (k > 0) & stop_on_failure
         pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
         theta, lam, cost, h, g = pick(cand, theta), pick(lam / 3.0, lam * 10.0), pick(c_new, cost), pick(h_new, h), \
             pick(g_new, g)

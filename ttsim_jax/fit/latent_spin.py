@@ -137,6 +137,17 @@ def spin_prior(along, prior_along, prior_any):
     return outer / prior_along**2 + eye / prior_any**2
 
 
+def spin_statistics(theta, cost, jtj, along, count, noise, prior_along, prior_any):
+    """(cov (S, 3, 3), rmse (S,)) of fits of (p0, v0, w) on the host: the spin's covariance from the
+    curvature, scaled by the reduced chi-square where above 1, and the position RMSE [m], both from
+    the cost less the spin prior's part. ``count``: (S,) samples fitted; ``along``: (S, 3)."""
+    prior = spin_prior(along, prior_along, prior_any)
+    data_cost = cost - np.einsum("si,sij,sj->s", theta[:, 6:], prior, theta[:, 6:])
+    chi2 = data_cost / np.maximum(3.0 * count - 9.0, 1.0)
+    cov = np.linalg.pinv(jtj)[:, 6:, 6:] * np.maximum(chi2, 1.0)[:, None, None]
+    return cov, noise * np.sqrt(np.maximum(data_cost, 0.0) / np.maximum(count, 1.0))
+
+
 def fit_one(model, tau, pos, mask, n, noise, prior_along, prior_any, iterations: int = ITERATIONS):
     """The latent-spin fit of one padded segment from each of :data:`STARTS` (the start's spin
     scaled), the best kept: dict of ``theta`` (9,), ``cost``, ``jtj``, ``along`` (3,) the unobserved
@@ -251,11 +262,7 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
         theta, cost, h = (np.asarray(raw[key][:k], np.float64) for key in ("theta", "cost", "jtj"))
         count = np.asarray(mask[:k], np.float64).sum(1)
         along = np.asarray(raw["along"][:k], np.float64)
-        prior = spin_prior(along, prior_along, prior_any)
-        data_cost = cost - np.einsum("si,sij,sj->s", theta[:, 6:], prior, theta[:, 6:])
-        chi2 = data_cost / np.maximum(3.0 * count - 9.0, 1.0)
-        cov = np.linalg.pinv(h)[:, 6:, 6:] * np.maximum(chi2, 1.0)[:, None, None]
-        rmse = noise * np.sqrt(np.maximum(data_cost, 0.0) / np.maximum(count, 1.0))
+        cov, rmse = spin_statistics(theta, cost, h, along, count, noise, prior_along, prior_any)
         ok = np.isfinite(theta).all(1) & np.isfinite(cost) & np.isfinite(cov).all((1, 2))
         sel = np.asarray(idx)
         for name, value in (("p0", theta[:, :3]), ("v0", theta[:, 3:6]), ("spin", theta[:, 6:]), ("cov", cov),
