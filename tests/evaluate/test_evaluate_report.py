@@ -198,3 +198,4 @@ def test_bounces_and_landings_without_measured_spin_take_the_incoming_latent_spi
     assert np.nanmedian(g_l["error"][TRUTH]) < 0.1 * np.nanmedian(zero_spin["error"][TRUTH])
     text = markdown(summarise(latent), FIGURES)
     assert f"pre-bounce spin: {n} latent" in text and "incoming spin: " in text
+    assert f"({int(through.sum())} of the latent spins fitted across the bounce before the contact" in text

@@ -174,6 +174,7 @@ def summarise(result: dict) -> dict:
             out["landing"] = dict(n_contacts=g["n_contacts"], n_used=len(g["event_id"]), skip_counts=g["skip_counts"],
                                   spin_sources=spin_source_counts(g.get("spin_source", np.full(len(g["event_id"]),
                                                                                                "measured"))),
+                                  through_bounce=int(np.sum(g.get("through_bounce", 0))),
                                   unit="m", models=per)
     return tidy(out)
 
@@ -271,8 +272,10 @@ def _sources_text(counts: dict) -> str:
 def _landing_md(g: dict, names: list, figures: dict) -> list:
     rows = [[n, str(m["n"]), _num(m["median"], ".3f"), _num(m["p75"], ".3f"), _reduction(m, "median"),
              _reduction(m, "p75"), str(m["not_hit"]), str(m["no_landing"])] for n, m in g["models"].items()]
+    bounce = (f" ({g['through_bounce']} of the latent spins fitted across the bounce before the contact, both "
+              "segments as one flight)") if g.get("through_bounce") else ""
     return ([f"{g['n_used']} of {g['n_contacts']} racket contacts used; incoming spin: "
-             f"{_sources_text(g['spin_sources'])}. Skipped: "
+             f"{_sources_text(g['spin_sources'])}{bounce}. Skipped: "
              f"{counts_text(g['skip_counts'], LANDING_SKIP_REASONS)}. Simulated from the last observation before the "
              "contact with the measured racket state until the table plane.", ""]
             + _table_md(["model", "n", "median [m]", "75th pct [m]", "median reduction [%] [95 % CI]",

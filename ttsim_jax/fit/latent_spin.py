@@ -160,7 +160,7 @@ def fit_one(model, tau, pos, mask, n, noise, prior_along, prior_any, iterations:
         return normal_equations(model, theta, tau, pos, mask, n, noise, prior)
 
     def start(scale):
-        return levenberg_marquardt(normal, theta0.at[6:].multiply(scale), iterations)
+        return levenberg_marquardt(normal, theta0.at[6:].multiply(scale), iterations, stop_on_failure=False)
 
     theta, cost, h, vel, k = jax.vmap(start)(jnp.asarray(STARTS, theta0.dtype))
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
