@@ -276,10 +276,11 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
     return out
 
 
-def dataset_latent_spin(ds, model, *, min_samples: int = 8, **options) -> tuple[np.ndarray, LatentSpin]:
+def dataset_latent_spin(ds, model, *, min_samples: int = 8, noise: float = NOISE,
+                        progress: Callable | None = None) -> tuple[np.ndarray, LatentSpin]:
     """(segment_ids (S,), :class:`LatentSpin`) of every segment of a dataset with at least
-    ``min_samples`` observations; ``options`` as for :func:`fit_latent_spin`."""
+    ``min_samples`` observations; ``noise`` and ``progress`` as for :func:`fit_latent_spin`."""
     from ttsim_jax.fit.segment_batches import dataset_segments
 
     ids, times, positions, _, _ = dataset_segments(ds, min_samples)
-    return ids, fit_latent_spin(times, positions, model, min_samples=min_samples, **options)
+    return ids, fit_latent_spin(times, positions, model, noise=noise, min_samples=min_samples, progress=progress)
