@@ -56,6 +56,7 @@ def test_a_record_without_spin_flies_latent_spin_and_still_finds_the_cause(unmea
     assert f"latent {src['latent']}" in text and "read as spin" in text
 
 
+@pytest.mark.slow  # 25 s: a second diagnosis; the evaluation's latent-against-zero test stays in the default run
 def test_latent_spin_flies_closer_than_spin_zero(model, unmeasured):
     """The same record flown at spin 0 (``--spin zero``): its flights miss by more."""
     zero = diagnose(with_spin(load(BUCKLING), 0.0, conf=0.0), model,
@@ -73,6 +74,7 @@ def test_a_spin_reading_high_is_named_and_nothing_is_explained_with_it(reads_hig
     assert "spin_check: " in markdown(reads_high)
 
 
+@pytest.mark.slow  # 24 s: the command-line door of the record check that the fixtures above run in the diagnosis
 def test_data_info_spin_check_runs_the_same_check(capsys):
     from ttsim_jax.cli import main
 
