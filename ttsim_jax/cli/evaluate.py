@@ -72,7 +72,10 @@ def register(subparsers) -> None:
                         help="comma-separated subset of flight,table,racket,landing (default: all)")
     parser.add_argument("--horizon", type=positive_float, default=1.5, metavar="S",
                         help="longest landing rollout [s] (default: %(default)s)")
-    add_spin_option(parser, "flight segments' spin")
+    add_spin_option(parser, "flight segments' spin, and so the spin a bounce or a racket contact receives (a "
+                    "racket contact after a bounce: the spin leaving it, both segments fitted as one flight; with "
+                    "'measured' a bounce without a measured spin takes spin 0 and a racket contact without one is "
+                    "skipped)")
     parser.add_argument("--float64", action="store_true", help="simulate in float64 (default: float32)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=cmd_evaluate)
