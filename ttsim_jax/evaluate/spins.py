@@ -49,15 +49,11 @@ def incoming_spins(ds, models: list, seg_rows: np.ndarray, known: np.ndarray, me
     obs_rows = ds.segment_rows(np.asarray(seg["segment_id"])[seg_rows[rows]])
     times = [np.asarray(ds.observations["t"], np.float64)[r] for r in obs_rows]
     positions = [ds.positions[r] for r in obs_rows]
-    long_enough = np.array([len(t) >= LATENT_MIN_SAMPLES for t in times], bool)
     fitted = np.zeros(len(rows), bool)
-    for name, model in models:
-        ls = fit_latent_spin([t for t, k in zip(times, long_enough) if k],
-                             [p for p, k in zip(positions, long_enough) if k], model, min_samples=LATENT_MIN_SAMPLES)
-        at = rows[long_enough]
-        out[name][at] = np.where(ls.ok[:, None], ls.spin, 0.0)
-        out[name][rows[~long_enough]] = 0.0
-        fitted[np.flatnonzero(long_enough)[ls.ok]] = True
+    for name, model in models:  # a segment too short for a latent spin comes back not ok: spin 0
+        ls = fit_latent_spin(times, positions, model, min_samples=LATENT_MIN_SAMPLES)
+        out[name][rows] = np.where(ls.ok[:, None], ls.spin, 0.0)
+        fitted |= ls.ok
     source[rows[fitted]] = "latent"
     source[rows[~fitted]] = "zero"
     if through_bounce:
@@ -68,30 +64,19 @@ def incoming_spins(ds, models: list, seg_rows: np.ndarray, known: np.ndarray, me
 def _through_bounce(ds, models, seg_rows, rows, out, source) -> np.ndarray:
     """Replaces, in ``out`` and ``source``, the latent spins of ``rows`` whose segment starts at a
     table bounce by the spin leaving that bounce (:func:`incoming_spins`); (N,) which were."""
-    from ttsim_jax.fit.bounce_spin import MIN_SAMPLES, fit_bounce_spin
+    from ttsim_jax.fit.bounce_spin import bounce_pairs, fit_bounce_spin
 
-    seg, ev = ds.segments, ds.events
-    starts = np.asarray(seg["start_event_id"], np.int64)[seg_rows[rows]]
-    ev_rows = np.where(starts >= 0, ds.event_rows(np.where(starts >= 0, starts, 0)), -1)
-    kinds = np.asarray(ev["kind"]).astype(str)
-    is_bounce = (ev_rows >= 0) & (kinds[np.maximum(ev_rows, 0)] == "table")
-    before, _ = ds.segments_around(np.where(is_bounce, starts, -1))
-    pick = np.flatnonzero(is_bounce & (before >= 0))
     done = np.zeros(len(seg_rows), bool)
-    if not len(pick):
+    starts = np.asarray(ds.segments["start_event_id"], np.int64)[seg_rows[rows]]
+    pairs = bounce_pairs(ds, starts[starts >= 0])
+    # each pair's outgoing segment is one of ``rows``' segments
+    at_row = dict(zip(seg_rows[rows].tolist(), rows.tolist()))
+    at = np.array([at_row[int(r)] for r in pairs["out_row"]], np.int64)
+    if not len(at):
         return done
-    seg_ids = np.asarray(seg["segment_id"])
-    obs_in = ds.segment_rows(seg_ids[before[pick]])
-    obs_out = ds.segment_rows(seg_ids[seg_rows[rows[pick]]])
-    keep = [k for k in range(len(pick)) if min(len(obs_in[k]), len(obs_out[k])) >= MIN_SAMPLES]
-    if not keep:
-        return done
-    t_all = np.asarray(ds.observations["t"], np.float64)
-    t_c = np.asarray(ev["t"], np.float64)[ev_rows[pick[keep]]]
-    at = rows[pick[keep]]
     for name, model in models:
-        fit = fit_bounce_spin([t_all[obs_in[k]] for k in keep], [ds.positions[obs_in[k]] for k in keep],
-                              [t_all[obs_out[k]] for k in keep], [ds.positions[obs_out[k]] for k in keep], t_c, model)
+        fit = fit_bounce_spin(pairs["times_in"], pairs["positions_in"], pairs["times_out"], pairs["positions_out"],
+                              pairs["t_contact"], model)
         out[name][at[fit.ok]] = fit.spin_out[fit.ok]
         done[at[fit.ok]] = True
     source[done] = "latent"

@@ -98,14 +98,22 @@ def predict(model, theta, tau_a, tau_b, t_c):
     return pa, pb, post[2], t
 
 
-def _normal(model, theta, tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c, noise, prior):
-    def residuals(th):
-        pa, pb, w_out, _ = predict(model, th, tau_a, tau_b, t_c)
-        r = jnp.concatenate([((pa - pos_a) * mask_a[:, None]).ravel(), ((pb - pos_b) * mask_b[:, None]).ravel()])
-        return r / noise, w_out
+def _residuals(model, theta, tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c, noise):
+    """(the pair's position residuals in units of the noise (6T,), the spin after the bounce)."""
+    pa, pb, w_out, _ = predict(model, theta, tau_a, tau_b, t_c)
+    r = jnp.concatenate([((pa - pos_a) * mask_a[:, None]).ravel(), ((pb - pos_b) * mask_b[:, None]).ravel()])
+    return r / noise, w_out
 
-    r, w_out = residuals(theta)
-    jac = jax.jacfwd(lambda th: residuals(th)[0])(theta)
+
+def _normal(model, theta, data, noise, prior):
+    """Cost, J^T J, J^T r with the spin prior, and the spin after the bounce; ``data`` the pair's
+    (tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c). The nine tangents ride one flight (forward
+    mode), the residuals computed once beside them."""
+    def f(th):
+        return _residuals(model, th, *data, noise)
+
+    eye = jnp.eye(theta.shape[0], dtype=theta.dtype)
+    (r, w_out), (jac, _) = jax.vmap(lambda d: jax.jvp(f, (theta,), (d,)), out_axes=((None, None), (1, 1)))(eye)
     w = theta[6:]
     cost = r @ r + w @ prior @ w
     jtj = (jac.T @ jac).at[6:, 6:].add(prior)
@@ -116,21 +124,20 @@ def _normal(model, theta, tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c, noise
 def _fit_pair(model, tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c, start, along, noise, prior_along, prior_any,
               iterations):
     prior = spin_prior(along, prior_along, prior_any)
+    data = (tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c)
 
     def screen(scale):
         th = start.at[6:].multiply(scale)
-        pa, pb, _, _ = predict(model, th, tau_a, tau_b, t_c)
-        r = jnp.concatenate([((pa - pos_a) * mask_a[:, None]).ravel(), ((pb - pos_b) * mask_b[:, None]).ravel()])
-        cost = (r @ r) / noise**2 + th[6:] @ prior @ th[6:]
+        r, _ = _residuals(model, th, *data, noise)
+        cost = r @ r + th[6:] @ prior @ th[6:]
         return jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
     scales = jnp.asarray(SCREEN, start.dtype)
     best_scales = scales[jnp.argsort(jax.vmap(screen)(scales))[:FITTED]]
 
     def one(scale):
-        return levenberg_marquardt(
-            lambda th: _normal(model, th, tau_a, pos_a, mask_a, tau_b, pos_b, mask_b, t_c, noise, prior),
-            start.at[6:].multiply(scale), iterations, stop_on_failure=False)
+        return levenberg_marquardt(lambda th: _normal(model, th, data, noise, prior), start.at[6:].multiply(scale),
+                                   iterations, stop_on_failure=False)
 
     theta, cost, h, w_out, _ = jax.vmap(one)(best_scales)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
@@ -215,12 +222,12 @@ def fit_bounce_spin(times_in: Sequence[np.ndarray], positions_in: Sequence[np.nd
     groups: dict[int, list[int]] = {}
     for j in np.argsort(lengths, kind="stable"):
         groups.setdefault(capacity(int(lengths[j])), []).append(int(j))
+    zeros = np.zeros((n, 3))  # pack's spins, unused here
     for size, members in sorted(groups.items()):
         for lo in range(0, len(members), batch):
             part = members[lo:lo + batch]
             rows = -(-len(part) // 8) * 8
             idx = [usable[j] for j in part]
-            zeros = np.zeros((n, 3))
             ta, pa, ma, _ = pack(times_in, positions_in, zeros, idx, size, rows, dtype)
             tb, pb, mb, _ = pack(times_out, positions_out, zeros, idx, size, rows, dtype)
             t0 = np.array([times_in[i][0] for i in idx], np.float64)
@@ -253,34 +260,42 @@ def fit_bounce_spin(times_in: Sequence[np.ndarray], positions_in: Sequence[np.nd
     return out
 
 
-def bounce_pairs(ds, contacts=None, *, min_samples: int = MIN_SAMPLES) -> dict:
+def bounce_pairs(ds, event_ids=None, *, min_samples: int = MIN_SAMPLES) -> dict:
     """The table bounces of a dataset with a flight segment on each side, as :func:`fit_bounce_spin` takes them.
 
     Arguments:
-        ds: a :class:`~ttsim_jax.data.Dataset`; contacts: its :class:`~ttsim_jax.data.contact_states.Contacts`
-            (default ``ds.contacts()``); min_samples: shortest segment on either side.
+        ds: a :class:`~ttsim_jax.data.Dataset`; event_ids: the bounces to take (default: every
+            table event); min_samples: shortest segment on either side.
 
     Returns:
-        dict: ``event_id``, ``in_row``, ``out_row`` (N,), ``t_contact`` (N,), ``times_in``,
-        ``positions_in``, ``times_out``, ``positions_out`` (lists).
+        dict: ``event_id``, ``in_row``, ``out_row`` (N,) (rows of the segments table),
+        ``t_contact`` (N,), ``times_in``, ``positions_in``, ``times_out``, ``positions_out``
+        (lists): the bounces among ``event_ids`` that have both segments, in their order.
     """
-    c = ds.contacts() if contacts is None else contacts
-    table = np.flatnonzero((np.asarray(c.kind).astype(str) == "table") & (c.in_row >= 0) & (c.out_row >= 0))
+    ev = ds.events
+    kinds = np.asarray(ev["kind"]).astype(str)
+    ids = np.asarray(ev["event_id"], np.int64)[kinds == "table"] if event_ids is None else np.asarray(event_ids, np.int64)
+    rows = ds.event_rows(ids) if len(ids) else np.zeros(0, np.int64)
+    ids = ids[(rows >= 0) & (kinds[np.maximum(rows, 0)] == "table")] if len(ids) else ids
+    in_rows, out_rows = ds.segments_around(ids) if len(ids) else (np.zeros(0, np.int64),) * 2
+    both = (in_rows >= 0) & (out_rows >= 0)
+    ids, in_rows, out_rows = ids[both], in_rows[both], out_rows[both]
     seg_ids = np.asarray(ds.segments["segment_id"])
-    t_all = np.asarray(ds.observations["t"], np.float64)
-    pos_all = ds.positions
-    rows_in = ds.segment_rows(seg_ids[c.in_row[table]]) if len(table) else []
-    rows_out = ds.segment_rows(seg_ids[c.out_row[table]]) if len(table) else []
-    keep = [k for k in range(len(table)) if min(len(rows_in[k]), len(rows_out[k])) >= min_samples]
-    pick = table[keep]
-    return dict(event_id=np.asarray(c.event_id)[pick], in_row=c.in_row[pick], out_row=c.out_row[pick],
-                t_contact=np.asarray(c.t, np.float64)[pick],
-                times_in=[t_all[rows_in[k]] for k in keep], positions_in=[pos_all[rows_in[k]] for k in keep],
-                times_out=[t_all[rows_out[k]] for k in keep], positions_out=[pos_all[rows_out[k]] for k in keep])
+    obs_in = ds.segment_rows(seg_ids[in_rows]) if len(ids) else []
+    obs_out = ds.segment_rows(seg_ids[out_rows]) if len(ids) else []
+    keep = np.array([min(len(obs_in[k]), len(obs_out[k])) >= min_samples for k in range(len(ids))], bool)
+    keep_list = np.flatnonzero(keep)
+    t_all = np.asarray(ev["t"], np.float64)
+    t_obs = np.asarray(ds.observations["t"], np.float64)
+    return dict(event_id=ids[keep], in_row=in_rows[keep], out_row=out_rows[keep],
+                t_contact=t_all[ds.event_rows(ids[keep])] if keep.any() else np.zeros(0),
+                times_in=[t_obs[obs_in[k]] for k in keep_list], positions_in=[ds.positions[obs_in[k]] for k in keep_list],
+                times_out=[t_obs[obs_out[k]] for k in keep_list],
+                positions_out=[ds.positions[obs_out[k]] for k in keep_list])
 
 
-def dataset_bounce_spin(ds, model, contacts=None, *, noise: float = NOISE) -> tuple[dict, BounceSpin]:
+def dataset_bounce_spin(ds, model, event_ids=None, *, noise: float = NOISE) -> tuple[dict, BounceSpin]:
     """(:func:`bounce_pairs` of ``ds``, their :class:`BounceSpin`), ``noise`` as for :func:`fit_bounce_spin`."""
-    pairs = bounce_pairs(ds, contacts)
+    pairs = bounce_pairs(ds, event_ids)
     return pairs, fit_bounce_spin(pairs["times_in"], pairs["positions_in"], pairs["times_out"], pairs["positions_out"],
                                   pairs["t_contact"], model, noise=noise)
