@@ -4,8 +4,10 @@ For each seed, :func:`ttsim_jax.fit.pipeline.fit_dataset` (what ``ttsim fit --da
 --data C`` runs) fits SpinDOE, TT3D and the MPI launcher recordings together, with
 ``--test-fraction`` of each dataset's sessions held out, once per aerodynamic variant (forms x
 association). The stages the public data cannot support are skipped (table: no bounce has a
-measured spin on both sides; racket: no racket states), and only SpinDOE has measured spins, so
-every variant's aerodynamics come from SpinDOE's training sessions.
+measured spin on both sides; racket: no racket states). Only SpinDOE has measured spins: its
+training segments place C_D and C_M, and TT3D's and MPI's (and SpinDOE's without a confident
+spin) enter the C_D table at their latent spin (``ttsim fit --spin auto``, the default; before
+it, SpinDOE's C_D alone made MPI 5-45 % worse).
 
 Every model is then scored as ``ttsim evaluate --split test`` scores it
 (:func:`ttsim_jax.evaluate.stages.flight_stage`): per held-out flight segment, the 3-D position

@@ -137,3 +137,46 @@ def test_too_few_racket_contacts_skip_the_racket_stage_with_the_count(sample, tm
     assert "racket: skipped: 3 usable racket contacts (5 racket events" in captured.out
     assert "nothing to fit" in captured.err and "at least 10 are needed" in captured.err
     assert not out.with_suffix(".toml").exists()
+
+
+def test_segments_without_a_measured_spin_place_the_drag_at_their_latent_spin_and_leave_magnus_alone(sample):
+    """The aero stage with the sample's spins withheld from every odd session: those segments enter
+    the C_D regression at their latent spin (a C_D their deceleration shows whatever the spin, and
+    placed along the spin ratio by the latent spin's size), and the C_M form is the one the
+    measured spins alone give (a latent spin is the spin the base's C_M needs)."""
+    from ttsim_jax.fit.identify import identify_aero
+
+    seg = sample.segments
+    blind = sample.replace(segments=dict(seg, spin_conf=np.where(np.asarray(seg["session_id"]) % 2 == 1, 0.0,
+                                                                 seg["spin_conf"])))
+    auto = identify_aero(blind, "conti2026", forms=("drag", "magnus"))
+    measured = identify_aero(blind, "conti2026", forms=("drag", "magnus"), spin="measured")
+    seen = identify_aero(sample, "conti2026", forms=("drag",), spin="measured")
+    c = auto.counts
+    assert c["segments"] == c["too_short"] + c["held_out"] + c["low_spin_conf"] + c["fitted"]
+    assert c["latent"] >= 40 and c["fitted"] == measured.counts["fitted"] + c["latent"]
+    assert c["used_measured"] == measured.counts["used"] and c["used"] > measured.counts["used"]
+    for k, v in auto.magnus.values.items():
+        np.testing.assert_allclose(v, measured.magnus.values[k], rtol=1e-12, err_msg=k)
+    assert auto.drag.support.sum() == pytest.approx(c["used"]) and not np.allclose(auto.drag.values["cd"],
+                                                                                 measured.drag.values["cd"])
+    # each blinded segment: the C_D of its flight as with its measured spin, at a spin of about its size
+    row = {int(i): k for k, i in enumerate(seen.segment_ids)}  # the segments with a measured spin
+    latent = (auto.spin_source == "latent") & np.isin(auto.segment_ids, seen.segment_ids)
+    assert latent.sum() >= 40
+    rows = [row[int(i)] for i in auto.segment_ids[latent]]
+    assert np.median(np.abs(auto.fits.cd[latent] - seen.fits.cd[rows])) < 0.1 * np.median(seen.fits.stderr[rows, 6])
+    size = np.linalg.norm(auto.fits.spin[latent], axis=1) / np.linalg.norm(seen.fits.spin[rows], axis=1)
+    assert abs(np.median(size) - 1.0) < 0.2, np.median(size)
+    assert "at their latent spin" in auto.summary()
+
+
+def test_a_record_without_any_measured_spin_fits_its_drag_at_the_latent_spin_only_when_asked(sample):
+    from ttsim_jax.fit.pipeline import stage_problems
+
+    blind = sample.replace(segments=dict(sample.segments, spin_conf=np.zeros(len(sample.segments["spin_conf"]))))
+    assert "aero" not in stage_problems(blind, ("aero",))  # --spin auto, the default
+    assert "aero" not in stage_problems(blind, ("aero",), spin="latent")
+    for spin in ("measured", "zero"):
+        why = stage_problems(blind, ("aero",), spin=spin)["aero"]
+        assert "no flight segment with a measured spin" in why and "--spin auto" in why

@@ -77,15 +77,6 @@ def one_per_reading(names):
     return list(firsts.values())
 
 
-def _tables_first(names):
-    """The models as test parameters: by default conti2026 alone (the paper's tables, the reading
-    most runs take); the others ``slow``. Each reading is still run by default, sharded, by
-    :func:`test_sharded_fused_path_equals_the_reference` against the same reference rollouts, so a
-    reading gone wrong (nakashima2011's constants) fails the default run there."""
-    return [pytest.param(n, marks=() if n == "conti2026" else pytest.mark.slow) for n in names]
-
-
-@pytest.mark.parametrize("name", _tables_first(COVERED))
 def test_default_path_equals_the_reference_path(name, state, references):
     """At the batch and length from which ``fused="auto"`` flies the fused kernel, the default
     execution (then the fused path) gives the reference step's events and states for every bundled

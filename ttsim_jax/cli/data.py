@@ -156,7 +156,7 @@ def _spin_check(ds, model_name: str) -> dict:
     import numpy as np
 
     from ttsim_jax.fit.segment_batches import dataset_segments
-    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+    from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES
     from ttsim_jax.fit.spin_check import check_record_spin
     from ttsim_jax.params import load_model
 

@@ -42,8 +42,9 @@ def register(subparsers) -> None:
         f"{','.join(DEFAULT_STAGES)} that the data supports run and the others are skipped with the reason; a stage "
         "named in --stages that the data cannot support is refused before any work. If a stage fails, the stages "
         "fitted before it are written and the exit status is 1. "
-        "aero: C_D, C_M and the initial state per flight segment with a measured spin (one compiled, batched "
-        "Levenberg-Marquardt solver), segments above --max-rmse-mm dropped, the coefficients regressed into the "
+        "aero: C_D, C_M and the initial state per flight segment at its measured spin, or at its latent spin where "
+        "none was measured (one compiled, batched Levenberg-Marquardt solver), segments above --max-rmse-mm dropped, "
+        "the coefficients regressed into the "
         "paper's forms (the C_D breakpoint table over Re and Sp, C_M linear/quadratic in the spin rate per reference "
         "speed). table: states before and after each table bounce with a measured spin on both sides, e0 and e1 of "
         "the restitution law (held within [e_min, e_max]: no bounce gains energy) and the four local residual "
@@ -92,9 +93,10 @@ def register(subparsers) -> None:
                    "with the same fraction and seed on that dataset; default: %(default)s)")
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the held-out draw and of the cross-validation folds (default: %(default)s)")
-    add_spin_option(p, "spins of the flight segments the fitted and the base model are compared on (the "
-                    "coefficients are fitted from segments with a measured spin only, never from a spin the fit "
-                    "itself estimated)")
+    add_spin_option(p, "spins of the flight segments: those the fitted and the base model are compared on, and "
+                    "for aero's C_D those of the segments without a measured spin (auto, latent: their latent spin, "
+                    "fitted under the base model; measured, zero: left out). C_M is fitted from measured spins only: a "
+                    "latent spin is the one the base's C_M needs, and would return it")
     p.add_argument("--per-racket", action="store_true",
                    help="also fit each racket configuration the data name (rackets.config, as 'ttsim data import "
                    "--source tt_rackets' writes) on its own: the updated base model (and, with residual in --stages, "

@@ -154,7 +154,7 @@ def flights(ds, session_index: dict, min_samples: int = 5, min_spin_conf: float 
     The segments of ``exclude`` (ids) are left out."""
     from ttsim_jax.fit.segment_batches import dataset_segments
     from ttsim_jax.fit.choices import SPIN_SOURCES
-    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+    from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES
 
     if spin not in SPIN_SOURCES:
         raise ValueError(f"spin = {spin!r}: must be one of {SPIN_SOURCES}")

@@ -32,7 +32,7 @@ def incoming_spins(ds, models: list, seg_rows: np.ndarray, known: np.ndarray, me
         fitted spin (:mod:`ttsim_jax.fit.latent_spin`, under each model); a segment too short for
         one, or whose fit failed, gives spin 0.
     """
-    from ttsim_jax.fit.flight import LATENT_MIN_SAMPLES
+    from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES
     from ttsim_jax.fit.latent_spin import fit_latent_spin
 
     n = len(seg_rows)

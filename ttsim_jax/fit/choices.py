@@ -12,3 +12,5 @@ ASSOCIATIONS = ("v_eff", "averaged")
 #: Where a flight segment's spin comes from (``ttsim evaluate / fit / diagnose --spin``): the measured
 #: spin where confident and the latent spin elsewhere, the measured only, the latent everywhere, 0.
 SPIN_SOURCES = ("auto", "measured", "latent", "zero")
+#: Shortest segment whose latent spin is fitted (shorter ones fly with spin 0).
+LATENT_MIN_SAMPLES = 8

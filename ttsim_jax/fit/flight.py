@@ -20,7 +20,7 @@ import numpy as np
 
 from ttsim_jax.fit.flightfit import Air, initial_guess, integrate
 from ttsim_jax.fit.segment_batches import BATCH, batches, dataset_segments
-from ttsim_jax.fit.choices import SPIN_SOURCES
+from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES, SPIN_SOURCES  # noqa: F401 (re-exported)
 from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve
 
@@ -34,9 +34,6 @@ def spin_source_counts(source) -> dict:
     source = np.asarray(source).astype(str)
     return {k: int(np.sum(source == k)) for k in FLOWN}
 
-
-#: Shortest segment whose latent spin is fitted (shorter ones fly with spin 0).
-LATENT_MIN_SAMPLES = 8
 
 
 def _rmse_one(aero, air, tau, pos, mask, spin, n, iterations, fit_position):

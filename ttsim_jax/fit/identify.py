@@ -6,13 +6,25 @@ fitted model config. ``ttsim fit`` (:mod:`ttsim_jax.cli.fit`) is the command lin
 
 Stages:
 
-1. *select*: segments with at least ``min_samples`` observations and a spin confidence of at least
-   ``min_spin_conf`` (C_D depends on the spin ratio, so segments without a measured spin cannot be
-   placed in the table); sessions of the held-out split (``test_fraction``) are set aside.
-2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.fit.flightfit.fit_segments`; segments
-   whose fit RMSE exceeds ``max_rmse`` are dropped (the paper's 20 mm filter).
-3. *regress*: C_D into the base model's breakpoint table, C_M into its piecewise form
-   (:mod:`ttsim_jax.fit.aero_forms`), weighted by the fits' standard errors.
+1. *select*: segments with at least ``min_samples`` observations; sessions of the held-out split
+   (``test_fraction``) are set aside. A segment's spin is its measured one where the confidence is
+   at least ``min_spin_conf``. With ``spin="auto"`` the others take the latent spin of
+   :mod:`ttsim_jax.fit.latent_spin`, fitted under the base model from the segment's own samples
+   (segments whose latent spin is of undecided size, ``LatentSpin.ambiguous``, are left out: their
+   spin ratio, where C_D is placed, is unknown); with ``spin="measured"`` they are left out.
+2. *fit*: per segment, (p0, v0, C_D, C_M) by :func:`ttsim_jax.fit.flightfit.fit_segments` at that
+   spin; segments whose fit RMSE exceeds ``max_rmse`` are dropped (the paper's 20 mm filter).
+3. *regress*: C_D into the base model's breakpoint table from every fitted segment, C_M into its
+   piecewise form (:mod:`ttsim_jax.fit.aero_forms`) from the segments with a measured spin only,
+   weighted by the fits' standard errors. Why the two differ: a flight's deceleration shows its
+   C_D whatever the spin, and the spin only places it along the spin ratio; a latent spin is the
+   spin the base model's C_M needs to bend the flight as observed, so a C_M fitted from it returns
+   the base's C_M, not the ball's.
+
+Why latent spins enter the drag: a pooled fit whose C_D comes from one dataset's spinning balls
+is flown on every dataset, and a dataset without measured spin whose balls decelerate otherwise
+is then made worse by the fit (the MPI launcher recordings against SpinDOE's C_D: 5-45 % worse
+on held-out sessions over 10 seeds); with their latent spins they inform the entries they fly in.
 """
 
 from __future__ import annotations
@@ -24,7 +36,9 @@ from typing import Callable
 
 import numpy as np
 
+from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES
 from ttsim_jax.fit.flightfit import Air, SegmentFits, fit_segments
+from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.fit.segment_batches import dataset_segments
 from ttsim_jax.fit import aero_forms
 
@@ -37,9 +51,14 @@ class AeroIdentification:
         base: path of the base model config.
         association: how segment coefficients are placed in the forms (``averaged`` or ``v_eff``).
         segment_ids: (S,) ids of the fitted segments; fits: their :class:`~ttsim_jax.fit.flightfit.SegmentFits`.
-        used: (S,) bool, segments that entered the regression.
-        counts: stage -> number of segments (``segments``, ``too_short``, ``low_spin_conf``,
-            ``held_out``, ``fitted``, ``rmse``, ``used``).
+        used: (S,) bool, segments that entered the C_D regression (those with ``spin_source``
+            ``"measured"`` the C_M regression too).
+        spin_source: (S,) ``"measured"`` or ``"latent"``: where each fitted segment's spin came from.
+        counts: stage -> number of segments: ``segments`` = ``too_short`` + ``held_out`` +
+            ``low_spin_conf`` (training segments without a measured spin left out) + ``fitted``;
+            ``latent`` (fitted at their latent spin), ``ambiguous`` (of those left out: a latent
+            spin of undecided size); ``rmse`` (dropped by the fit's RMSE), ``used`` (in the C_D
+            regression), ``used_measured`` (of them with a measured spin: in the C_M regression).
         test_sessions: session ids of the held-out split.
         drag, magnus: the regressed :class:`~ttsim_jax.fit.aero_forms.FormFit` (None with no
             usable segment).
@@ -52,6 +71,7 @@ class AeroIdentification:
     segment_ids: np.ndarray
     fits: SegmentFits
     used: np.ndarray
+    spin_source: np.ndarray
     counts: dict
     test_sessions: list
     drag: aero_forms.FormFit | None
@@ -62,17 +82,21 @@ class AeroIdentification:
     def summary(self) -> str:
         """A few lines per stage, for the terminal."""
         c, s = self.counts, self.seconds
-        lines = [f"select: {c['segments']} segments; {c['too_short']} too short, {c['low_spin_conf']} without a "
-                 f"measured spin (confidence < {self.settings['min_spin_conf']}), {c['held_out']} held out "
-                 f"({len(self.test_sessions)} test sessions)",
+        latent = (f", {c['latent']} at their latent spin (of these {c['ambiguous']} with a latent spin of undecided "
+                  "size left out)" if self.settings["spin"] == "auto" else "")
+        lines = [f"select: {c['segments']} segments; {c['too_short']} too short, {c['held_out']} held out "
+                 f"({len(self.test_sessions)} test sessions), {c['low_spin_conf']} without a measured spin "
+                 f"(confidence < {self.settings['min_spin_conf']}) left out{latent}",
                  f"fit:    {c['fitted']} segments in {s['fit']:.1f} s; median RMSE "
                  f"{_mm(np.nanmedian(self.fits.rmse))}; {c['rmse']} above {1e3 * self.settings['max_rmse']:.0f} mm "
-                 f"dropped; {c['used']} used"]
+                 f"dropped; {c['used']} used for C_D, {c['used_measured']} of them (a measured spin) for C_M"]
         if self.drag is None:
             lines.append("regress: no usable segment; nothing fitted")
             return "\n".join(lines)
         used = self.used
-        lines.append(f"        C_D median {np.median(self.fits.cd[used]):.3f}, C_M median {np.median(self.fits.cm[used]):.3f}, "
+        measured = used & (self.spin_source == "measured")
+        cm = f"{np.median(self.fits.cm[measured]):.3f}" if measured.any() else "-"
+        lines.append(f"        C_D median {np.median(self.fits.cd[used]):.3f}, C_M median {cm}, "
                      f"drag v_eff {np.min(self.fits.v_eff_drag[used]):.1f}-{np.max(self.fits.v_eff_drag[used]):.1f} m/s")
         rms = lambda form: (f"{form.rms_residual:.4f}" if np.isfinite(form.rms_residual)  # noqa: E731
                             else "not fitted (the base model's)")
@@ -92,6 +116,7 @@ class AeroIdentification:
         out = dict(base=str(self.base), association=self.association, counts=self.counts, seconds=self.seconds,
                    settings=self.settings, test_sessions=[int(x) for x in self.test_sessions],
                    segments=dict(segment_id=self.segment_ids.tolist(), used=self.used.tolist(),
+                                 spin_source=[str(x) for x in self.spin_source],
                                  rmse=_clean(f.rmse), cd=_clean(f.cd), cm=_clean(f.cm),
                                  stderr_cd=_clean(f.stderr[:, 6]), stderr_cm=_clean(f.stderr[:, 7]),
                                  v_eff_drag=_clean(f.v_eff_drag), v_eff_magnus=_clean(f.v_eff_magnus),
@@ -114,6 +139,8 @@ def _clean(a) -> list:
 
 
 FORMS = ("drag", "magnus")
+#: Where :func:`identify_aero` takes the spin of a segment without a measured one from.
+IDENTIFY_SPINS = ("auto", "measured")
 
 
 def _unfitted(form) -> aero_forms.FormFit:
@@ -135,7 +162,7 @@ def split_sessions(session_ids, test_fraction: float, seed: int) -> np.ndarray:
 
 def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "averaged", min_spin_conf: float = 0.5,
                   max_rmse: float = 0.02, min_samples: int = 5, test_fraction: float = 0.0, seed: int = 0,
-                  alpha: float = 1.0, forms: tuple = FORMS, progress: Callable | None = None,
+                  alpha: float = 1.0, forms: tuple = FORMS, spin: str = "auto", progress: Callable | None = None,
                   test_sessions=None) -> AeroIdentification:
     """Identifies C_D(Re, Sp) and C_M(v, w) from a dataset's flight segments.
 
@@ -150,6 +177,8 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
         alpha: prior strength of the regression (pseudo-observations per entry).
         forms: which forms to regress (``"drag"``, ``"magnus"``); one left out keeps the base
             model's values.
+        spin: ``"auto"`` (default): segments without a measured spin enter the C_D regression at
+            their latent spin; ``"measured"``: they are left out (see the module docstring).
         progress: optional ``progress(n_done, n_total)`` called after each fitted batch.
         test_sessions: the held-out session ids, given instead of drawn with ``test_fraction`` and
             ``seed`` (:func:`ttsim_jax.fit.pipeline.held_out_sessions` draws them per dataset).
@@ -160,6 +189,8 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     from ttsim_jax.params import ConfigError, load_model, resolve_model_path
     from ttsim_jax.physics.aero import DragTable, MagnusTable
 
+    if spin not in IDENTIFY_SPINS:
+        raise ValueError(f"spin = {spin!r}: expected one of {IDENTIFY_SPINS}")
     base_path = resolve_model_path(base)
     model = load_model(base_path)
     if not isinstance(model.aero.drag, DragTable) or not isinstance(model.aero.magnus, MagnusTable):
@@ -173,17 +204,25 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     if test_sessions is None:
         test_sessions = split_sessions(seg["session_id"], test_fraction, seed)
     test_sessions = np.asarray(test_sessions, np.int64)
-    counts = dict(segments=len(seg["segment_id"]), too_short=0, low_spin_conf=0, held_out=0)
-    for k, sid in enumerate(seg["segment_id"]):
-        if n_obs.get(sid, 0) < min_samples:
-            counts["too_short"] += 1
-        elif seg["spin_conf"][k] < min_spin_conf:
-            counts["low_spin_conf"] += 1
-        elif seg["session_id"][k] in test_sessions:
-            counts["held_out"] += 1
     ids, times, positions, spins, conf = dataset_segments(ds, min_samples)
     session_of = dict(zip(seg["segment_id"], seg["session_id"]))
-    keep = (conf >= min_spin_conf) & ~np.isin([session_of[i] for i in ids], test_sessions)
+    training = ~np.isin([session_of[i] for i in ids], test_sessions)
+    measured = conf >= min_spin_conf
+    spins = np.where(measured[:, None], spins, 0.0)
+    keep = training & measured
+    counts = dict(segments=len(seg["segment_id"]), latent=0, ambiguous=0)
+    if spin == "auto":
+        rows = np.flatnonzero(training & ~measured & (np.array([len(t) for t in times]) >= LATENT_MIN_SAMPLES))
+        if len(rows):
+            latent = fit_latent_spin([times[i] for i in rows], [positions[i] for i in rows], model,
+                                     min_samples=LATENT_MIN_SAMPLES)
+            good = latent.ok & ~latent.ambiguous
+            spins[rows[good]] = latent.spin[good]
+            keep[rows[good]] = True
+            counts.update(latent=int(good.sum()), ambiguous=int((latent.ok & latent.ambiguous).sum()))
+    counts.update(too_short=int(sum(n_obs.get(i, 0) < min_samples for i in seg["segment_id"])),
+                  held_out=int((~training).sum()), low_spin_conf=int((training & ~keep).sum()))
+    source = np.where(measured[keep], "measured", "latent")
     ids, spins = ids[keep], spins[keep]
     times = [t for t, k in zip(times, keep) if k]
     positions = [p for p, k in zip(positions, keep) if k]
@@ -196,7 +235,9 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
     seconds["fit"] = time.perf_counter() - t0
     good = np.isfinite(fits.rmse) & np.all(np.isfinite(fits.stderr[:, 6:]), axis=1)
     used = good & (fits.rmse <= max_rmse)
-    counts.update(fitted=len(ids), rmse=int((good & ~used).sum() + (~good).sum()), used=int(used.sum()))
+    with_spin = used & (source == "measured")
+    counts.update(fitted=len(ids), rmse=int((good & ~used).sum() + (~good).sum()), used=int(used.sum()),
+                  used_measured=int(with_spin.sum()))
 
     t0 = time.perf_counter()
     drag = magnus = None
@@ -209,14 +250,17 @@ def identify_aero(ds, base: str | Path = "conti2026", *, association: str = "ave
                 model.aero.drag, fits.cd[used], fits.stderr[used, 6],
                 aero_forms.force_weights(vel, spins[used], "drag"), w, float(model.ball.radius), float(model.aero.nu),
                 association=association, alpha=alpha)
-        if "magnus" in forms:
+        if "magnus" in forms and with_spin.any():
+            vel_m = [v for v, u in zip(fits.velocities, with_spin) if u]
             magnus = aero_forms.fit_magnus_table(
-                model.aero.magnus, fits.cm[used], fits.stderr[used, 7],
-                aero_forms.force_weights(vel, spins[used], "magnus"), w, association=association, alpha=alpha)
+                model.aero.magnus, fits.cm[with_spin], fits.stderr[with_spin, 7],
+                aero_forms.force_weights(vel_m, spins[with_spin], "magnus"), np.linalg.norm(spins[with_spin], axis=1),
+                association=association, alpha=alpha)
     seconds["regress"] = time.perf_counter() - t0
     settings = dict(min_spin_conf=min_spin_conf, max_rmse=max_rmse, min_samples=min_samples,
-                    test_fraction=test_fraction, seed=seed, alpha=alpha, forms=list(forms))
+                    test_fraction=test_fraction, seed=seed, alpha=alpha, forms=list(forms), spin=spin)
     return AeroIdentification(base=base_path, association=association, segment_ids=ids, fits=fits, used=used,
+                              spin_source=source,
                               counts=counts, test_sessions=list(test_sessions), drag=drag, magnus=magnus,
                               seconds=seconds, settings=settings)
 

@@ -11,8 +11,9 @@
 Stages (:data:`STAGES`; :mod:`ttsim_jax.fit.identify`, :mod:`~ttsim_jax.fit.table`,
 :mod:`~ttsim_jax.fit.racket`, :mod:`~ttsim_jax.fit.network_training` do the work):
 
-- ``aero``: C_D and C_M of each flight segment with a measured spin, regressed into the base
-  model's forms (``settings.forms``).
+- ``aero``: C_D and C_M of each flight segment, regressed into the base model's forms
+  (``settings.forms``): C_D from the segments with a measured spin and, at their latent spin,
+  from those without; C_M from the measured spins only.
 - ``table``: e0, e1 (held within the physical range, see :func:`ttsim_jax.fit.table.fit_table`)
   and the residual matrices, from bounces with a measured spin on both sides.
 - ``racket``: the updated racket base model, from racket contacts with a racket state.
@@ -52,8 +53,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ttsim_jax.fit.choices import DEFAULT_FORMS, DEFAULT_STAGES, FORMS, SPIN_SOURCES, STAGES  # noqa: F401 (re-exported)
+from ttsim_jax.fit.choices import (DEFAULT_FORMS, DEFAULT_STAGES, FORMS, LATENT_MIN_SAMPLES, SPIN_SOURCES,  # noqa: F401
+                                   STAGES)  # (re-exported)
 from ttsim_jax.errors import UserError
+from ttsim_jax.fit.comparison import comparison, comparison_text, flight_comparisons
 _TABLE_COMPONENTS = {"v_x": "m/s", "v_y": "m/s", "v_z": "m/s", "w_x": "rad/s", "w_y": "rad/s", "w_z": "rad/s"}
 
 
@@ -104,8 +107,11 @@ class FitSettings:
         seed: seed of the held-out draw and of the cross-validation folds.
         spin: the spin of the flight segments the fitted and the base model are compared on
             (:func:`ttsim_jax.fit.flight.segment_rmse`'s ``spin``; default ``"auto"``: the measured
-            spin where there is one, each model's latent spin elsewhere). The aero stage fits its
-            coefficients from segments with a measured spin only, whatever this says.
+            spin where there is one, each model's latent spin elsewhere). The aero stage's C_D
+            takes the latent spin of the segments without a measured one too with ``"auto"`` and
+            ``"latent"`` (:func:`ttsim_jax.fit.identify.identify_aero`'s ``spin="auto"``), and
+            leaves them out with ``"measured"`` and ``"zero"``; its C_M comes from measured spins
+            only, whatever this says.
     """
 
     association: str = "averaged"
@@ -212,8 +218,11 @@ def held_out_sessions(datasets: Sequence, test_fraction: float, seed: int) -> np
     return np.sort(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
 
 
-def stage_problems(ds, stages: Sequence[str], min_spin_conf: float = 0.5, min_samples: int = 5) -> dict:
-    """Why ``ds`` cannot support some of ``stages``, found without fitting anything.
+def stage_problems(ds, stages: Sequence[str], min_spin_conf: float = 0.5, min_samples: int = 5,
+                   spin: str = "auto") -> dict:
+    """Why ``ds`` cannot support some of ``stages``, found without fitting anything. ``spin``:
+    :attr:`FitSettings.spin` (with ``"auto"`` or ``"latent"`` the aero stage fits C_D from
+    segments without a measured spin too, at their latent spin; C_M then stays the base's).
 
     Returns:
         stage -> reason (one line), for the stages the data cannot support.
@@ -222,10 +231,16 @@ def stage_problems(ds, stages: Sequence[str], min_spin_conf: float = 0.5, min_sa
     seg, ev = ds.segments, ds.events
     if "aero" in stages:
         counts = dict(zip(*np.unique(ds.observations["segment_id"], return_counts=True)))
-        long = np.array([counts.get(int(s), 0) >= min_samples for s in seg["segment_id"]], bool)
-        if not np.any(long & (np.asarray(seg["spin_conf"]) >= min_spin_conf)):
+        latent = spin in ("auto", "latent")
+        need = LATENT_MIN_SAMPLES if latent else min_samples
+        long = np.array([counts.get(int(s), 0) >= need for s in seg["segment_id"]], bool)
+        if latent and not long.any():
+            out["aero"] = (f"no flight segment with at least {need} observations, which a latent spin needs "
+                           f"({len(long)} segments)")
+        elif not latent and not np.any(long & (np.asarray(seg["spin_conf"]) >= min_spin_conf)):
             out["aero"] = (f"no flight segment with a measured spin (confidence >= {min_spin_conf:g}) and at least "
-                           f"{min_samples} observations ({len(long)} segments)")
+                           f"{min_samples} observations ({len(long)} segments); --spin auto fits C_D at the "
+                           "segments' latent spins")
     if "table" in stages:
         table = np.asarray(ev["event_id"])[np.asarray(ev["kind"]).astype(str) == "table"]
         spun = np.asarray(seg["spin_conf"]) >= min_spin_conf
@@ -240,59 +255,6 @@ def stage_problems(ds, stages: Sequence[str], min_spin_conf: float = 0.5, min_sa
         if stage in stages and len(ds.rackets["event_id"]) == 0:
             out[stage] = "no racket contacts with a racket state (the rackets table is empty)"
     return out
-
-
-# ---------------------------------------------------------------------------------------------- comparison
-def _comparison(on: str, n: int, base: dict, fitted: dict, units: dict) -> dict:
-    worse = [k for k in base if np.isfinite(base[k]) and np.isfinite(fitted[k]) and fitted[k] > base[k]]
-    return dict(on=on, n=int(n), base=base, fitted=fitted, units=units, worse=worse)
-
-
-def comparison_text(stage: str, c: dict) -> str:
-    """One line: where the fitted model of ``stage`` is worse than the base (or that it is not)."""
-    where = f"{'held-out' if c['on'] == 'held_out' else 'training'} data, n = {c['n']}"
-    if c.get("spin_sources"):
-        where += " (spin " + ", ".join(f"{k} {v}" for k, v in c["spin_sources"].items() if v) + ")"
-    values = ", ".join(f"{k} {c['base'][k]:.4g} -> {c['fitted'][k]:.4g} {c['units'][k]}" for k in c["base"])
-    if not c["worse"]:
-        return f"{stage}: the fitted model is no worse than the base on any component ({where}; base -> fitted: " \
-               f"{values})"
-    return f"warning: {stage}: the fitted model is worse than the base on {', '.join(c['worse'])} " \
-           f"({len(c['worse'])} of {len(c['base'])} components; {where}; base -> fitted: {values})"
-
-
-def _flight_comparisons(ds, base_model, fitted_model, sessions, held: bool, settings: FitSettings,
-                        parts: dict | None = None) -> dict:
-    """{"aero": the base against the fitted model's flight RMSE over the segments of ``sessions``
-    (None: every session), and "aero on LABEL" for each of ``parts`` ({label: its sessions}) of
-    more than one: the same segments, split by dataset} (empty without segments); ``held``:
-    whether those are held out."""
-    from ttsim_jax.data.tables import id_index, rows_of
-    from ttsim_jax.fit.flight import segment_rmse, spin_source_counts
-
-    out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
-                       sessions=None if sessions is None else tuple(int(s) for s in sessions), spin=settings.spin)
-    if "skipped" in out:
-        return {}
-    rows = rows_of(id_index(ds.segments["segment_id"]), out["segment_id"])
-    session = np.asarray(ds.segments["session_id"])[rows]
-    groups = {"aero": np.ones(len(session), bool)}
-    if parts and len(parts) > 1:  # a pooled fit can serve one dataset at another's cost: each is compared
-        groups.update({f"aero on {label}": np.isin(session, list(p)) for label, p in parts.items()})
-    source = np.asarray(out["spin_source"]).astype(str)
-    comparisons = {}
-    for key, rows in groups.items():
-        if not rows.any():
-            continue
-        stats = {}
-        for name in ("base", "fitted"):
-            e = np.asarray(out["rmse"][name])[rows] * 1e3
-            stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
-        c = _comparison("held_out" if held else "training", int(rows.sum()), stats["base"], stats["fitted"],
-                        dict(median="mm", p75="mm"))
-        c["spin_sources"] = spin_source_counts(source[rows])
-        comparisons[key] = c
-    return comparisons
 
 
 # ---------------------------------------------------------------------------------------------- stages
@@ -331,17 +293,18 @@ class _Run:
         s = self.settings
         result = identify_aero(self.ds, self.base_path, association=s.association, min_spin_conf=s.min_spin_conf,
                                max_rmse=s.max_rmse, test_fraction=s.test_fraction, seed=s.seed, forms=tuple(s.forms),
+                               spin="auto" if s.spin in ("auto", "latent") else "measured",
                                progress=self.tick("aero"), test_sessions=self.test)
         self.log(result.summary())
         if result.drag is None:
-            raise _Skip(f"no segment with a measured spin (confidence >= {s.min_spin_conf:g}) fits within "
-                        f"{1e3 * s.max_rmse:g} mm ({result.counts['fitted']} fitted, {result.counts['held_out']} held "
-                        "out)")
+            spun = "" if s.spin in ("auto", "latent") else f" with a measured spin (confidence >= {s.min_spin_conf:g})"
+            raise _Skip(f"no segment{spun} fits within {1e3 * s.max_rmse:g} mm ({result.counts['fitted']} fitted, "
+                        f"{result.counts['held_out']} held out)")
         self.sections.update(aero_sections(self.base_path, result.drag.values["cd"], result.magnus.values))
         self.report["aero"] = result.to_dict()
         self.model = self.model.replace(aero=_model_of(self.model_text("fitting", "")).aero)
         held = len(self.test) > 0
-        self.comparison.update(_flight_comparisons(self.ds, self.base, self.model, self.test if held else None, held,
+        self.comparison.update(flight_comparisons(self.ds, self.base, self.model, self.test if held else None, held,
                                                    s, self.parts))
 
     def table(self):
@@ -371,11 +334,11 @@ class _Run:
         if (~kept).any():
             radius = ball_properties(self.model)[0]
             rows = [a[~kept] for a in (bounces.vel_in, bounces.spin_in, bounces.vel_out, bounces.spin_out)]
-            self.comparison["table"] = _comparison("held_out", (~kept).sum(),
+            self.comparison["table"] = comparison("held_out", (~kept).sum(),
                                                    table_fit.bounce_errors(self.base.table, radius, *rows),
                                                    table_fit.bounce_errors(fitted, radius, *rows), _TABLE_COMPONENTS)
         else:
-            self.comparison["table"] = _comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
+            self.comparison["table"] = comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
                                                    _TABLE_COMPONENTS)
         self.model = self.model.replace(table=fitted)
 
@@ -410,11 +373,11 @@ class _Run:
         if (~kept).any():
             radius, mass = ball_properties(self.model)
             x, y = arrays.x[~kept], arrays.y_obs[~kept]
-            self.comparison["racket"] = _comparison("held_out", len(x),
+            self.comparison["racket"] = comparison("held_out", len(x),
                                                     racket_fit.racket_errors(self.base.racket, x, y, radius, mass),
                                                     racket_fit.racket_errors(fitted, x, y, radius, mass), units)
         else:
-            self.comparison["racket"] = _comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
+            self.comparison["racket"] = comparison("training", fit.n_used, fit.errors["base"], fit.errors["fitted"],
                                                     units)
         self.model = self.model.replace(racket=fitted)
 
@@ -491,7 +454,7 @@ def fit_dataset(data, base="conti2026", *, stages: Sequence[str] | None = None, 
     ds = merge_datasets(datasets, labels)
     test = held_out_sessions(datasets, settings.test_fraction, settings.seed)
     base_path = resolve_model_path(base)
-    problems = stage_problems(ds, requested, settings.min_spin_conf)
+    problems = stage_problems(ds, requested, settings.min_spin_conf, spin=settings.spin)
     if explicit and problems:
         raise FitError("; ".join(f"stage {s} cannot run on {', '.join(labels)}: {why}" for s, why in problems.items())
                        + "; leave " + ", ".join(problems) + " out of the stages (without stages, those the data "
