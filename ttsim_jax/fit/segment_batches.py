@@ -88,12 +88,14 @@ def balanced_rows(count: int, batch: int) -> int:
     return -(-(-(-count // n_batches)) // 8) * 8
 
 
-def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3):
+def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_samples: int = 3,
+            pow2_rows: bool = False):
     """Padded batches of segments: sorted by length, grouped by capacity, ``batch`` rows each.
 
     The segments of one capacity are split into batches of equal size (:func:`balanced_rows`: one
     shape, one compilation, per capacity): a batch's work is its row count times its longest
-    segment.
+    segment. ``pow2_rows``: the row count rounded up to a power of two (at most ``batch``), so that
+    a caller making many calls of varying counts compiles a few shapes only.
 
     Yields:
         (idx, (tau, pos, mask, spin), n_max): the segments' indices (rows beyond ``len(idx)`` are
@@ -106,6 +108,8 @@ def batches(times, positions, spins, batch: int = BATCH, dtype=np.float32, min_s
             groups.setdefault(capacity(int(lengths[i])), []).append(int(i))
     for size, members in sorted(groups.items()):
         rows = balanced_rows(len(members), batch)
+        if pow2_rows:
+            rows = min(batch, 1 << (rows - 1).bit_length())
         n_batches = -(-len(members) // rows)
         for part in np.array_split(np.asarray(members), n_batches):
             idx = part.tolist()
