@@ -3,8 +3,8 @@ noise; tests/diagnose/data/README.md):
 
 * recorded without any spin (as most trackers record), the flights fly their latent spin
   (``Settings.spin = "auto"``), the report counts them, and buckling is still found;
-* with every measured spin 25 % high, the record section's spin check says so, and the verdict
-  is never "explained" while the candidates were fitted with that spin.
+* with every measured spin 25 % high, the record section's spin check says so, its correction is
+  accepted and buckling is found on the corrected record.
 """
 
 import jax.numpy as jnp
@@ -65,13 +65,21 @@ def test_latent_spin_flies_closer_than_spin_zero(model, unmeasured):
     assert unmeasured["where"]["flight"]["mean"] < 0.5 * zero["where"]["flight"]["mean"]
 
 
-def test_a_spin_reading_high_is_named_and_nothing_is_explained_with_it(reads_high):
+def test_a_spin_reading_high_is_named_corrected_and_the_cause_still_found(reads_high):
+    """The spin check reads the record's spin 25 % high; its correction (the spin times 0.8) is the
+    first candidate, on the record: accepted (the flights fly closer), every later stage works on
+    the corrected record, and buckling is found as on the record with its true spin."""
     sc = reads_high["record"]["spin_check"]
     assert abs(sc["reads"] - 1.25) < 0.05, sc["summary"]
     assert any(f.startswith("spin reads") and f.endswith("high") for f in sc["findings"]), sc["findings"]
+    corr = reads_high["spin_correction"]
+    assert corr["accepted"] and corr["applied"] == [f"size multiplied by {sc['scale']:.2f}"]
+    assert corr["heldout"]["ci95"][0] > 50.0 and corr["heldout"]["after_rms"] < 0.5 * corr["heldout"]["before_rms"]
     v = reads_high["verdict"]
-    assert v["level"] != "explained" and "spin check" in v["text"]
-    assert "spin_check: " in markdown(reads_high)
+    assert v["effects"][:2] == ["spin_record", "buckling"], v["effects"]
+    assert "corrected as the spin check reads it" in v["text"] and "spin check" in v["text"]
+    text = markdown(reads_high)
+    assert "spin_check: " in text and "- spin correction: " in text
 
 
 @pytest.mark.slow  # 24 s: the command-line door of the record check that the fixtures above run in the diagnosis

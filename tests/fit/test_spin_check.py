@@ -9,7 +9,7 @@ import pytest
 
 from ttsim_jax import load_model
 from ttsim_jax.fit.latent_spin import fit_latent_spin
-from ttsim_jax.fit.spin_check import check_record_spin, check_spin, findings, spin_scale
+from ttsim_jax.fit.spin_check import check_record_spin, check_spin, corrected_spins, findings, spin_scale
 from test_latent_spin import NOISE, flights
 
 
@@ -117,3 +117,35 @@ def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scale
     assert findings(dict(scaled_off, scale_resolved=True)) == ["spin reads 100 % high"]
     assert findings(dict(scaled_off, scale_resolved=False)) == []
     assert "None" not in str(ok["summary"]) and "nan" not in ok["summary"]
+
+
+def test_the_correction_undoes_what_the_check_found(scaled):
+    """corrected_spins on the checks of records scaled, sign-flipped and turned: the true spins back
+    (the scale within 3 %, the direction within 2 degrees); a consistent record left as it is."""
+    model, spins, times, positions = scaled
+    ok = check_record_spin(model, times, positions, spins)
+    same, done = corrected_spins(spins, ok)
+    assert done == [] and np.array_equal(same, spins)
+    high = check_record_spin(model, times, positions, 1.2 * spins)
+    back, done = corrected_spins(1.2 * spins, high)
+    assert done == [f"size multiplied by {high['scale']:.2f}"]
+    np.testing.assert_allclose(back, spins, rtol=0.03, atol=1e-9)
+    flipped = check_record_spin(model, times, positions, -spins)
+    back, done = corrected_spins(-spins, flipped)
+    assert done[0] == "sign flipped back on every segment" and np.allclose(back, spins)
+    # some signs flipped: those segments (and only those) flipped back
+    some = spins.copy()
+    some[::4] *= -1.0
+    part = check_record_spin(model, times, positions, some)
+    back, done = corrected_spins(some, part)
+    assert done[0].startswith("sign flipped back on the")
+    assert np.median(np.linalg.norm(back - spins, axis=1) / np.linalg.norm(spins, axis=1)) < 1e-9
+    # an axis turned by 12 degrees about x (the direction of flight: the turn stays across it), turned back
+    a = np.radians(12.0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    turned = spins @ turn.T
+    check = check_record_spin(model, times, positions, turned)
+    back, done = corrected_spins(turned, check)
+    assert any(d.startswith("axis turned back by") for d in done), check["findings"]
+    cos = np.sum(back * spins, 1) / (np.linalg.norm(back, axis=1) * np.linalg.norm(spins, axis=1))
+    assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 2.0

@@ -91,6 +91,10 @@ def register(subparsers) -> None:
                    help="flight segments used at most, a seeded random subset of more, for speed (default: every "
                    f"segment; with --quick {q.max_segments})")
     p.add_argument("--no-landing", action="store_true", help="skip the landing rollouts (the slowest part)")
+    p.add_argument("--no-spin-correction", action="store_true",
+                   help="report the spin check only: without this, where it finds the record's measured spin off (a "
+                   "sign, an axis, a scale), its correction is tried on the flight segments and, where it lowers the "
+                   "held-out flight error significantly, every candidate is fitted with the corrected spin")
     add_spin_option(p, "flight segments' spin (latent: fitted under --model from the segment's own samples, which "
                     "then takes up any force across the flight)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -159,6 +163,8 @@ def cmd_diagnose(args) -> int:
         changes["max_segments"] = args.max_segments
     if args.no_landing:
         changes["landing"] = False
+    if args.no_spin_correction:
+        changes["spin_correct"] = False
     settings = Settings.quick(**changes) if args.quick else Settings(**changes)
     with tqdm(total=work_units(settings), desc="diagnose", unit="step", disable=args.quiet) as bar:
         def tick(what, n=1):

@@ -33,7 +33,7 @@ import jax
 import numpy as np
 
 from ttsim_jax.data.contact_states import ContactFit
-from ttsim_jax.diagnose import ambiguity, candidates, residuals, where
+from ttsim_jax.diagnose import ambiguity, candidates, residuals, spin_record, where
 from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEPS, TEST_FRACTION
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.limits import limits
@@ -75,6 +75,9 @@ class Settings:
             ``"measured"``, ``"latent"``, ``"zero"``.
         spin_check: check the measured spins against the flights in the record section
             (:func:`ttsim_jax.diagnose.residuals.spin_check`).
+        spin_correct: where the check finds the record's spin off, try its correction on the
+            flight phase and, where it lowers the held-out flight error significantly, let every
+            later stage work on the corrected spin (:mod:`ttsim_jax.diagnose.spin_record`).
     """
 
     effects: tuple | None = None
@@ -88,6 +91,7 @@ class Settings:
     fit: ContactFit = ContactFit()
     spin: str = "auto"
     spin_check: bool = True
+    spin_correct: bool = True
 
     @classmethod
     def quick(cls, **kw) -> "Settings":
@@ -184,13 +188,24 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         last[0] = now
     radius = float(ball_properties(model)[0])
     names = candidates.candidate_names(settings.effects)
-    ph = collect(ds, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed, spin=settings.spin)
-    if ph.flights is None and ph.table is None and ph.racket is None:
-        raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph.skipped.items()) + ")")
+    def phases_of(data):
+        ph_ = collect(data, model, settings.fit, max_segments=settings.max_segments, seed=settings.seed,
+                      spin=settings.spin)
+        if ph_.flights is None and ph_.table is None and ph_.racket is None:
+            raise NoData("no phase has usable data (" + "; ".join(f"{k}: {v}" for k, v in ph_.skipped.items()) + ")")
+        pb_ = candidates.problem(ph_, model, settings.test_fraction, settings.seed)
+        refuse_non_finite(pb_, ph_)
+        return ph_, pb_
+
+    ph, pb = phases_of(ds)
     tick("model errors", 1)
-    pb = candidates.problem(ph, model, settings.test_fraction, settings.seed)
-    refuse_non_finite(pb, ph)
     lap("model errors")
+    checked, correction = None, {}
+    if settings.spin_check and ph.flights is not None:  # on the record's own spins, before any correction
+        checked = residuals.spin_check(ph.flights, model, settings.seed)
+        if settings.spin_correct:
+            ds, ph, pb, correction = spin_record.correct(ds, ph, pb, checked, model, phases_of)
+        lap("spin check")
     if keep is not None:
         keep["problem"] = pb
     tick("noise floor and bounds", 1)
@@ -210,7 +225,9 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     out["where"] = {p: where.summarise(it, settings.seed, floor_of.get(p)) for p, it in items.items()}
     out["dependence"] = {p: residuals.dependence(it, _components(ph, p, pb.base[p]) if p in pb.base else None)
                          for p, it in items.items()}
-    out["record"] = residuals.record_sizes(ds, ph, model, settings.seed, settings.spin_check)
+    out["record"] = residuals.record_sizes(ds, ph, model, settings.seed, settings.spin_check, checked)
+    if correction:
+        out["spin_correction"] = correction
     lap("where and the record")
     from ttsim_jax.diagnose.bound import bounds
 

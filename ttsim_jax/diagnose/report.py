@@ -16,6 +16,7 @@ import numpy as np
 
 from ttsim_jax.diagnose.diagnosis import jsonable
 from ttsim_jax.diagnose.phases import REGIMES
+from ttsim_jax.diagnose.spin_record import text as correction_text
 from ttsim_jax.diagnose.where import FLAG_RATIO, UNITS
 
 FIGURES = {"where": "gap_by_regime.png", "effects": "effects.png", "before_after": "before_after.png"}
@@ -265,6 +266,9 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     sc = rec.get("spin_check", {})
     if sc:
         lines.append(f"- spin_check: {sc['skipped']}" if "skipped" in sc else f"- spin_check: {sc['summary']}")
+    corr = out.get("spin_correction", {})
+    if corr and "skipped" not in corr:
+        lines.append("- spin correction:" + correction_text(corr))
     rs = rec.get("racket_state_error", {})
     if rs.get("n"):
         b = rs["vel_bias"]

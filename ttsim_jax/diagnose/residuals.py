@@ -168,16 +168,16 @@ def spin_check(flights, model, seed: int = 0) -> dict:
     return check_record_spin(model, times, positions, flights.spin[rows], seed=seed)
 
 
-def record_sizes(ds, phases, model, seed: int = 0, check_spin: bool = True) -> dict:
+def record_sizes(ds, phases, model, seed: int = 0, check_spin: bool = True, checked: dict | None = None) -> dict:
     """{effect name: size estimate} of the record effects of the catalogue, and the spin check
-    (``check_spin``; module docstring)."""
+    (``check_spin``; module docstring; ``checked``: its result, run before)."""
     out = {}
     fl = phases.flights
     if fl is not None:
         out["position_noise"] = position_noise(fl)
         out["missing_frames"] = missing_frames(fl)
         if check_spin:
-            out["spin_check"] = spin_check(fl, model, seed)
+            out["spin_check"] = checked if checked is not None else spin_check(fl, model, seed)
     conf = np.asarray(ds.segments["spin_conf"], np.float64)
     if len(conf):  # a rig's contact states have no segments: nothing to size (and no NaN in the report)
         out["spin_noise"] = dict(segments=int(len(conf)), low_confidence_fraction=float(np.mean(conf < 0.5)),

@@ -56,6 +56,7 @@ import numpy as np
 from ttsim_jax import effects as fx
 from ttsim_jax.diagnose import candidates as candidate_fit
 from ttsim_jax.diagnose import stages
+from ttsim_jax.diagnose.spin_record import NAME as SPIN_RECORD
 from ttsim_jax.diagnose.outside import (OUTSIDE_KINDS, OUTSIDE_PLAN, TERMS, as_tracker_log,  # noqa: F401 (the selfcheck's names)
                                         bound_score, effect_phases, outside_cases)
 from ttsim_jax.diagnose.selfcheck_report import OUTCOME_COLOURS, plot, table, verdict_of  # noqa: F401 (its face)
@@ -82,6 +83,8 @@ SEGMENTS = {"full": None, "quick": 384}
 UNRESOLVED = {"air_flow": ("gust_amp",)}
 #: Tries of successive seeds when the generator refuses its own data.
 TRIES = 4
+#: The record effects whose right answer is the spin check's correction of the record's spin.
+SPIN_EFFECTS = {"spin_calibration"}
 
 
 def _direction(rng, n: int = 2) -> np.ndarray:
@@ -277,10 +280,14 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         # how much is left), and the gap located in a phase the effect acts in: above its noise
         # floor, or a regime flagged in it.
         level = verdict["level"] if verdict else ("explained" if sig else "unexplained")
+        # a record's spin estimator off (spin_calibration) has no candidate but the spin check's
+        # correction: naming the record's spin (spin_record.NAME first among the verdict's effects) is right
+        by_spin = bool(verdict) and verdict.get("effects", [None])[:1] == [SPIN_RECORD] and set(names) <= SPIN_EFFECTS
         out.update(located=located, phase=located[0] if located else None, level=level,
-                   phase_right=bool(set(located) & set(true_phases)), rank1=False,
-                   wrong_explained=level == "explained")
-        out["outcome"] = (f"{level} by {top}" if top and level.endswith("explained") and level != "unexplained"
+                   phase_right=bool(set(located) & set(true_phases)) or by_spin, rank1=by_spin,
+                   wrong_explained=level == "explained" and not by_spin)
+        who = SPIN_RECORD if by_spin else top
+        out["outcome"] = (f"{level} by {who}" if who and level.endswith("explained") and level != "unexplained"
                           else level) + \
             (", located in " + "+".join(located) if located else ", not located")
         return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 from ttsim_jax.diagnose.candidates import MIN_GAIN
+from ttsim_jax.diagnose.spin_record import NAME as NAME_SPIN, text as correction_text
 from ttsim_jax.diagnose.specs import PHASES
 
 
@@ -185,13 +186,21 @@ def spin_findings(out: dict) -> list:
     return list(out.get("record", {}).get("spin_check", {}).get("findings", []))
 
 
+def spin_corrected(out: dict) -> bool:
+    """Whether the spin check's correction of the record's spin was accepted
+    (:mod:`ttsim_jax.diagnose.spin_record`): the later stages then worked on the corrected spin."""
+    return bool(out.get("spin_correction", {}).get("accepted"))
+
+
 def _spin_text(out: dict) -> str:
     found = spin_findings(out)
     if not found:
         return ""
-    return (" The record's measured spin disagrees with its flights (spin check: " + "; ".join(found) + "): every "
-            "candidate was fitted with that spin, so correct the record's spin (or run with --spin latent) before "
-            "reading them as physics.")
+    lead = " The record's measured spin disagrees with its flights (spin check: " + "; ".join(found) + ")."
+    if spin_corrected(out):
+        return lead + correction_text(out["spin_correction"])
+    return (lead + correction_text(out.get("spin_correction", {})) + " Every candidate was fitted with that spin, so correct the "
+            "record's spin (or run with --spin latent) before reading them as physics.")
 
 
 def limits_text(out: dict, left_out=()) -> str:
@@ -291,7 +300,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         more, beyond_catalogue = _bound_text(out)
         readings = {c.spec.name: out.get("reads_as", {}).get(c.spec.name) for c in significant}
         readings = {n: r for n, r in readings.items() if r}
-        level = "partly explained" if short or untouched or more or readings or spin_findings(out) else "explained"
+        level = ("partly explained" if short or untouched or more or readings or
+                 (spin_findings(out) and not spin_corrected(out)) else "explained")
         closes = []
         for p, g in shares.items():
             if g["share"] is None:
@@ -300,7 +310,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
             pct, lo, hi = (100.0 * min(v, 1.0) for v in (g["share"], *g["ci95"]))
             closes.append(f"{who} close{'s' if len(significant) == 1 else ''} {pct:.0f} % (95 % interval {lo:.0f} "
                           f"to {hi:.0f} %) of {gap(p, g)}" + (f", {100.0 - pct:.0f} % is left" if p in short else ""))
-        text = ("Explained by: " if level == "explained" else "Partly explained by: ") + "; ".join(
+        text = ("Explained by: " if level == "explained" else "Partly explained by: ") + (
+            "the record's measured spin (corrected: below); " if spin_corrected(out) else "") + "; ".join(
             part(c) for c in significant) + "."
         if closes:
             text += " On held-out data " + "; ".join(closes) + "."
@@ -319,8 +330,18 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         if redundant:
             text += (" Significant alone but adding nothing significant on top of those: " +
                      "; ".join(part(c) for c in redundant) + ".")
+        if spin_corrected(out):
+            names["effects"] = [NAME_SPIN] + names["effects"]
         return dict(names, level=level, explained=level == "explained",
                     text=text + rest + rejected + beyond_catalogue + _spin_text(out))
+    if spin_corrected(out):
+        # the record's spin was the one thing found: explained where nothing is left above a floor
+        bound_phases, bound_text = _bound_text(out)
+        level = "partly explained" if gaps or bound_phases else "explained"
+        text = (("Explained by: " if level == "explained" else "Partly explained by: ") + "the record's measured spin"
+                + _spin_text(out) + rest + (" What is left lies in: " + "; ".join(where) + "." if where else "")
+                + bound_text + rejected + limits_text(out, [c.spec.name for c in beyond]))
+        return dict(names, effects=[NAME_SPIN], level=level, explained=level == "explained", text=text)
     lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
             "no candidate effect reduces a held-out error significantly.")
     rejected += _alike(out, [c.spec.name for c in beyond])

@@ -48,6 +48,10 @@ CATALOGUE: dict[str, type] = {}
 BAND_SOFTNESS = 0.002
 
 
+#: A value this share of its parameter's typical magnitude beyond a plausible bound is still at it.
+AT_BOUND = 0.01
+
+
 @dataclasses.dataclass(frozen=True)
 class Param:
     """Description of one effect parameter.
@@ -151,7 +155,9 @@ class Effect:
 
     @classmethod
     def implausible(cls, values: dict) -> list[dict]:
-        """The parameter values outside their plausible ranges.
+        """The parameter values outside their plausible ranges, by more than :data:`AT_BOUND` of
+        the parameter's typical magnitude (a fit that leaves a component at its neutral value on a
+        bound, buckling's racket depth at 0, lands a hair either side of it).
 
         Arguments:
             values: ``{parameter: value}`` (missing parameters are not checked).
@@ -168,7 +174,8 @@ class Effect:
             v = np.broadcast_to(np.asarray(values[key], np.float64), p.shape)
             lo = np.broadcast_to(np.asarray(p.plausible[0], np.float64), p.shape)
             hi = np.broadcast_to(np.asarray(p.plausible[1], np.float64), p.shape)
-            outside = (v < lo) | (v > hi)
+            tol = AT_BOUND * np.abs(np.broadcast_to(np.asarray(p.typical, np.float64), p.shape))
+            outside = (v < lo - tol) | (v > hi + tol)
             if not outside.any():
                 continue
             width = np.where(np.isfinite(hi - lo), hi - lo, 1.0)

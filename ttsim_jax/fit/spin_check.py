@@ -259,17 +259,64 @@ def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
     return out
 
 
+def _off(check: dict) -> dict:
+    """What a check (:func:`check_record_spin`'s dict) shows off: ``flip`` (None, ``"all"`` or
+    ``"some"``), ``rotate`` and ``scale`` (bools), each outside its interval's allowance."""
+    n = check.get("n", 0)
+    flip = None
+    if n and check["opposite_interval"][0] > FINDING_OPPOSITE:
+        flip = "all" if check["opposite"] > 0.9 else "some"
+    lo, hi = check.get("reads_interval") or (np.nan, np.nan)
+    return dict(flip=flip, rotate=bool(n and check["rotation_interval_deg"][0] > FINDING_ROTATION_DEG),
+                scale=bool(check.get("scale_resolved", True) and np.isfinite(lo)
+                           and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE)))
+
+
 def findings(check: dict) -> list:
     """Short phrases naming what is off with a record's spin (:func:`check_record_spin`'s dict):
     a sign flipped (on all or some segments), an axis turned, a scale; [] when none is shown."""
-    out = []
-    if check.get("n", 0) and check["opposite_interval"][0] > FINDING_OPPOSITE:
-        share = check["opposite"]
-        out.append("sign flipped on every segment" if share > 0.9 else f"sign flipped on {100 * share:.0f} % of segments")
-    if check.get("n", 0) and check["rotation_interval_deg"][0] > FINDING_ROTATION_DEG:
+    off, out = _off(check), []
+    if off["flip"]:
+        out.append("sign flipped on every segment" if off["flip"] == "all"
+                   else f"sign flipped on {100 * check['opposite']:.0f} % of segments")
+    if off["rotate"]:
         out.append(f"axis turned by {check['rotation_deg']:.0f} deg (turned back right-handed about "
                    f"{np.round(check['rotation_axis'], 2).tolist()})")
-    lo, hi = check.get("reads_interval") or (np.nan, np.nan)
-    if check.get("scale_resolved", True) and np.isfinite(lo) and (lo > 1.0 + FINDING_SCALE or hi < 1.0 - FINDING_SCALE):
+    if off["scale"]:
         out.append(f"spin reads {abs(100 * (check['reads'] - 1.0)):.0f} % {'high' if check['reads'] > 1 else 'low'}")
     return out
+
+
+def _turn(axis, angle_deg) -> np.ndarray:
+    """The rotation by ``angle_deg`` right-handed about the unit ``axis`` (Rodrigues)."""
+    k = np.asarray(axis, np.float64) / max(np.linalg.norm(axis), 1e-12)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    a = np.radians(angle_deg)
+    return np.eye(3) + np.sin(a) * cross + (1.0 - np.cos(a)) * cross @ cross
+
+
+def corrected_spins(spins, check: dict) -> tuple[np.ndarray, list]:
+    """The measured spins with what the check found off undone, in the order the check was run on
+    (:func:`check_record_spin`'s dict): a sign flipped on every segment negated on all, one flipped
+    on some negated on the segments bent opposite, a turned axis turned back by the check's
+    rotation (not after a sign flipped on every segment: that rotation was read off the few
+    segments left), a scale multiplied by the factor the flights favour.
+
+    Returns:
+        (corrected (S, 3) [rad/s], phrases of what was undone; [] when the check found nothing).
+    """
+    w = np.array(spins, np.float64)
+    off, done = _off(check), []
+    if off["flip"] == "all":
+        w, done = -w, ["sign flipped back on every segment"]
+    elif off["flip"] == "some":
+        rows = np.asarray(check["opposite_rows"], int)
+        w[rows] = -w[rows]
+        done.append(f"sign flipped back on the {len(rows)} segments bent opposite")
+    if off["rotate"] and off["flip"] != "all":
+        w = w @ _turn(check["rotation_axis"], check["rotation_deg"]).T
+        done.append(f"axis turned back by {check['rotation_deg']:.0f} deg")
+    if off["scale"]:
+        w = w * check["scale"]
+        done.append(f"size multiplied by {check['scale']:.2f}")
+    return w, done

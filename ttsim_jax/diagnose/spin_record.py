@@ -1,0 +1,92 @@
+"""The record's measured spin, corrected by the spin check before the candidates see it.
+
+The spin check (:func:`ttsim_jax.diagnose.residuals.spin_check`) compares the flight segments'
+measured spins with the spins their flights show. Where it finds the record's spin off (a sign
+flipped on all or some segments, an axis turned, a size read high or low), every candidate fitted
+with that spin would be fitted to a wrong one, and a table, air or ball effect would stand in for
+the spin estimator's error. So the check is the first candidate, one on the record: its
+correction (:func:`ttsim_jax.fit.spin_check.corrected_spins`) is applied to every measured spin
+of the record (segments and observations), the phases are collected again (the contacts' states
+read the corrected spins too), and the correction is accepted when it lowers the held-out flight
+error significantly (the candidates' own test, :func:`ttsim_jax.diagnose.candidates.significant`,
+on the split of the uncorrected problem: the flights are where the check read it). Once accepted,
+every later stage (the noise floor, the bounds, the candidates, the limits, the landing) works on
+the corrected record.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ttsim_jax.diagnose import candidates
+
+#: The name the verdict gives the correction when it is accepted.
+NAME = "spin_record"
+
+
+def corrected_record(ds, flights, check: dict) -> tuple:
+    """(``ds`` with its measured spins corrected as ``check`` reads them, what was undone): the
+    spin columns of its segments and observations (:func:`ttsim_jax.fit.spin_check.corrected_spins`;
+    a sign flipped on some segments flipped back on the flight segments the check found bent
+    opposite, by their segment ids). ``flights``: the :class:`~ttsim_jax.diagnose.phases.Flights`
+    the check was run on (its measured rows, in order)."""
+    from ttsim_jax.fit.spin_check import corrected_spins
+
+    rows = np.flatnonzero(flights.spin_source[: flights.n] == "measured")
+    flipped = np.asarray(flights.segment_id)[rows][np.asarray(check.get("opposite_rows", []), int)]
+    tables, applied = {}, []
+    for name in ("segments", "observations"):
+        t = dict(getattr(ds, name))
+        w = np.stack([np.asarray(t[f"spin_{a}"], np.float64) for a in "xyz"], 1)
+        opposite = np.flatnonzero(np.isin(np.asarray(t["segment_id"]), flipped))
+        fixed, applied = corrected_spins(w, dict(check, opposite_rows=opposite.tolist()))
+        for k, a in enumerate("xyz"):
+            t[f"spin_{a}"] = fixed[:, k].astype(np.asarray(t[f"spin_{a}"]).dtype)
+        tables[name] = t
+    return ds.replace(**tables), applied
+
+
+def correct(ds, ph, pb, check: dict, model, collect) -> tuple:
+    """The spin check's correction, tried on the record.
+
+    Arguments:
+        ds: the dataset; ph: its :class:`~ttsim_jax.diagnose.phases.Phases`; pb: their
+            :class:`~ttsim_jax.diagnose.candidates.Problem`; check: the spin check's dict (run on
+            the flight segments with a measured spin, in row order); model: the diagnosed model;
+            collect: ``collect(ds) -> (phases, problem)`` as the diagnosis makes them.
+
+    Returns:
+        (dataset, phases, problem, entry): the corrected ones where the correction is accepted,
+        else those given; ``entry`` (JSON-able): ``applied`` (what was undone), ``segments`` (the
+        flight segments with a measured spin), ``heldout`` (:func:`~ttsim_jax.diagnose.candidates.score`
+        of the corrected model errors in flight against the uncorrected ones, on the uncorrected
+        split), ``accepted``; or ``skipped`` (why nothing was tried).
+    """
+    fl = ph.flights
+    if fl is None or "skipped" in check:
+        return ds, ph, pb, dict(skipped=check.get("skipped", "no flight phase"))
+    if not check.get("findings"):
+        return ds, ph, pb, dict(skipped="the spin check found nothing off")
+    ds2, applied = corrected_record(ds, fl, check)
+    ph2, pb2 = collect(ds2)
+    if ph2.flights is None or not np.array_equal(ph2.flights.segment_id, fl.segment_id):
+        return ds, ph, pb, dict(skipped="the corrected record gives other flight segments: not compared")
+    h = candidates.score(pb, {"flight": pb2.base["flight"]})["flight"]
+    accepted = bool(np.isfinite(np.asarray(pb2.base["flight"])).all() and candidates.significant("flight", h))
+    entry = dict(applied=applied, segments=int(np.sum(fl.spin_source[: fl.n] == "measured")), heldout=h,
+                 accepted=accepted)
+    return (ds2, ph2, pb2, entry) if accepted else (ds, ph, pb, entry)
+
+
+def text(entry: dict) -> str:
+    """One sentence on the correction (the verdict's and the report's), "" when none was tried."""
+    if not entry or "skipped" in entry:
+        return ""
+    h = entry["heldout"]
+    what = ", ".join(entry["applied"])
+    change = (f"the held-out flight error {h['before_rms'] * 1e3:.2f} -> {h['after_rms'] * 1e3:.2f} mm RMS, "
+              f"{h['pct']:.1f} % lower (95 % interval {h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
+    if entry["accepted"]:
+        return (f" The record's measured spin, corrected as the spin check reads it ({what}, on {entry['segments']} "
+                f"flight segments), brings {change}: every later stage and candidate works on the corrected spin.")
+    return f" The spin check's correction ({what}) was tried and not accepted: {change}."
