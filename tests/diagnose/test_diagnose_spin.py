@@ -90,3 +90,12 @@ def test_data_info_spin_check_runs_the_same_check(capsys):
     out = capsys.readouterr().out
     line = [x for x in out.splitlines() if x.startswith("spin check:")]
     assert len(line) == 1 and "opposite" in line[0] and line[0].endswith("consistent"), out
+
+
+@pytest.mark.slow  # 15 s: a third diagnosis of the record
+def test_without_the_correction_the_check_is_reported_and_nothing_is_explained_with_it(model):
+    out = diagnose(with_spin(load(BUCKLING), 1.25), model,
+                   Settings.quick(effects=CANDIDATES, spin_check=True, spin_correct=False))
+    assert "spin_correction" not in out and out["record"]["spin_check"]["findings"]
+    v = out["verdict"]
+    assert v["level"] != "explained" and "spin_record" not in v["effects"] and "correct the record's spin" in v["text"]
