@@ -204,7 +204,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     if settings.spin_check and ph.flights is not None:  # on the record's own spins, before any correction
         checked = residuals.spin_check(ph.flights, model, settings.seed)
         if settings.spin_correct:
-            ds, ph, pb, correction = spin_record.correct(ds, ph, pb, checked, model, phases_of)
+            ds, ph, pb, correction = spin_record.correct(ds, ph, pb, checked, phases_of, settings.seed)
         lap("spin check")
     if keep is not None:
         keep["problem"] = pb

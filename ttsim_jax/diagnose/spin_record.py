@@ -34,26 +34,26 @@ def corrected_record(ds, flights, check: dict) -> tuple:
 
     rows = np.flatnonzero(flights.spin_source[: flights.n] == "measured")
     flipped = np.asarray(flights.segment_id)[rows][np.asarray(check.get("opposite_rows", []), int)]
-    tables, applied = {}, []
+    tables, applied = {}, {}
     for name in ("segments", "observations"):
         t = dict(getattr(ds, name))
         w = np.stack([np.asarray(t[f"spin_{a}"], np.float64) for a in "xyz"], 1)
         opposite = np.flatnonzero(np.isin(np.asarray(t["segment_id"]), flipped))
-        fixed, applied = corrected_spins(w, dict(check, opposite_rows=opposite.tolist()))
+        fixed, applied[name] = corrected_spins(w, dict(check, opposite_rows=opposite.tolist()))
         for k, a in enumerate("xyz"):
             t[f"spin_{a}"] = fixed[:, k].astype(np.asarray(t[f"spin_{a}"]).dtype)
         tables[name] = t
-    return ds.replace(**tables), applied
+    return ds.replace(**tables), applied["segments"]  # counted in segments, not observation rows
 
 
-def correct(ds, ph, pb, check: dict, model, collect) -> tuple:
+def correct(ds, ph, pb, check: dict, collect, seed: int = 0) -> tuple:
     """The spin check's correction, tried on the record.
 
     Arguments:
         ds: the dataset; ph: its :class:`~ttsim_jax.diagnose.phases.Phases`; pb: their
             :class:`~ttsim_jax.diagnose.candidates.Problem`; check: the spin check's dict (run on
-            the flight segments with a measured spin, in row order); model: the diagnosed model;
-            collect: ``collect(ds) -> (phases, problem)`` as the diagnosis makes them.
+            the flight segments with a measured spin, in row order); collect: ``collect(ds) ->
+            (phases, problem)`` as the diagnosis makes them; seed: of the bootstrap.
 
     Returns:
         (dataset, phases, problem, entry): the corrected ones where the correction is accepted,
@@ -71,7 +71,7 @@ def correct(ds, ph, pb, check: dict, model, collect) -> tuple:
     ph2, pb2 = collect(ds2)
     if ph2.flights is None or not np.array_equal(ph2.flights.segment_id, fl.segment_id):
         return ds, ph, pb, dict(skipped="the corrected record gives other flight segments: not compared")
-    h = candidates.score(pb, {"flight": pb2.base["flight"]})["flight"]
+    h = candidates.score(pb, {"flight": pb2.base["flight"]}, seed)["flight"]
     accepted = bool(np.isfinite(np.asarray(pb2.base["flight"])).all() and candidates.significant("flight", h))
     entry = dict(applied=applied, segments=int(np.sum(fl.spin_source[: fl.n] == "measured")), heldout=h,
                  accepted=accepted)
