@@ -100,7 +100,7 @@ def test_fit_refuses_to_overwrite_and_bad_options(fitted, tmp_path, capsys):
 def test_fit_drag_only_keeps_the_base_magnus_form(tmp_path):
     out = tmp_path / "drag.toml"
     assert main(["fit", "--data", str(SAMPLE), "--out", str(out), "--test-fraction", "0.3", "--forms", "drag",
-                 "--stages", "aero", "--quiet"]) == 0
+                 "--stages", "aero", "--spin", "measured", "--quiet"]) == 0
     model, base = load_model(out), load_model("conti2026")
     for key in ("m1", "s", "w_b", "a", "b", "c"):
         np.testing.assert_allclose(np.asarray(getattr(model.aero.magnus, key)),

@@ -61,8 +61,9 @@ def test_fit_of_two_datasets_is_the_fit_of_their_union(sample, tmp_path, capsys)
     save(sessions_of(sample, [1, 2]), tmp_path / "b")
     both, whole = tmp_path / "both", tmp_path / "whole"
     assert main(["fit", "--data", str(tmp_path / "a"), "--data", str(tmp_path / "b"), "--out", str(both),
-                 "--stages", "aero", "--quiet"]) == 0
-    assert main(["fit", "--data", str(SAMPLE), "--out", str(whole), "--stages", "aero", "--quiet"]) == 0
+                 "--stages", "aero", "--spin", "measured", "--quiet"]) == 0  # the union, not the latent spins, on test
+    assert main(["fit", "--data", str(SAMPLE), "--out", str(whole), "--stages", "aero", "--spin", "measured",
+                 "--quiet"]) == 0
     info = json.loads(both.with_suffix(".fit.json").read_text())
     assert info["data"] == [str(tmp_path / "a"), str(tmp_path / "b")]
     assert info["aero"]["counts"]["segments"] == 238
@@ -112,7 +113,7 @@ def test_what_was_fitted_is_written_when_a_later_stage_fails(tmp_path, monkeypat
     monkeypatch.setattr(table, "fit_table", broken)
     out = tmp_path / "partial"
     with pytest.raises(RuntimeError, match="the table solver broke"):
-        main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "aero,table", "--quiet"])
+        main(["fit", "--data", str(SAMPLE), "--out", str(out), "--stages", "aero,table", "--spin", "measured", "--quiet"])
     assert "stage table failed" in capsys.readouterr().err
     model, base = load_model(out.with_suffix(".toml")), load_model("conti2026")
     assert not np.allclose(np.asarray(model.aero.drag.cd), np.asarray(base.aero.drag.cd))

@@ -97,14 +97,31 @@ def test_a_scaled_spin_reads_its_scale(scaled, k):
     assert 0 < int(np.argmin(out["cost"])) < len(out["scales"]) - 1
 
 
-def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scaled):
+#: The turn of :func:`checks`' turned record, about the direction of flight (across stays across).
+TURN_DEG = 12.0
+
+
+@pytest.fixture(scope="module")
+def checks(scaled):
+    """The record check of the ``scaled`` flights with their spins as they are ("ok"), 20 % high,
+    sign-flipped on every segment or on every fourth, and turned by :data:`TURN_DEG` about x: each
+    record's (spins, check), the flights' latent fit made once for all."""
+    from ttsim_jax.fit.latent_spin import fit_latent_spin
+
     model, spins, times, positions = scaled
-    ok = check_record_spin(model, times, positions, spins)
+    latent = fit_latent_spin(times, positions, model)
+    some = spins.copy()
+    some[::4] *= -1.0
+    records = {"ok": spins, "high": 1.2 * spins, "flipped": -spins, "some": some,
+               "turned": spins @ rotation([1.0, 0.0, 0.0], TURN_DEG).T}
+    return {k: (r, check_record_spin(model, times, positions, r, latent=latent)) for k, r in records.items()}
+
+
+def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(checks):
+    ok, high, flipped = (checks[k][1] for k in ("ok", "high", "flipped"))
     assert ok["findings"] == [] and ok["summary"].endswith("consistent")
-    high = check_record_spin(model, times, positions, 1.2 * spins)
     assert [f for f in high["findings"] if f.startswith("spin reads")] == [f"spin reads {100 * (high['reads'] - 1):.0f} % high"]
     assert abs(high["reads"] - 1.2) < 0.03
-    flipped = check_record_spin(model, times, positions, -spins)
     assert flipped["findings"][0] == "sign flipped on every segment"
     # by hand: a rotation interval clear of the threshold is named; a scale interval holding 1 is not
     assert findings(dict(n=10, opposite=0.0, opposite_interval=[0.0, 0.1], rotation_deg=10.0,
@@ -119,33 +136,24 @@ def test_the_record_check_names_what_is_off_and_passes_a_consistent_record(scale
     assert "None" not in str(ok["summary"]) and "nan" not in ok["summary"]
 
 
-def test_the_correction_undoes_what_the_check_found(scaled):
+def test_the_correction_undoes_what_the_check_found(scaled, checks):
     """corrected_spins on the checks of records scaled, sign-flipped and turned: the true spins back
     (the scale within 3 %, the direction within 2 degrees); a consistent record left as it is."""
-    model, spins, times, positions = scaled
-    ok = check_record_spin(model, times, positions, spins)
-    same, done = corrected_spins(spins, ok)
+    spins = scaled[1]
+    same, done = corrected_spins(*checks["ok"])
     assert done == [] and np.array_equal(same, spins)
-    high = check_record_spin(model, times, positions, 1.2 * spins)
-    back, done = corrected_spins(1.2 * spins, high)
+    high = checks["high"][1]
+    back, done = corrected_spins(*checks["high"])
     assert done == [f"size multiplied by {high['scale']:.2f}"]
     np.testing.assert_allclose(back, spins, rtol=0.03, atol=1e-9)
-    flipped = check_record_spin(model, times, positions, -spins)
-    back, done = corrected_spins(-spins, flipped)
+    back, done = corrected_spins(*checks["flipped"])
     assert done[0] == "sign flipped back on every segment" and np.allclose(back, spins)
     # some signs flipped: those segments (and only those) flipped back
-    some = spins.copy()
-    some[::4] *= -1.0
-    part = check_record_spin(model, times, positions, some)
-    back, done = corrected_spins(some, part)
+    back, done = corrected_spins(*checks["some"])
     assert done[0].startswith("sign flipped back on the")
     assert np.median(np.linalg.norm(back - spins, axis=1) / np.linalg.norm(spins, axis=1)) < 1e-9
-    # an axis turned by 12 degrees about x (the direction of flight: the turn stays across it), turned back
-    a = np.radians(12.0)
-    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-    turned = spins @ turn.T
-    check = check_record_spin(model, times, positions, turned)
-    back, done = corrected_spins(turned, check)
-    assert any(d.startswith("axis turned back by") for d in done), check["findings"]
+    # an axis turned about x, turned back
+    back, done = corrected_spins(*checks["turned"])
+    assert any(d.startswith("axis turned back by") for d in done), checks["turned"][1]["findings"]
     cos = np.sum(back * spins, 1) / (np.linalg.norm(back, axis=1) * np.linalg.norm(spins, axis=1))
     assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 2.0

@@ -77,6 +77,8 @@ def one_per_reading(names):
     return list(firsts.values())
 
 
+@pytest.mark.slow  # the constant and table readings run by default, sharded: test_sharded_fused_path_equals_the_reference
+@pytest.mark.parametrize("name", COVERED)
 def test_default_path_equals_the_reference_path(name, state, references):
     """At the batch and length from which ``fused="auto"`` flies the fused kernel, the default
     execution (then the fused path) gives the reference step's events and states for every bundled

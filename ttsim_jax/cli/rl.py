@@ -115,6 +115,10 @@ def cmd_play(args) -> int:
     from ttsim_jax.rl.config import parse_ppo_config
     from ttsim_jax.rl.training import build, require_envs, task_path
 
+    if args.real_shots is not None:  # a wrong folder is refused before the task's bank is built
+        from ttsim_jax.data.post_hit_states import read_post_hit_states
+
+        read_post_hit_states(args.real_shots)
     if args.policy is None:
         args.policy = BUNDLED_POLICY
     payload = read_checkpoint(args.policy)

@@ -338,7 +338,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         # the record's spin was the one thing found: explained where nothing is left above a floor
         bound_phases, bound_text = _bound_text(out)
         level = "partly explained" if gaps or bound_phases else "explained"
-        text = (("Explained by: " if level == "explained" else "Partly explained by: ") + "the record's measured spin"
+        text = (("Explained by: " if level == "explained" else "Partly explained by: ") + "the record's measured spin."
                 + _spin_text(out) + rest + (" What is left lies in: " + "; ".join(where) + "." if where else "")
                 + bound_text + rejected + limits_text(out, [c.spec.name for c in beyond]))
         return dict(names, effects=[NAME_SPIN], level=level, explained=level == "explained", text=text)

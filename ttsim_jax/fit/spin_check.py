@@ -216,10 +216,13 @@ def spin_scale(model, times, positions, spins, *, scales=SCALES, seed: int = 0) 
                 n=int(len(cost)), scales=scales.tolist(), cost=total.tolist())
 
 
-def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
+def check_record_spin(model, times, positions, spins, *, seed: int = 0, latent=None) -> dict:
     """The whole spin check of segments with a measured spin: their latent spins fitted under
     ``model`` (:func:`ttsim_jax.fit.latent_spin.fit_latent_spin`), compared with the measured ones
     (:func:`check_spin`), and the scale the flights favour (:func:`spin_scale`).
+
+    ``latent``: that fit of these segments under ``model``, when already made (it does not depend
+    on the record's spins, so checks of several spin records of the same flights share it).
 
     Returns:
         dict (JSON-able): the :meth:`SpinCheck.to_json` entries; ``scale`` and ``scale_interval``
@@ -233,7 +236,7 @@ def check_record_spin(model, times, positions, spins, *, seed: int = 0) -> dict:
     from ttsim_jax.fit.latent_spin import fit_latent_spin
 
     spins = np.asarray(spins, np.float64)
-    latent = fit_latent_spin(times, positions, model)
+    latent = fit_latent_spin(times, positions, model) if latent is None else latent
     check = check_spin(spins, latent, seed=seed)
     rest = np.setdiff1d(np.arange(len(times)), check.opposite_rows)  # a flipped spin has no size to read
     scale = spin_scale(model, [times[i] for i in rest], [positions[i] for i in rest], spins[rest], seed=seed)
