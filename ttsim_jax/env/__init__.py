@@ -2,7 +2,7 @@
 
 :mod:`.return_ball` is the functional environment (pure ``reset`` / ``step`` over pytrees, batched,
 jit- and vmap-able); :mod:`.single` the same for one environment, for the user to vmap (gymnax's
-shape); :mod:`.gym` holds its gymnasium adapters; :mod:`.render` draws their frames
+shape); :mod:`.gym` holds its gymnasium adapters; :mod:`.brax_env` its brax ``Env`` (brax installed); :mod:`.render` draws their frames
 (``render_mode="rgb_array"``). ``ttsim/ReturnBall-v0`` is registered with gymnasium by
 :mod:`ttsim_jax.registration` when gymnasium is imported after (or before) ``ttsim_jax``.
 """
