@@ -24,6 +24,24 @@ def test_registered_on_import():
     assert spec.vector_entry_point == "ttsim_jax.env.gym:ReturnBallVectorEnv"
 
 
+def test_the_spec_holds_the_tasks_episode_length_and_no_time_limit_is_added(env):
+    """``env.spec.max_episode_steps`` is the task's (the environment truncates there itself), for
+    the single and the vector form, and no TimeLimit wrapper duplicates it."""
+    steps = env.unwrapped.env.max_steps
+    assert steps > 0 and env.spec.max_episode_steps == steps == env.unwrapped.spec.max_episode_steps
+    wrapper, chain = env, []
+    while isinstance(wrapper, gymnasium.Wrapper):
+        chain.append(type(wrapper).__name__)
+        wrapper = wrapper.env
+    assert "TimeLimit" not in chain, chain
+    vec = gymnasium.make_vec("ttsim/ReturnBall-v0", num_envs=2, task=TASK, overrides=OVERRIDES)
+    assert vec.spec.max_episode_steps == steps
+    vec.close()
+    again = gymnasium.make(env.spec)  # made again from its spec: a time limit at the same step, harmless
+    assert again.spec.max_episode_steps == steps
+    again.close()
+
+
 def test_single_env_passes_gymnasiums_checker(env):
     assert isinstance(env.unwrapped, ReturnBallEnv)
     check_env(env.unwrapped)  # with its render check (rgb_array)

@@ -19,6 +19,8 @@ gymnasium's ``RecordVideo`` and ``HumanRendering`` wrappers work on the single e
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium
 import numpy as np
 from gymnasium.utils import seeding
@@ -121,7 +123,24 @@ class _Trails:
                      for i in range(self.n))
 
 
-class ReturnBallVectorEnv(gymnasium.vector.VectorEnv):
+class _TaskTimeLimit:
+    """The ``spec`` of an environment that truncates its episodes itself, at the task's
+    ``max_steps``: gymnasium's ``make`` gives it a spec without ``max_episode_steps`` (no time limit
+    registered: the task sets it, and a TimeLimit wrapper would duplicate the environment's own), and
+    this fills in the task's, which wrappers and trainers read (``env.spec.max_episode_steps``)."""
+
+    @property
+    def spec(self):
+        return self.__dict__.get("_spec")
+
+    @spec.setter
+    def spec(self, value):
+        if value is not None and value.max_episode_steps is None:
+            value = dataclasses.replace(value, max_episode_steps=self.env.max_steps)
+        self._spec = value
+
+
+class ReturnBallVectorEnv(_TaskTimeLimit, gymnasium.vector.VectorEnv):
     """``num_envs`` ReturnBall environments stepped by one jitted call.
 
     Arguments:
@@ -232,7 +251,7 @@ class ReturnBallVectorEnv(gymnasium.vector.VectorEnv):
         return self._trails.draw()
 
 
-class ReturnBallEnv(gymnasium.Env):
+class ReturnBallEnv(_TaskTimeLimit, gymnasium.Env):
     """One ReturnBall environment (gymnasium ``Env``); arguments as :class:`ReturnBallVectorEnv`
     (``render_mode="rgb_array"``: :meth:`render` returns one frame)."""
 
