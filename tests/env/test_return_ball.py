@@ -468,3 +468,18 @@ def test_the_shot_type_codes_name_the_tasks_types(vec, run):
     codes = np.concatenate([np.asarray(out[5]["shot_type"]) for _, out in run])
     assert codes.min() >= 0 and codes.max() < len(env.shot_type_names)
     assert return_ball.OUTCOME_NAMES[LEGAL] == "legal" and return_ball.OUTCOME_NAMES[RUNNING] == "running"
+
+
+def test_a_bank_too_large_to_draw_is_refused_before_it_is_drawn():
+    """An aimed bank's drawing holds about 0.6 MB a shot (``bank.AIM_BYTES_PER_SHOT``, measured):
+    10^8 shots are refused with the estimate, as the library builds the parameters (gymnasium's
+    ``make``, ``ttsim train``), before anything is drawn; an unaimed bank costs far less a shot."""
+    from ttsim_jax.env import bank
+    from ttsim_jax.sizes import SizeError
+
+    huge = load_task_config("return_ball", {"shots.bank": 10**8})
+    assert bank.bank_bytes(huge) == 10**8 * bank.AIM_BYTES_PER_SHOT
+    with pytest.raises(SizeError, match=r"\[shots\] bank = 100000000 \(aimed through the model\) needs about"):
+        return_ball.ReturnBall(huge, 2).default_params()
+    unaimed = load_task_config("return_ball", {"shots.bank": 10**8, "shots.aim": False})
+    assert bank.bank_bytes(unaimed) < bank.bank_bytes(huge) / 100

@@ -65,7 +65,13 @@ def memory_bytes(config: PPOConfig, num_envs: int, task=None) -> int:
 
 
 def require_envs(config: PPOConfig, num_envs: int, what: str, task=None) -> None:
-    """Refuses ``num_envs`` environments whose memory (:func:`memory_bytes`) is above the budget."""
+    """Refuses a task whose shot bank's drawing (:func:`~ttsim_jax.env.bank.bank_bytes`), or
+    ``num_envs`` environments whose memory (:func:`memory_bytes`), is above the budget, before either
+    is built."""
+    from ttsim_jax.env.bank import bank_bytes
+
+    c = _task_env(config, 1, task).config
+    require_memory(f"{c.source}: [shots] bank = {c.shots.bank}", bank_bytes(c), remedy="give a smaller bank")
     require_memory(what, memory_bytes(config, num_envs, task), remedy="ask for fewer environments")
 
 
