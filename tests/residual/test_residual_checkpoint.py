@@ -80,6 +80,10 @@ def test_corrupted_byte_and_version(tmp_path):
     header["format_version"] = 99
     newer = tmp_path / "v99.ttres"
     newer.write_bytes(CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
+    with pytest.raises(CheckpointError, match="header_sha256"):  # an edited header: its own sum disagrees
+        load_residual(newer)
+    del header["header_sha256"]  # as a writer that does not sum its header
+    newer.write_bytes(CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
     with pytest.raises(CheckpointError, match="format_version"):
         load_residual(newer)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
@@ -162,6 +166,7 @@ def test_version_1_model_loads_uncalibrated_with_a_warning(tmp_path):
     end = raw.index(b"\n", len(CHECKPOINT_MAGIC))
     header = json.loads(raw[len(CHECKPOINT_MAGIC):end])
     header["format_version"] = 1
+    del header["header_sha256"]  # version-1 files were written before headers carried their sum
     path.write_bytes(CHECKPOINT_MAGIC + json.dumps(header).encode() + raw[end:])
     with pytest.warns(UserWarning, match="version 1 has no sigma calibration"):
         back = load_residual(path)

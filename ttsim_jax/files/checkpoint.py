@@ -5,8 +5,9 @@ Layout:
     b"TTSIM-RESIDUAL\\n" + <JSON header, one line> + b"\\n" + <msgpack payload>
 
 The header holds the format version, the file's kind (a residual network, a training state, ...),
-the payload's length and SHA-256, every array's shape and dtype, and whatever the writer adds (a
-configuration, notes); the payload (``flax.serialization`` msgpack) holds the arrays bit-exactly.
+the payload's length and SHA-256, every array's shape and dtype, whatever the writer adds (a
+configuration, notes) and the SHA-256 of all that (``header_sha256``; files written before it are
+read without); the payload (``flax.serialization`` msgpack) holds the arrays bit-exactly.
 Reading checks all of it, so a truncated, padded, corrupted or foreign file is refused with a
 :class:`CheckpointError` naming the file and the key, never loaded half. The magic bytes name the
 residual network, whose files came first; every kind shares them.
@@ -65,6 +66,12 @@ def _check_finite(path, flat: dict) -> None:
                                   f"{tuple(int(i) for i in first)})")
 
 
+def _header_sum(header: dict) -> str:
+    """The SHA-256 of a header's content, its own sum left out (as JSON with sorted keys)."""
+    body = {k: v for k, v in header.items() if k != "header_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
 def write_container(path, kind: str, header: dict, arrays: dict) -> None:
     """Writes a checkpoint container (magic, JSON header, msgpack payload) atomically.
 
@@ -86,6 +93,7 @@ def write_container(path, kind: str, header: dict, arrays: dict) -> None:
     head = dict(header, format_version=CHECKPOINT_VERSION, kind=kind, payload_bytes=len(payload),
                 payload_sha256=hashlib.sha256(payload).hexdigest(),
                 arrays={k: [list(v.shape), str(v.dtype)] for k, v in flat.items()})
+    head["header_sha256"] = _header_sum(head)
     line = json.dumps(head, sort_keys=True).encode()
     atomic_write(path, CHECKPOINT_MAGIC + line + b"\n" + payload)
 
@@ -120,6 +128,9 @@ def read_container(path, kind: str, versions=(CHECKPOINT_VERSION,)) -> tuple[dic
         raise CheckpointError(f"{path}: header is not valid JSON (corrupted): {e}") from None
     if not isinstance(header, dict):
         raise CheckpointError(f"{path}: header is not a JSON object (corrupted)")
+    # files written before the header had its own sum carry none: their payload is still verified
+    if "header_sha256" in header and header["header_sha256"] != _header_sum(header):
+        raise CheckpointError(f"{path}: corrupted: the header does not match key 'header_sha256'")
     version = header.get("format_version")
     if version not in versions:
         readable = " or ".join(str(v) for v in versions)

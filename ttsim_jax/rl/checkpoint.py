@@ -1,4 +1,5 @@
-"""PPO checkpoints: one msgpack file holding the whole training state, written atomically.
+"""PPO checkpoints: one file holding the whole training state, written atomically and verified on
+reading (a checkpoint container, :mod:`ttsim_jax.files.checkpoint`).
 
 A checkpoint holds the PPO config's text, the :class:`~ttsim_jax.rl.ppo.Runner` (network,
 optimiser, observation statistics, environments, key), the learning history and the training time
@@ -15,9 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from ttsim_jax.files.atomic import atomic_write
-from ttsim_jax.files.checkpoint import CheckpointError
+from ttsim_jax.files.checkpoint import CHECKPOINT_MAGIC, CheckpointError, read_container, write_container
 
+#: The container kind of a PPO checkpoint (:mod:`ttsim_jax.files.checkpoint`: a verified header
+#: with the config, history and time, the runner's arrays as its payload, both under SHA-256).
+KIND = "ppo-training"
+#: The format of checkpoints written before they went into the container: plain msgpack, read still,
+#: without any checksum.
 FORMAT = "ttsim-ppo/1"
 # A small policy trained on the default task (configs/ppo/return_ball_small.toml), shipped with the
 # package so that ``ttsim play`` works before any training.
@@ -32,20 +37,30 @@ def save_checkpoint(path, runner, config, history: list, elapsed_s: float) -> Pa
         :class:`~ttsim_jax.rl.config.PPOConfig`; history: list of per-chunk metric dicts;
         elapsed_s: training time so far [s].
     """
-    import jax
-    import numpy as np
-
-    payload = {"format": FORMAT, "config": config.text, "config_source": config.source,
-               "runner": jax.tree.map(np.asarray, serialization.to_state_dict(runner)),
-               "history": json.dumps(history), "elapsed_s": float(elapsed_s)}
-    atomic_write(path, serialization.msgpack_serialize(payload))
+    header = {"config": config.text, "config_source": config.source, "history": history,
+              "elapsed_s": float(elapsed_s)}
+    write_container(path, KIND, header, serialization.to_state_dict(runner))
     return Path(path)
 
 
 def read_checkpoint(path) -> dict:
     """The checkpoint's contents: ``config`` (text), ``config_source``, ``runner`` (a state dict),
-    ``history`` (list) and ``elapsed_s``; raises :class:`CheckpointError` naming the file."""
+    ``history`` (list) and ``elapsed_s``; raises :class:`CheckpointError` naming the file, for a
+    damaged one too (any bit flipped in a checkpoint of the container: its header's or payload's
+    SHA-256). A checkpoint of the earlier plain format is read without that check."""
     path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            container = f.read(len(CHECKPOINT_MAGIC)) == CHECKPOINT_MAGIC
+    except OSError as e:
+        raise CheckpointError(f"{path}: not a PPO checkpoint ({type(e).__name__}: {e})") from None
+    if container:
+        header, runner = read_container(path, KIND)
+        for key in ("config", "config_source", "history", "elapsed_s"):
+            if key not in header:
+                raise CheckpointError(f"{path}: header lacks key {key!r} (corrupted)")
+        return {"config": header["config"], "config_source": header["config_source"], "runner": runner,
+                "history": header["history"], "elapsed_s": header["elapsed_s"]}
     try:
         payload = serialization.msgpack_restore(path.read_bytes())
     except (OSError, ValueError, TypeError, KeyError) as e:
