@@ -38,3 +38,40 @@ def test_every_bit_flip_is_refused_naming_the_file(kind, tmp_path):
         copy.write_bytes(bytes(damaged))
         with pytest.raises(CheckpointError, match=re.escape(str(copy))):
             read(copy)
+
+
+def test_every_bit_flip_in_a_model_file_ttsim_wrote_is_refused_or_changes_nothing(tmp_path):
+    """A model TOML as ``ttsim fit`` writes it (the checksum line first, ``files.toml.signed``):
+    a bit flipped anywhere after that line is refused naming the file; one flipped on that line is
+    refused, or (a line no longer read as a checksum) loads the same model; a hand-written file
+    without the line loads as before."""
+    import jax
+    import numpy as np
+
+    from ttsim_jax.errors import UserError
+    from ttsim_jax.files.toml import signed
+    from ttsim_jax.params import load_model
+
+    text = (REPO / "configs" / "models" / "conti2026.toml").read_text()
+    path = tmp_path / "fitted.toml"
+    clean = signed(text).encode()
+    path.write_bytes(clean)
+    same = load_model(path)
+    first_line = clean.index(b"\n")
+    offsets = sorted({int(i * (len(clean) - 1) / (FLIPS - 1)) for i in range(FLIPS)} | {first_line + 40})
+    refused = 0
+    for k, off in enumerate(offsets):
+        damaged = bytearray(clean)
+        damaged[off] ^= 1 << (k % 8)
+        path.write_bytes(bytes(damaged))
+        try:
+            back = load_model(path)
+        except UserError as e:
+            assert str(path) in str(e)
+            refused += 1
+            continue
+        assert off < first_line, off  # only a flip on the checksum line may load, and then unchanged
+        assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(same)))
+    assert refused >= len([o for o in offsets if o > first_line])
+    (tmp_path / "hand.toml").write_text(text)
+    load_model(tmp_path / "hand.toml")

@@ -363,9 +363,10 @@ def write_config(base_path, out_path, sections: dict, *, name: str, source: str)
         The written path (checked by loading it with :func:`ttsim_jax.params.load_model`).
     """
     from ttsim_jax.files.atomic import atomic_write
+    from ttsim_jax.files.toml import signed
     from ttsim_jax.params import load_model
 
-    text = config_text(base_path, sections, name=name, source=source)
+    text = signed(config_text(base_path, sections, name=name, source=source))
     out_path = Path(out_path)
     atomic_write(out_path, text.encode("utf-8"))
     load_model(out_path)

@@ -57,6 +57,8 @@ from ttsim_jax.fit.choices import (DEFAULT_FORMS, DEFAULT_STAGES, FORMS, LATENT_
                                    STAGES)  # (re-exported)
 from ttsim_jax.errors import UserError
 from ttsim_jax.fit.comparison import comparison, comparison_text, flight_comparisons
+from ttsim_jax.files.toml import signed
+
 _TABLE_COMPONENTS = {"v_x": "m/s", "v_y": "m/s", "v_z": "m/s", "w_x": "rad/s", "w_y": "rad/s", "w_z": "rad/s"}
 
 
@@ -543,7 +545,7 @@ def write_fit(result: FitResult, out, *, force: bool = False) -> dict:
     existing = [str(p) for p in paths.values() if p.exists()]
     if existing and not force:
         raise FileExistsError(f"the output already exists ({', '.join(existing)}); pass force=True to overwrite it")
-    text = result.toml
+    text = signed(result.toml)  # a damaged copy is refused on loading
     _model_of(text)  # refuses a config that does not load before anything is written
     report = dict(result.report, model=str(paths["toml"]), model_toml=text)
     if result.network is not None:
