@@ -85,7 +85,8 @@ def test_default_stages_skip_what_the_data_cannot_fit(sample, tmp_path, capsys):
     save(sample.replace(events=events, rackets=select_rows(sample.rackets, np.zeros(len(sample.rackets["event_id"]),
                                                                                    bool))), data)
     out = tmp_path / "fitted"
-    assert main(["fit", "--data", str(data), "--out", str(out), "--test-fraction", "0.3", "--quiet"]) == 0
+    assert main(["fit", "--data", str(data), "--out", str(out), "--test-fraction", "0.3", "--spin", "measured",
+                 "--quiet"]) == 0  # the stages, not the latent spins (test_fit_command's default fit), on test
     text = capsys.readouterr().out
     assert "racket: skipped: no racket contacts with a racket state" in text
     info = json.loads(out.with_suffix(".fit.json").read_text())

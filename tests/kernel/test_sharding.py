@@ -50,12 +50,14 @@ def test_sharded_equals_unsharded_on_four_host_devices():
 
 
 IMPORT_SCRIPT = textwrap.dedent("""
-    import importlib, pkgutil
+    import importlib, importlib.util, pkgutil
     import jax
     import ttsim_jax
+    OPTIONAL = {"ttsim_jax.env.brax_env": "brax"}  # modules of an optional dependency: theirs
     for m in pkgutil.walk_packages(ttsim_jax.__path__, "ttsim_jax."):
-        if not m.name.endswith("__main__"):
-            importlib.import_module(m.name)
+        if m.name.endswith("__main__") or (m.name in OPTIONAL and importlib.util.find_spec(OPTIONAL[m.name]) is None):
+            continue
+        importlib.import_module(m.name)
     jax.config.update("jax_num_cpu_devices", 4)  # refused once a JAX backend has started
     print("DEVICES", jax.device_count())
 """)
