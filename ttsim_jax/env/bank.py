@@ -12,8 +12,9 @@ from ttsim_jax.sizes import require as require_memory
 from ttsim_jax.state import Ball
 
 #: Memory that drawing a bank holds per shot of the bank, aimed through the model [bytes]: the
-#: sampler draws twice the bank and flies every draw to its bounce. Measured: a bank of 4,096 peaked
-#: 2,043 MiB (ru_maxrss) above one of 512 (conti2026, CPU, after compiling), 0.57 MiB a shot.
+#: sampler draws twice the bank and flies every draw to its bounce. Measured
+#: (benchmarks/bank_memory.py): a bank of 4,096 peaked 2,043 MiB (ru_maxrss) above one of 512
+#: (conti2026, CPU, after compiling), 0.57 MiB a shot.
 AIM_BYTES_PER_SHOT = 600_000
 #: The same unaimed: two draws of 9 float64 values and a label a shot, and their temporaries (4x).
 DRAW_BYTES_PER_SHOT = 2 * (9 * 8 + 8) * 4
