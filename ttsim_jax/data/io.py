@@ -43,6 +43,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ttsim_jax.files.atomic import atomic_directory
+from ttsim_jax.files.checksum import json_sum
 
 from . import schema
 from .dataset import Dataset, Metadata
@@ -196,12 +197,6 @@ def _sha256(file: Path) -> str:
     return h.hexdigest()
 
 
-def _metadata_sum(meta: dict) -> str:
-    """The checksum of ``metadata.json``'s content, its own checksum left out."""
-    body = {k: v for k, v in meta.items() if k != METADATA_SUM_KEY}
-    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
-
-
 def _write_metadata(directory: Path, meta: dict, dataset_id: str) -> None:
     """Writes ``metadata.json`` of the current schema version with ``dataset_id`` and the SHA-256
     of every other file in ``directory`` and of its own content."""
@@ -209,7 +204,7 @@ def _write_metadata(directory: Path, meta: dict, dataset_id: str) -> None:
     meta[ID_KEY] = dataset_id
     meta[FILE_SUMS_KEY] = {p.name: _sha256(p) for p in sorted(directory.iterdir())
                            if p.is_file() and p.name != METADATA_FILE}
-    meta[METADATA_SUM_KEY] = _metadata_sum(meta)
+    meta[METADATA_SUM_KEY] = json_sum(meta, METADATA_SUM_KEY)
     (directory / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 
@@ -263,7 +258,7 @@ def _metadata_dict(path) -> tuple[dict, Path]:
     if schema.parse_version(d["schema_version"]) >= _ID_VERSION and not isinstance(d.get(ID_KEY), str):
         raise DataError(f"missing or invalid dataset id (required from schema version "
                         f"{'.'.join(map(str, _ID_VERSION))} on)", file=file, column=ID_KEY, value=d.get(ID_KEY))
-    if METADATA_SUM_KEY in d and d[METADATA_SUM_KEY] != _metadata_sum(d):
+    if METADATA_SUM_KEY in d and d[METADATA_SUM_KEY] != json_sum(d, METADATA_SUM_KEY):
         raise DataError("corrupted or edited: its content differs from the checksum recorded when the dataset was "
                         "written; restore it from a copy or write the dataset again (edited on purpose: remove the "
                         f"{METADATA_SUM_KEY} line)", file=file, column=METADATA_SUM_KEY)

@@ -29,6 +29,13 @@ def bank_bytes(config: TaskConfig) -> int:
     return int(c.bank) * (AIM_BYTES_PER_SHOT if c.aim else DRAW_BYTES_PER_SHOT)
 
 
+def require_bank(config: TaskConfig) -> None:
+    """Refuses a task whose shot bank's drawing (:func:`bank_bytes`) is above the memory budget."""
+    c = config.shots
+    require_memory(f"{config.source}: [shots] bank = {c.bank}" + (" (aimed through the model)" if c.aim else ""),
+                   bank_bytes(config), remedy="give a smaller bank" + (", or aim = false" if c.aim else ""))
+
+
 def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
     """The incoming shots: ``sample_shots`` of the configured types, redrawing any faster or spinning
     faster than the configured maxima.
@@ -62,8 +69,7 @@ def shot_bank(model: Model, config: TaskConfig, cache: bool = True):
         if path.is_file():
             with np.load(path) as f:
                 return Ball(pos=f["pos"], vel=f["vel"], spin=f["spin"]), f["types"]
-    require_memory(f"{config.source}: [shots] bank = {c.bank}" + (" (aimed through the model)" if c.aim else ""),
-                   bank_bytes(config), remedy="give a smaller bank" + (", or aim = false" if c.aim else ""))
+    require_bank(config)
     kept, labels, seed = [], [], c.seed
     while sum(len(k) for k in kept) < c.bank:
         ball, lab = shots_module.sample_shots(2 * c.bank, seed=seed, types=list(c.types),

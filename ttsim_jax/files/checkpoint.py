@@ -27,9 +27,12 @@ import numpy as np
 
 from ttsim_jax.errors import UserError
 from ttsim_jax.files.atomic import atomic_write
+from ttsim_jax.files.checksum import json_sum
 
 CHECKPOINT_MAGIC = b"TTSIM-RESIDUAL\n"
 CHECKPOINT_VERSION = 2
+#: The header key of the header's own SHA-256.
+HEADER_SUM_KEY = "header_sha256"
 
 
 class CheckpointError(UserError, ValueError):
@@ -66,12 +69,6 @@ def _check_finite(path, flat: dict) -> None:
                                   f"{tuple(int(i) for i in first)})")
 
 
-def _header_sum(header: dict) -> str:
-    """The SHA-256 of a header's content, its own sum left out (as JSON with sorted keys)."""
-    body = {k: v for k, v in header.items() if k != "header_sha256"}
-    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
-
-
 def write_container(path, kind: str, header: dict, arrays: dict) -> None:
     """Writes a checkpoint container (magic, JSON header, msgpack payload) atomically.
 
@@ -93,7 +90,7 @@ def write_container(path, kind: str, header: dict, arrays: dict) -> None:
     head = dict(header, format_version=CHECKPOINT_VERSION, kind=kind, payload_bytes=len(payload),
                 payload_sha256=hashlib.sha256(payload).hexdigest(),
                 arrays={k: [list(v.shape), str(v.dtype)] for k, v in flat.items()})
-    head["header_sha256"] = _header_sum(head)
+    head[HEADER_SUM_KEY] = json_sum(head, HEADER_SUM_KEY)
     line = json.dumps(head, sort_keys=True).encode()
     atomic_write(path, CHECKPOINT_MAGIC + line + b"\n" + payload)
 
@@ -129,7 +126,7 @@ def read_container(path, kind: str, versions=(CHECKPOINT_VERSION,)) -> tuple[dic
     if not isinstance(header, dict):
         raise CheckpointError(f"{path}: header is not a JSON object (corrupted)")
     # files written before the header had its own sum carry none: their payload is still verified
-    if "header_sha256" in header and header["header_sha256"] != _header_sum(header):
+    if HEADER_SUM_KEY in header and header[HEADER_SUM_KEY] != json_sum(header, HEADER_SUM_KEY):
         raise CheckpointError(f"{path}: corrupted: the header does not match key 'header_sha256'")
     version = header.get("format_version")
     if version not in versions:

@@ -14,7 +14,7 @@ import re
 import tomllib
 
 SUM_PREFIX = "# ttsim-sha256: "
-_SUM_LINE = re.compile(r"# ttsim-sha256: ([0-9a-f]{64})\n")
+_SUM_LINE = re.compile(re.escape(SUM_PREFIX) + r"([0-9a-f]{64})\n")
 
 
 def signed(text: str) -> str:

@@ -68,10 +68,9 @@ def require_envs(config: PPOConfig, num_envs: int, what: str, task=None) -> None
     """Refuses a task whose shot bank's drawing (:func:`~ttsim_jax.env.bank.bank_bytes`), or
     ``num_envs`` environments whose memory (:func:`memory_bytes`), is above the budget, before either
     is built."""
-    from ttsim_jax.env.bank import bank_bytes
+    from ttsim_jax.env.bank import require_bank
 
-    c = _task_env(config, 1, task).config
-    require_memory(f"{c.source}: [shots] bank = {c.shots.bank}", bank_bytes(c), remedy="give a smaller bank")
+    require_bank(_task_env(config, 1, task).config)
     require_memory(what, memory_bytes(config, num_envs, task), remedy="ask for fewer environments")
 
 
