@@ -32,8 +32,9 @@ def test_readme_api_example_runs():
 
 def test_readme_api_example_is_the_simulate_guides_first_which_runs():
     """The README's example is, line for line, the start of docs/simulate.md's snippets, which
-    test_docs_snippets.py runs as a reader pastes them (the gradient compiled and evaluated): one
-    run covers both pages instead of tracing the same reverse pass twice."""
+    test_docs_snippets.py runs as a reader pastes them (the gradient compiled and evaluated; with
+    ``-m slow``, as a reverse pass through the kernel): one run covers both pages instead of
+    tracing the same reverse pass twice."""
     blocks = re.findall(r"^```python\n(.*?)^```", (REPO / "docs" / "simulate.md").read_text(), re.S | re.M)
     assert blocks and blocks[0].startswith(api_example()), (
         "README.md's 'The API in ten lines' must be the first lines of docs/simulate.md's first snippet")

@@ -164,3 +164,41 @@ def test_csv_errors_count_blank_lines_and_print_plain_values(rally, tmp_path):
     e = _error_of(tmp_path / "log.csv")
     assert e.row == 34 and lines[33].startswith("0,") and float(lines[33].split(",")[1]) == e.value
     assert f"t = {float(t[29])!r}" in str(e)
+
+
+@pytest.mark.filterwarnings("ignore:.*accelerate more than gravity")
+@pytest.mark.parametrize("column, cell, problem", [("spin_conf", "1.5", r"spin confidence must be in \[0, 1\]"),
+                                                   ("z", "-1.2", "below the floor")])
+def test_a_row_rule_broken_near_the_end_of_a_long_log_refuses_it_while_it_streams(tmp_path, monkeypatch, column,
+                                                                                  cell, problem):
+    """A rule a row breaks on its own refuses the log at the block that holds the row: nothing
+    after the reading (time order, validation, segmentation) runs; the line and the file's value
+    are named."""
+    from ttsim_jax.data import csvlog, glitches
+
+    monkeypatch.setattr(csvlog, "BLOCK_ROWS", 1000)
+    n = 5500
+    t = np.arange(n) / 200.0
+    rows = [f"0,{float(ti)!r},{-1.0 + 0.01 * (i % 200)!r},0.1,{0.3 + 0.001 * (i % 50)!r},0.0,150.0,0.0,0.9" for i, ti in enumerate(t)]
+    bad = 5200  # in the last, partial block
+    good = rows[bad]
+    cells = good.split(",")
+    cells[{"z": 4, "spin_conf": 8}[column]] = cell
+    rows[bad] = ",".join(cells)
+    path = tmp_path / "observations.csv"
+    path.write_text("session_id,t,x,y,z,spin_x,spin_y,spin_z,spin_conf\n" + "\n".join(rows) + "\n")
+
+    def no_work(*a, **k):
+        raise AssertionError("the log was worked on after its reading")
+
+    monkeypatch.setattr(csvlog, "time_order", no_work)
+    with pytest.raises(DataError, match=problem) as e:
+        read_csv(path)
+    assert (e.value.row, e.value.row_label, e.value.column, e.value.value) == (bad + 2, "line", column, float(cell))
+    assert "observations.csv" in str(e.value)
+    # a sample far from the table is a glitch, left to its own rule: not refused while streaming
+    rows[bad] = good.replace(",0.1,", ",-30.0,")
+    path.write_text("session_id,t,x,y,z,spin_x,spin_y,spin_z,spin_conf\n" + "\n".join(rows) + "\n")
+    monkeypatch.setattr(csvlog, "time_order", glitches.time_order)
+    with pytest.warns(UserWarning, match="where no ball is"):
+        read_csv(path)

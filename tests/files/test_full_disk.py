@@ -3,9 +3,11 @@ error line naming the path, leaves no temporary behind and keeps any previous ou
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -101,3 +103,48 @@ def test_any_write_the_atomic_writers_miss_still_ends_in_one_line(tmp_path, monk
     assert main(["data", "info", str(SAMPLE)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: cannot write {tmp_path / 'report.md'}: No space left on device"]
+
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """A real filesystem of 1 MiB (a tmpfs mounted for the test: needs root, skipped without)."""
+    where = tmp_path / "small"
+    where.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a size-limited tmpfs needs root (the failing-fsync tests above cover the logic)")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    yield where
+    subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def fill(folder: Path) -> None:
+    """Fills ``folder``'s filesystem to its last byte."""
+    for name, chunk in ((".filler", 65536), (".filler_tail", 1)):
+        with contextlib.suppress(OSError), open(folder / name, "wb", buffering=0) as f:
+            while True:
+                f.write(b"\0" * chunk)
+
+
+def test_an_import_onto_a_really_full_disk_says_so_and_keeps_the_earlier_dataset(small_filesystem, tmp_path, capsys):
+    """The whole path on a real full filesystem (not an emulated one): ``ttsim data import`` of a
+    CSV log onto a 1 MiB tmpfs filled to the brim ends in one error line; the earlier dataset
+    there loads unchanged and no temporary is left."""
+    from ttsim_jax.data import load, read_csv, save
+
+    tau = np.arange(60) / 200.0  # a throw down the table, 200 Hz
+    log = tmp_path / "observations.csv"
+    log.write_text("session_id,t,x,y,z\n" + "".join(f"0,{t!r},{-1.2 + 6 * t!r},{0.1 - 0.5 * t!r},{0.3 + 1.5 * t - 4.905 * t * t!r}\n"
+                                                   for t in tau.tolist()))
+    earlier = read_csv(log)
+    target = small_filesystem / "dataset"
+    save(earlier, target)
+    before = {p.name: p.read_bytes() for p in target.iterdir()}
+    fill(small_filesystem)
+    assert main(["data", "import", "--source", "csv", str(log), "--out", str(target), "--force"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "No space left on device" in err[0] and str(target) in err[0], err
+    assert {p.name: p.read_bytes() for p in target.iterdir()} == before
+    assert leftovers(small_filesystem) == []
+    load(target)

@@ -73,6 +73,9 @@ def per_ball_rackets(n_steps, rng):
     return each.replace(pos=each.pos + shift + t * speed, vel=each.vel + speed)
 
 
+# slow: per-ball racket schedules run by default in the effects and residual comparisons below, and
+# per-ball parameters in the Pallas kernel's reading of them (test_pallas_kernel_reads_per_ball_...)
+@pytest.mark.slow
 def test_fused_equals_reference_with_per_ball_parameters_and_rackets(model):
     """Per-ball ball, air, drag-table and table parameters (what domain randomisation, the
     sensitivity studies and the diagnosis fly) and a racket schedule per ball (what the

@@ -192,6 +192,7 @@ def cmd_selfcheck(args) -> int:
     from ttsim_jax.diagnose.outside import outside_cases
     from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, plot, selfcheck,
                                               stored_cases, table)
+    from ttsim_jax.files.atomic import atomic_write
 
     if (args.resume or args.force) and args.out is None:
         raise UsageError("ttsim diagnose selfcheck: --resume and --force need --out DIR")
@@ -230,7 +231,7 @@ def cmd_selfcheck(args) -> int:
     print(text)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "selfcheck.md").write_text(text + "\n")
-        (args.out / "selfcheck.json").write_text(json.dumps(jsonable(result), indent=1))
+        atomic_write(args.out / "selfcheck.md", (text + "\n").encode(), "the selfcheck's table")
+        atomic_write(args.out / "selfcheck.json", json.dumps(jsonable(result), indent=1).encode(), "the selfcheck")
         plot(result, args.out / "selfcheck.png")
     return 0

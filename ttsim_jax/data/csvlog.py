@@ -43,6 +43,8 @@ _REQUIRED = {
 _INTS = {"session_id", "event_id"}
 _STRINGS = {"kind", "config"}
 _INT_RANGE = (int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max))
+#: Rows read between two applications of the row rules while a file streams in.
+BLOCK_ROWS = 65_536
 #: Columns that come all together or not at all.
 _TOGETHER = {"observations": (("spin_x", "spin_y", "spin_z"),)}
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
@@ -77,9 +79,13 @@ def read_text(file: Path) -> str:
         ) from None
 
 
-def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Columns of one CSV file and the file line of each data row."""
-    lines = []
+def _read(file: Path, table: str, allowed: tuple[str, ...], check=None) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Columns of one CSV file and the file line of each data row.
+
+    ``check(columns, lines)``, where given, is called on every block of :data:`BLOCK_ROWS` rows as
+    they are read (the columns as arrays, the rows' file lines), so that a rule a row breaks on its
+    own refuses the file at that block, not after the whole of it has been read and segmented."""
+    lines, blocks, block_lines = [], [], []
     with io.StringIO(read_text(file), newline="") as f:
         reader = csv.reader(f)
         try:
@@ -101,7 +107,20 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, n
                 raise DataError(f"{', '.join(given)} without {', '.join(missing)}: a spin needs all three "
                                 "components (or none: the spin is then unmeasured)", file=file, row=1,
                                 row_label="line", column=missing[0])
+        dtypes = {h: object if h in _STRINGS else (np.int64 if h in _INTS else np.float64) for h in header}
         cols: dict[str, list] = {h: [] for h in header}
+
+        def close_block():
+            block = {h: np.asarray(v, dtypes[h]) for h, v in cols.items()}
+            where = np.asarray(lines, np.int64)
+            if check is not None and len(where):
+                check(block, where)
+            blocks.append(block)
+            block_lines.append(where)
+            for v in cols.values():
+                v.clear()
+            lines.clear()
+
         for row in reader:
             line_no = reader.line_num
             if not row or all(not c.strip() for c in row):
@@ -125,10 +144,36 @@ def _read(file: Path, table: str, allowed: tuple[str, ...]) -> tuple[dict[str, n
                                     row=line_no, row_label="line", column=h, value=cell)
                 cols[h].append(v)
             lines.append(line_no)
-    if table == "observations" and not lines:
+            if len(lines) == BLOCK_ROWS:
+                close_block()
+        close_block()
+    all_lines = np.concatenate(block_lines)
+    if table == "observations" and not all_lines.size:
         raise DataError("no data rows: the file holds only its header", file=file, row=1, row_label="line", value=",".join(header))
-    arrays = {h: np.asarray(v, object if h in _STRINGS else (np.int64 if h in _INTS else np.float64)) for h, v in cols.items()}
-    return arrays, np.asarray(lines, np.int64)
+    arrays = {h: np.concatenate([b[h] for b in blocks]).astype(dtypes[h], copy=False) for h in header}
+    return arrays, all_lines
+
+
+def _row_check(file: Path, table: str, scale: float):
+    """The ``check`` of :func:`_read` for ``table``: :func:`~ttsim_jax.data.validate.row_rules`
+    on each block, its positions in metres; a sample beyond the positions' bound is left to the
+    glitch rules (a few such samples are left out of the import, many refuse it as a unit error)."""
+    from .validate import MAX_ABS_POSITION, row_rules
+
+    def check(block: dict, lines: np.ndarray) -> None:
+        columns = dict(block)
+        rows = np.arange(len(lines))
+        if all(k in columns for k in ("x", "y", "z")):
+            for k in ("x", "y", "z"):
+                columns[k] = columns[k] * scale
+            near = np.all(np.abs(np.stack([columns[k] for k in ("x", "y", "z")], -1)) <= MAX_ABS_POSITION, -1)
+            columns, rows = {k: v[near] for k, v in columns.items()}, rows[near]
+        for e in row_rules(table, columns, file):
+            row = rows[e.row]
+            raw = block[e.column][row] if e.column in ("x", "y", "z") else e.value  # as in the file's units
+            raise DataError(e.problem, file=file, row=int(lines[row]), row_label="line", column=e.column, value=raw)
+
+    return check
 
 
 def _check_sessions(ev_sid, obs_sid, ev_file, ev_lines, obs_file) -> None:
@@ -225,7 +270,7 @@ def read_csv(
         if f is not None and not f.is_file():
             raise DataError("no such file", file=f)
 
-    o, o_lines = _read(obs_file, "observations", OBSERVATION_COLUMNS)
+    o, o_lines = _read(obs_file, "observations", OBSERVATION_COLUMNS, _row_check(obs_file, "observations", scale))
     keep, mended = time_order(o["session_id"], o["t"])
     if mended:
         o, o_lines = {k: v[keep] for k, v in o.items()}, o_lines[keep]
@@ -245,13 +290,13 @@ def read_csv(
     ev = rk = None
     lines = {"observations": o_lines}
     if ev_file is not None:
-        e, lines["events"] = _read(ev_file, "events", EVENT_COLUMNS)
+        e, lines["events"] = _read(ev_file, "events", EVENT_COLUMNS, _row_check(ev_file, "events", scale))
         _check_sessions(e["session_id"], o["session_id"], ev_file, lines["events"], obs_file)
         ev = {"session_id": e["session_id"], "t": e["t"] * t_scale, "kind": e["kind"], "pos": np.stack([e["x"], e["y"], e["z"]], -1) * scale}
         if "event_id" in e:
             ev["event_id"] = e["event_id"]
     if rk_file is not None:
-        r, lines["rackets"] = _read(rk_file, "rackets", RACKET_COLUMNS)
+        r, lines["rackets"] = _read(rk_file, "rackets", RACKET_COLUMNS, _row_check(rk_file, "rackets", scale))
         for k in ("x", "y", "z", "d_y", "d_z"):
             r[k] = r[k] * scale
         rk = {

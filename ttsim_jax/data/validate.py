@@ -159,8 +159,29 @@ def _check_structure(ds: Dataset, files) -> Iterator[DataError]:
                 yield DataError(f"column must hold {c.dtype}, holds {values.dtype}", file=f, table=name, column=c.name)
 
 
-def _check_values(name: str, table, f) -> Iterator[DataError]:
+def row_rules(name: str, table: Mapping, f=None) -> Iterator[DataError]:
+    """The rules each row of table ``name`` keeps or breaks on its own, whatever the other rows
+    hold: finite numbers, strings where strings belong, a ball above the floor, spin confidences
+    in [0, 1], known event kinds, unit quaternions. So a reader can apply them to a part of a file
+    as it streams (the CSV import does, per block of rows), and a bad row near the end of a large
+    log is refused before the work on the rest. Columns the table lacks are skipped.
+
+    The bound on positions (:data:`MAX_ABS_POSITION`) is a row's too, but not among these: where a
+    few samples break it they are a tracker's glitches (left out on import), where most do the
+    units are wrong (:func:`ttsim_jax.data.glitches.far_samples` tells which), so it needs the whole
+    log.
+
+    Arguments:
+        name: the table (``"observations"``, ``"events"``, ...); table: its columns (rows are the
+            table's own: a caller checking a block maps them to its lines); f: the file, for the
+            messages.
+
+    Yields:
+        A :class:`DataError` per broken rule, at its first row.
+    """
     for c in schema.TABLES[name]:
+        if c.name not in table:
+            continue
         values = np.asarray(table[c.name])
         if c.dtype == "float64":
             bad = np.flatnonzero(~np.isfinite(values.astype(np.float64)))
@@ -170,14 +191,7 @@ def _check_values(name: str, table, f) -> Iterator[DataError]:
             bad = [i for i, v in enumerate(values) if not isinstance(v, str)]
             if bad:
                 yield DataError("not a string", file=f, table=name, row=bad[0], column=c.name, value=values[bad[0]])
-    for col in schema.POSITION_COLUMNS.get(name, ()):
-        values = np.asarray(table[col], np.float64)
-        bad = np.flatnonzero(np.isfinite(values) & (np.abs(values) > MAX_ABS_POSITION))
-        if bad.size:
-            v = values[bad[0]]
-            hint = " (looks like millimetres: give metres)" if abs(v) / 1000.0 <= MAX_ABS_POSITION else ""
-            yield DataError(f"position beyond {MAX_ABS_POSITION:g} m of the table centre{hint}", file=f, table=name, row=bad[0], column=col, value=v)
-    if name in ("observations", "events"):
+    if name in ("observations", "events") and "z" in table:
         z = np.asarray(table["z"], np.float64)
         bad = np.flatnonzero(np.isfinite(z) & (z < schema.FLOOR_Z - 0.1))
         if bad.size:
@@ -192,16 +206,27 @@ def _check_values(name: str, table, f) -> Iterator[DataError]:
         bad = np.flatnonzero((conf < 0) | (conf > 1))
         if bad.size:
             yield DataError("spin confidence must be in [0, 1]", file=f, table=name, row=bad[0], column=col, value=conf[bad[0]])
-    if name == "events":
+    if name == "events" and "kind" in table:
         bad = [i for i, k in enumerate(table["kind"]) if k not in schema.EVENT_CODES]
         if bad:
             yield DataError(f"unknown event kind; kinds: {', '.join(schema.EVENT_KINDS)}", file=f, table=name, row=bad[0], column="kind", value=table["kind"][bad[0]])
-    if name == "rackets":
+    if name == "rackets" and all(k in table for k in ("qw", "qx", "qy", "qz")):
         q = np.stack([np.asarray(table[k], np.float64) for k in ("qw", "qx", "qy", "qz")], axis=-1)
         norm = np.linalg.norm(q, axis=-1)
         bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_TOL)
         if bad.size:
             yield DataError(f"orientation quaternion must have norm 1, has {norm[bad[0]]:.6g}", file=f, table=name, row=bad[0], column="qw", value=q[bad[0]].tolist())
+
+
+def _check_values(name: str, table, f) -> Iterator[DataError]:
+    yield from row_rules(name, table, f)
+    for col in schema.POSITION_COLUMNS.get(name, ()):
+        values = np.asarray(table[col], np.float64)
+        bad = np.flatnonzero(np.isfinite(values) & (np.abs(values) > MAX_ABS_POSITION))
+        if bad.size:
+            v = values[bad[0]]
+            hint = " (looks like millimetres: give metres)" if abs(v) / 1000.0 <= MAX_ABS_POSITION else ""
+            yield DataError(f"position beyond {MAX_ABS_POSITION:g} m of the table centre{hint}", file=f, table=name, row=bad[0], column=col, value=v)
     if name == "segments":
         bad = np.flatnonzero(np.asarray(table["t_end"]) < np.asarray(table["t_start"]))
         if bad.size:

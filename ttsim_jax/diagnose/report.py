@@ -18,6 +18,7 @@ from ttsim_jax.diagnose.diagnosis import jsonable
 from ttsim_jax.diagnose.phases import REGIMES
 from ttsim_jax.diagnose.spin_record import text as correction_text
 from ttsim_jax.diagnose.where import FLAG_RATIO, UNITS
+from ttsim_jax.files.atomic import atomic_write
 
 FIGURES = {"where": "gap_by_regime.png", "effects": "effects.png", "before_after": "before_after.png"}
 #: Displayed unit and factor per phase error unit.
@@ -331,7 +332,7 @@ def write_report(out: dict, out_dir, data: str = "", model: str = "") -> dict:
     body = {k: v for k, v in out.items() if k not in ("arrays", "histories")}
     body["loss_history"] = {k: np.asarray(v).tolist() for k, v in out.get("histories", {}).items()}
     js = d / "diagnosis.json"
-    js.write_text(json.dumps(jsonable(body), indent=1))
+    atomic_write(js, json.dumps(jsonable(body), indent=1).encode(), "the diagnosis")
     md = d / "report.md"
-    md.write_text(markdown(out, data, model))
+    atomic_write(md, markdown(out, data, model).encode(), "the report")
     return dict(paths, json=js, report=md)

@@ -8,6 +8,7 @@ value (``samples.npz``), the figures (PNG) and ``report.md``.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from pathlib import Path
@@ -18,6 +19,7 @@ from ttsim_jax.evaluate import racket_groups
 from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, STAGES, TABLE_SKIP_REASONS, counts_text
 from ttsim_jax.data.contact_states import SKIP_REASONS
 from ttsim_jax.fit.flight import spin_source_counts
+from ttsim_jax.files.atomic import atomic_write
 from ttsim_jax.fit.network_evaluation import COMPONENTS, DISTANCE_BANDS, ERROR_NAMES, distance_bands
 
 
@@ -372,10 +374,12 @@ def write_report(result: dict, out_dir, data: str = "") -> dict:
         g = result["landing"]
         paths["landing_hist"], paths["landing_xy"] = plots.plot_landing(
             g["error"], g["landing"], g["measured"], out / FIGURES["landing_hist"], out / FIGURES["landing_xy"])
-    (out / "metrics.json").write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n")
+    atomic_write(out / "metrics.json", (json.dumps(summary, indent=1, allow_nan=False) + "\n").encode(), "the metrics")
     paths["metrics"] = out / "metrics.json"
-    np.savez_compressed(out / "samples.npz", **_samples(result))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **_samples(result))
+    atomic_write(out / "samples.npz", buf.getvalue(), "the samples")
     paths["samples"] = out / "samples.npz"
-    (out / "report.md").write_text(markdown(summary, FIGURES, data))
+    atomic_write(out / "report.md", markdown(summary, FIGURES, data).encode(), "the report")
     paths["report"] = out / "report.md"
     return paths

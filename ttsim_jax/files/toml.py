@@ -13,6 +13,8 @@ import hashlib
 import re
 import tomllib
 
+from ttsim_jax.errors import ConfigError
+
 SUM_PREFIX = "# ttsim-sha256: "
 _SUM_LINE = re.compile(re.escape(SUM_PREFIX) + r"([0-9a-f]{64})\n")
 
@@ -20,8 +22,6 @@ _SUM_LINE = re.compile(re.escape(SUM_PREFIX) + r"([0-9a-f]{64})\n")
 def signed(text: str) -> str:
     """``text`` with the checksum line in front (what :func:`read_toml` verifies)."""
     return f"{SUM_PREFIX}{hashlib.sha256(text.encode('utf-8')).hexdigest()}\n{text}"
-
-from ttsim_jax.errors import ConfigError
 
 
 def read_toml(path, what: str = "configuration file", error: type = ConfigError) -> dict:

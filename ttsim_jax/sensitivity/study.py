@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttsim_jax.files.atomic import atomic_write
 from ttsim_jax.sensitivity import budgets, report
 from ttsim_jax.sensitivity.cases import dataset_shots, sampled_shots
 from ttsim_jax.sensitivity.jacobians import STATE_GROUPS, jacobian, layout_of, local_flags
@@ -138,7 +139,7 @@ def run_study(cfg: StudyConfig, out: Path, log=print) -> dict:
                                                                 for s in sources])
     paths = dict(json=report.write_json(out / "sensitivity.json", meta=meta, jac=jac, shots=shots, flags=flags,
                                         summary=summary, scale=scale, budget=budget, mc=mc))
-    (out / "report.md").write_text(summary["markdown"])
+    atomic_write(out / "report.md", summary["markdown"].encode(), "the report")
     paths["report"] = out / "report.md"
     paths["heatmaps"] = report.heatmaps(jac, shots, summary["sensitivity"], summary["ok_group"],
                                         out / "heatmaps.png")
