@@ -167,26 +167,33 @@ def test_csv_errors_count_blank_lines_and_print_plain_values(rally, tmp_path):
 
 
 @pytest.mark.filterwarnings("ignore:.*accelerate more than gravity")
+@pytest.mark.parametrize("reader", ["arrow", "lines"])
 @pytest.mark.parametrize("column, cell, problem", [("spin_conf", "1.5", r"spin confidence must be in \[0, 1\]"),
                                                    ("z", "-1.2", "below the floor")])
-def test_a_row_rule_broken_near_the_end_of_a_long_log_refuses_it_while_it_streams(tmp_path, monkeypatch, column,
-                                                                                  cell, problem):
-    """A rule a row breaks on its own refuses the log at the block that holds the row: nothing
-    after the reading (time order, validation, segmentation) runs; the line and the file's value
-    are named."""
+def test_a_row_rule_broken_near_the_end_of_a_long_log_refuses_it_as_it_is_read(tmp_path, monkeypatch, column, cell,
+                                                                               problem, reader):
+    """A rule a row breaks on its own refuses the log as it is read (Arrow's reader: the whole
+    file; the line-by-line reader, which a blank line selects: the block that holds the row):
+    nothing after the reading (time order, validation, segmentation) runs; the line and the file's
+    value are named."""
     from ttsim_jax.data import csvlog, glitches
 
     monkeypatch.setattr(csvlog, "BLOCK_ROWS", 1000)
     n = 5500
     t = np.arange(n) / 200.0
     rows = [f"0,{float(ti)!r},{-1.0 + 0.01 * (i % 200)!r},0.1,{0.3 + 0.001 * (i % 50)!r},0.0,150.0,0.0,0.9" for i, ti in enumerate(t)]
+    blank = [""] if reader == "lines" else []
     bad = 5200  # in the last, partial block
     good = rows[bad]
     cells = good.split(",")
     cells[{"z": 4, "spin_conf": 8}[column]] = cell
     rows[bad] = ",".join(cells)
     path = tmp_path / "observations.csv"
-    path.write_text("session_id,t,x,y,z,spin_x,spin_y,spin_z,spin_conf\n" + "\n".join(rows) + "\n")
+    head = "session_id,t,x,y,z,spin_x,spin_y,spin_z,spin_conf\n"
+    path.write_text(head + "\n".join(blank + rows) + "\n")
+    read_lines = csvlog._read_lines
+    used = []
+    monkeypatch.setattr(csvlog, "_read_lines", lambda *a: used.append(1) or read_lines(*a))
 
     def no_work(*a, **k):
         raise AssertionError("the log was worked on after its reading")
@@ -194,11 +201,12 @@ def test_a_row_rule_broken_near_the_end_of_a_long_log_refuses_it_while_it_stream
     monkeypatch.setattr(csvlog, "time_order", no_work)
     with pytest.raises(DataError, match=problem) as e:
         read_csv(path)
-    assert (e.value.row, e.value.row_label, e.value.column, e.value.value) == (bad + 2, "line", column, float(cell))
-    assert "observations.csv" in str(e.value)
-    # a sample far from the table is a glitch, left to its own rule: not refused while streaming
+    assert (e.value.row, e.value.row_label, e.value.column, e.value.value) == (bad + 2 + len(blank), "line", column,
+                                                                               float(cell))
+    assert "observations.csv" in str(e.value) and bool(used) == (reader == "lines")
+    # a sample far from the table is a glitch, left to its own rule: not refused as it is read
     rows[bad] = good.replace(",0.1,", ",-30.0,")
-    path.write_text("session_id,t,x,y,z,spin_x,spin_y,spin_z,spin_conf\n" + "\n".join(rows) + "\n")
+    path.write_text(head + "\n".join(blank + rows) + "\n")
     monkeypatch.setattr(csvlog, "time_order", glitches.time_order)
     with pytest.warns(UserWarning, match="where no ball is"):
         read_csv(path)

@@ -45,10 +45,45 @@ def test_a_flipped_bit_anywhere_is_refused_naming_the_file(written, tmp_path, se
         assert file in str(caught.value), (file, at, str(caught.value))
 
 
-def test_a_dataset_written_before_the_sums_still_loads():
+def test_the_bundled_sample_sums_every_file():
     meta = json.loads((SAMPLE / METADATA_FILE).read_text())
-    assert FILE_SUMS_KEY not in meta  # the bundled sample is of schema 1.1
-    assert len(load(SAMPLE).observations["t"]) > 0
+    assert sorted(meta[FILE_SUMS_KEY]) == sorted(p.name for p in SAMPLE.iterdir() if p.name != METADATA_FILE)
+
+
+def test_every_bit_of_a_metadata_byte_flipped_is_refused_naming_the_file(written, tmp_path):
+    """Bit 7 makes an ASCII byte one that is not UTF-8 text: refused as damaged, as the others are
+    (by the metadata's own checksum or as JSON), never a decoding traceback."""
+    at = len((written / METADATA_FILE).read_bytes()) // 2
+    for bit in range(8):
+        copy = tmp_path / str(bit)
+        shutil.copytree(written, copy)
+        data = bytearray((copy / METADATA_FILE).read_bytes())
+        data[at] ^= 1 << bit
+        (copy / METADATA_FILE).write_bytes(bytes(data))
+        with pytest.raises(DataError, match=METADATA_FILE.replace(".", r"\.")):
+            load(copy)
+
+
+def test_a_dataset_written_before_the_sums_still_loads(written, tmp_path):
+    old = tmp_path / "old"
+    shutil.copytree(written, old)
+    meta = json.loads((old / METADATA_FILE).read_text())
+    meta = {k: v for k, v in meta.items() if k not in (FILE_SUMS_KEY, "metadata_sha256")}
+    (old / METADATA_FILE).write_text(json.dumps(dict(meta, schema_version="1.3")))
+    assert len(load(old).observations["t"]) == len(load(written).observations["t"]) > 0
+
+
+def test_an_upgraded_generated_dataset_sums_its_truth_too(tmp_path):
+    from ttsim_jax.data.io import upgrade
+
+    old = tmp_path / "old"
+    shutil.copytree(SAMPLE, old)
+    meta = json.loads((old / METADATA_FILE).read_text())
+    meta = {k: v for k, v in meta.items() if k not in (FILE_SUMS_KEY, "metadata_sha256")}
+    (old / METADATA_FILE).write_text(json.dumps(dict(meta, schema_version="1.3")))
+    upgrade(old)
+    sums = json.loads((old / METADATA_FILE).read_text())[FILE_SUMS_KEY]
+    assert "truth.json" in sums and sorted(sums) == sorted(p.name for p in old.iterdir() if p.name != METADATA_FILE)
 
 
 def test_a_flipped_bit_in_a_truth_file_is_refused(tmp_path):

@@ -65,8 +65,8 @@ def recorded(fn):
 
 
 def test_the_sample_is_protected_and_every_bit_flip_in_its_observations_is_refused(tmp_path):
-    assert json.loads((SAMPLE / "metadata.json").read_text())["schema_version"] == "1.1"
-    assert data_io.unprotected_files(SAMPLE) == []
+    assert json.loads((SAMPLE / "metadata.json").read_text())["schema_version"] == schema.SCHEMA_VERSION
+    assert data_io.unprotected_files(SAMPLE) == [] and data_io.unsummed_files(SAMPLE) == []
     copy = tmp_path / "games"
     shutil.copytree(SAMPLE, copy)
     file = copy / "observations.parquet"

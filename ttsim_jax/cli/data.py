@@ -173,14 +173,16 @@ def _spin_check(ds, model_name: str) -> dict:
 
 def cmd_upgrade(args) -> int:
     """``data upgrade``: rewrite a dataset with page checksums in the current schema version."""
-    from ttsim_jax.data.io import parquet_files, read_metadata, unprotected_files, upgrade
+    from ttsim_jax.data.io import parquet_files, read_metadata, unprotected_files, unsummed_files, upgrade
     from ttsim_jax.data.schema import SCHEMA_VERSION
 
     before = read_metadata(args.path).schema_version
     bare = unprotected_files(args.path)
     n = len(parquet_files(args.path))
-    if args.out is None and not bare and before == SCHEMA_VERSION:
-        print(f"{args.path}: already schema {SCHEMA_VERSION} with page checksums in all {n} Parquet files; nothing to do")
+    unsummed = unsummed_files(args.path)
+    if args.out is None and not bare and not unsummed and before == SCHEMA_VERSION:
+        print(f"{args.path}: already schema {SCHEMA_VERSION} with page checksums in all {n} Parquet files and every "
+              "file's SHA-256 recorded; nothing to do")
         return 0
     if args.out is not None and args.out.exists() and not args.force:
         raise UsageError(f"--out {args.out}: exists; add --force to replace the dataset there (other files in it are kept)")
@@ -191,5 +193,6 @@ def cmd_upgrade(args) -> int:
             raise
         raise UsageError(f"--out: {e}") from None
     print(f"wrote {out}: schema {before} -> {SCHEMA_VERSION}, page checksums in all {n} Parquet files "
-          f"({len(bare)} had none), a new dataset id; every value kept (each file read back and compared)")
+          f"({len(bare)} had none), every file's SHA-256 recorded ({len(unsummed)} were not), a new dataset id; "
+          "every value kept (each file read back and compared)")
     return 0

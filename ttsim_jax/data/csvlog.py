@@ -82,45 +82,101 @@ def read_text(file: Path) -> str:
 def _read(file: Path, table: str, allowed: tuple[str, ...], check=None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Columns of one CSV file and the file line of each data row.
 
-    ``check(columns, lines)``, where given, is called on every block of :data:`BLOCK_ROWS` rows as
-    they are read (the columns as arrays, the rows' file lines), so that a rule a row breaks on its
-    own refuses the file at that block, not after the whole of it has been read and segmented."""
+    ``check(columns, lines)``, where given, is applied to the rows as they are read (the columns as
+    arrays, the rows' file lines), so that a rule a row breaks on its own refuses the file before
+    the work on the rest. A plain file (no quotes, no blank lines) is parsed by Arrow's CSV reader,
+    about ten times faster than Python's, and checked whole; any other file, or one Arrow refuses,
+    line by line in blocks of :data:`BLOCK_ROWS` rows, which names the line, column and cell of
+    the first bad one."""
+    text = read_text(file)
+    first = text.split("\n", 1)[0]
+    header = [h.strip() for h in next(csv.reader([first]), [])] if first.strip() else []
+    if not header:
+        raise DataError("empty file (a header line is required)", file=file)
+    for h in header:
+        if h not in allowed:
+            raise DataError(f"unknown column; allowed: {', '.join(allowed)}", file=file, row=1, row_label="line", column=h)
+    for h in _REQUIRED[table]:
+        if h not in header:
+            raise DataError("missing required column", file=file, row=1, row_label="line", column=h)
+    if len(set(header)) != len(header):
+        raise DataError("duplicate column names in the header", file=file, row=1, row_label="line", value=",".join(header))
+    for group in _TOGETHER.get(table, ()):
+        given = [h for h in group if h in header]
+        if given and len(given) != len(group):
+            missing = [h for h in group if h not in header]
+            raise DataError(f"{', '.join(given)} without {', '.join(missing)}: a spin needs all three "
+                            "components (or none: the spin is then unmeasured)", file=file, row=1,
+                            row_label="line", column=missing[0])
+    dtypes = {h: object if h in _STRINGS else (np.int64 if h in _INTS else np.float64) for h in header}
+    read = _read_plain(text, file, header, dtypes)
+    if read is not None:
+        arrays, lines = read
+        if check is not None and len(lines):
+            check(arrays, lines)
+    else:
+        arrays, lines = _read_lines(text, file, header, dtypes, check)
+    if table == "observations" and not lines.size:
+        raise DataError("no data rows: the file holds only its header", file=file, row=1, row_label="line", value=",".join(header))
+    return arrays, lines
+
+
+def _read_plain(text: str, file: Path, header: list[str], dtypes: dict):
+    """A file without quotes, carriage returns or blank lines (each data row is then line
+    ``row + 2``) parsed by Arrow's CSV reader: (columns, lines), or None where the file is not
+    plain or Arrow refuses a cell (the line-by-line reader then names it). A NaN or infinite value
+    is refused here, naming its line and cell as that reader would."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    body = text[len(text.split("\n", 1)[0]) + 1:]
+    if not body.strip() or '"' in text or "\r" in text or "\n\n" in body.rstrip("\n") or body.startswith("\n"):
+        return None
+    types = {h: pa.string() if dtypes[h] is object else (pa.int64() if dtypes[h] is np.int64 else pa.float64())
+             for h in header}
+    try:
+        t = pacsv.read_csv(pa.py_buffer(body.encode("utf-8")),
+                           read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
+                           parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=False),
+                           convert_options=pacsv.ConvertOptions(column_types=types, null_values=[],
+                                                                strings_can_be_null=False,
+                                                                quoted_strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        return None
+    arrays = {h: (np.asarray([c.strip() for c in t.column(h).to_pylist()], object) if dtypes[h] is object
+                  else t.column(h).to_numpy().astype(dtypes[h], copy=False)) for h in header}
+    lines = np.arange(t.num_rows, dtype=np.int64) + 2
+    floats = [h for h in header if dtypes[h] is np.float64]
+    bad = np.stack([~np.isfinite(arrays[h]) for h in floats], -1) if floats else np.zeros((len(lines), 0), bool)
+    if bad.any():  # the first in the file: the first row, its first such cell
+        row = int(np.flatnonzero(bad.any(-1))[0])
+        h = floats[int(np.argmax(bad[row]))]
+        cell = text.split("\n", row + 2)[row + 1].split(",")[header.index(h)].strip()
+        raise DataError("NaN or infinite value", file=file, row=int(lines[row]), row_label="line", column=h, value=cell)
+    return arrays, lines
+
+
+def _read_lines(text: str, file: Path, header: list[str], dtypes: dict, check) -> tuple[dict, np.ndarray]:
+    """The rows of a CSV text read one by one (Python's csv module), ``check`` applied to each
+    block of :data:`BLOCK_ROWS` rows: (columns, lines). The first bad cell is refused naming its
+    line, column and text."""
     lines, blocks, block_lines = [], [], []
-    with io.StringIO(read_text(file), newline="") as f:
+    cols: dict[str, list] = {h: [] for h in header}
+
+    def close_block():
+        block = {h: np.asarray(v, dtypes[h]) for h, v in cols.items()}
+        where = np.asarray(lines, np.int64)
+        if check is not None and len(where):
+            check(block, where)
+        blocks.append(block)
+        block_lines.append(where)
+        for v in cols.values():
+            v.clear()
+        lines.clear()
+
+    with io.StringIO(text, newline="") as f:
         reader = csv.reader(f)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise DataError("empty file (a header line is required)", file=file) from None
-        for h in header:
-            if h not in allowed:
-                raise DataError(f"unknown column; allowed: {', '.join(allowed)}", file=file, row=1, row_label="line", column=h)
-        for h in _REQUIRED[table]:
-            if h not in header:
-                raise DataError("missing required column", file=file, row=1, row_label="line", column=h)
-        if len(set(header)) != len(header):
-            raise DataError("duplicate column names in the header", file=file, row=1, row_label="line", value=",".join(header))
-        for group in _TOGETHER.get(table, ()):
-            given = [h for h in group if h in header]
-            if given and len(given) != len(group):
-                missing = [h for h in group if h not in header]
-                raise DataError(f"{', '.join(given)} without {', '.join(missing)}: a spin needs all three "
-                                "components (or none: the spin is then unmeasured)", file=file, row=1,
-                                row_label="line", column=missing[0])
-        dtypes = {h: object if h in _STRINGS else (np.int64 if h in _INTS else np.float64) for h in header}
-        cols: dict[str, list] = {h: [] for h in header}
-
-        def close_block():
-            block = {h: np.asarray(v, dtypes[h]) for h, v in cols.items()}
-            where = np.asarray(lines, np.int64)
-            if check is not None and len(where):
-                check(block, where)
-            blocks.append(block)
-            block_lines.append(where)
-            for v in cols.values():
-                v.clear()
-            lines.clear()
-
+        next(reader)  # the header, checked by the caller
         for row in reader:
             line_no = reader.line_num
             if not row or all(not c.strip() for c in row):
@@ -147,11 +203,8 @@ def _read(file: Path, table: str, allowed: tuple[str, ...], check=None) -> tuple
             if len(lines) == BLOCK_ROWS:
                 close_block()
         close_block()
-    all_lines = np.concatenate(block_lines)
-    if table == "observations" and not all_lines.size:
-        raise DataError("no data rows: the file holds only its header", file=file, row=1, row_label="line", value=",".join(header))
     arrays = {h: np.concatenate([b[h] for b in blocks]).astype(dtypes[h], copy=False) for h in header}
-    return arrays, all_lines
+    return arrays, np.concatenate(block_lines)
 
 
 def _row_check(file: Path, table: str, scale: float):

@@ -242,14 +242,24 @@ def _check_version(version, file, column="schema_version") -> None:
         )
 
 
+def _json_file(file: Path):
+    """The JSON document in ``file``; a byte that is not UTF-8 text or text that is not JSON (a
+    damaged copy) is a :class:`DataError` naming the file and the place."""
+    raw = file.read_bytes()
+    try:
+        return json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise DataError(f"not UTF-8 text (byte {raw[e.start:e.start + 1]!r} at offset {e.start}): corrupted?",
+                        file=file) from None
+    except json.JSONDecodeError as e:
+        raise DataError(f"not valid JSON ({e.msg} at line {e.lineno})", file=file) from None
+
+
 def _metadata_dict(path) -> tuple[dict, Path]:
     file = Path(path) / METADATA_FILE
     if not file.exists():
         raise DataError(f"not a dataset directory: {METADATA_FILE} is missing", file=file)
-    try:
-        d = json.loads(file.read_text())
-    except json.JSONDecodeError as e:
-        raise DataError(f"not valid JSON ({e.msg} at line {e.lineno})", file=file) from None
+    d = _json_file(file)
     if not isinstance(d, dict):
         raise DataError("must hold a JSON object", file=file)
     if "schema_version" not in d:
@@ -406,6 +416,16 @@ def unprotected_files(path) -> list[Path]:
     return out
 
 
+def unsummed_files(path) -> list[Path]:
+    """The files of dataset directory ``path`` whose SHA-256 its metadata does not record (all of
+    them before schema 1.4; after, a file a writer added behind the metadata's back, as
+    :func:`upgrade` once did with ``truth.json``): a bit flipped there is not noticed on loading.
+    :func:`upgrade` records them."""
+    sums = _metadata_dict(path)[0].get(FILE_SUMS_KEY, {})
+    return [p for p in sorted(Path(path).iterdir())
+            if p.is_file() and p.name in owned_files() and p.name != METADATA_FILE and p.name not in sums]
+
+
 def read_truth_json(path, dataset_id: str) -> dict:
     """``truth.json`` of the generated dataset directory ``path``, as written (its id included).
 
@@ -413,10 +433,7 @@ def read_truth_json(path, dataset_id: str) -> dict:
     belongs to another dataset).
     """
     file = Path(path) / "truth.json"
-    try:
-        info = json.loads(file.read_text())
-    except json.JSONDecodeError as e:
-        raise DataError(f"not valid JSON ({e.msg} at line {e.lineno})", file=file) from None
+    info = _json_file(file)
     if not isinstance(info, dict) or info.get(ID_KEY, "") != dataset_id:
         raise DataError(f"truth file belongs to another dataset than {METADATA_FILE}; write the dataset again",
                         file=file, column=ID_KEY)
@@ -478,9 +495,9 @@ def upgrade(path, out=None, *, overwrite: bool = False) -> Path:
             if not (identical(back, data) and has_checksums(tmp / name)):
                 raise DataError("the rewritten copy differs from the original or has no checksums; the original "
                                 "is left as it was", file=path / name)
-        meta = {k: v for k, v in meta.items() if k != ID_KEY}
-        Metadata.from_dict(meta, file=meta_file)  # only known keys are carried over
-        _write_metadata(tmp, meta, new_id)
         if truth is not None:
             (tmp / "truth.json").write_text(json.dumps(dict(truth, **{ID_KEY: new_id}), indent=1) + "\n")
+        meta = {k: v for k, v in meta.items() if k not in (ID_KEY, FILE_SUMS_KEY, METADATA_SUM_KEY)}
+        Metadata.from_dict(meta, file=meta_file)  # only known keys are carried over
+        _write_metadata(tmp, meta, new_id)  # last: it holds every file's checksum, truth.json's too
     return target

@@ -510,7 +510,7 @@ def stored_cases(store) -> list:
 def _load_case(path: Path, key: dict) -> dict:
     try:
         stored = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, ValueError) as e:  # unreadable, not UTF-8 text, not JSON
         raise ResumeError(f"{path}: not a readable case file ({e}); remove it to rerun that case") from None
     if not isinstance(stored, dict) or not isinstance(stored.get("row"), dict):
         raise ResumeError(f"{path}: no 'row' in the case file; remove it to rerun that case")
