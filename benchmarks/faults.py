@@ -167,15 +167,17 @@ def writers(f: dict, d: Path) -> list[tuple[str, list, Path]]:
         ("animation (GIF)", ["play", "--episodes", 2, "--gif", d / "rally.gif"], d / "rally.gif"),
         ("PPO checkpoint", ["train", "ppo", "--config", f["ppo"], "--out", d / "ppo", "--quiet"], d / "ppo"),
         ("racket network", ["train", "residual", "--data", f["contacts"], "--out", d / "net.ttres", "--config",
-                            f["residual"], "--epochs", 2, "--quiet"], d / "net.ttres"),
+                            f["residual"], "--epochs", 2, "--quiet", "--force"], d / "net.ttres"),
     ]
 
 
-def disk_rows(f: dict, work: Path) -> list[dict]:
+def disk_rows(f: dict, work: Path, wanted=()) -> list[dict]:
     if os.geteuid() != 0:
-        return [dict(fault="disk full", skipped="mounting a size-limited tmpfs needs root")]
+        return [dict(fault="disk full", target="every writer", skipped="mounting a size-limited tmpfs needs root")]
     rows = []
     for what, argv, out in writers(f, work / "full"):
+        if wanted and what not in wanted:
+            continue
         with full_disk(work / "full") as d:
             old = None
             if out.suffix:  # a file: an earlier version of it must survive
@@ -210,7 +212,7 @@ def flipped_copy(src: Path, dst: Path, rng: random.Random, file: Path | None = N
     return victim.name, at
 
 
-def flip_rows(f: dict, work: Path, per_kind: int) -> list[dict]:
+def flip_rows(f: dict, work: Path, per_kind: int, wanted=()) -> list[dict]:
     rng = random.Random(0)
     policy = next(iter(sorted((REPO / "ttsim_jax" / "rl" / "policies").glob("*.msgpack"))), None)
     network = next(iter(sorted((REPO / "configs" / "rackets").glob("*.ttres"))), None)
@@ -225,6 +227,8 @@ def flip_rows(f: dict, work: Path, per_kind: int) -> list[dict]:
                       lambda p: ["evaluate", "residual", "--data", f["contacts"], "--checkpoint", p]))
     rows = []
     for k, (what, src, name, door) in enumerate(kinds):
+        if wanted and what not in wanted:
+            continue
         for i in range(per_kind):
             dst = work / "flips" / f"{k}_{i}" / src.name
             dst.parent.mkdir(parents=True)
@@ -244,15 +248,17 @@ def start(argv) -> subprocess.Popen:
                             text=True, env=_env(), start_new_session=True)
 
 
-def kill_when(p: subprocess.Popen, ready, timeout=600) -> float:
-    """SIGKILL ``p`` once ``ready()`` holds (polled); the seconds it ran."""
+def kill_when(p: subprocess.Popen, ready, timeout=600) -> float | None:
+    """SIGKILL ``p`` once ``ready()`` holds (polled every few milliseconds: a small dataset's
+    temporary directory lives for a tenth of a second); the seconds it ran, or None when it
+    finished first."""
     t = time.perf_counter()
     while not ready():
         if p.poll() is not None:
-            raise RuntimeError(f"finished before it could be killed: {p.stderr.read()[-2000:]}")
+            return None
         if time.perf_counter() - t > timeout:
             break
-        time.sleep(0.2)
+        time.sleep(0.005)
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
     return time.perf_counter() - t
@@ -264,7 +270,7 @@ def after(seconds: float):
     return lambda: (t0.append(time.perf_counter()) if not t0 else None) or time.perf_counter() - t0[0] >= seconds
 
 
-def kill_rows(f: dict, work: Path) -> list[dict]:
+def kill_rows(f: dict, work: Path, wanted=()) -> list[dict]:
     k = work / "killed"
     k.mkdir()
     sc = k / "selfcheck"
@@ -286,14 +292,20 @@ def kill_rows(f: dict, work: Path) -> list[dict]:
          lambda: any(k.glob(".imported.*.tmp")), [], lambda: (k / "imported" / "metadata.json").exists()),
         # no output until the end: killed in the middle of the work
         ("fit", ["fit", "--data", f["sample"], "--out", k / "fitted.toml", "--stages", "aero,table", "--spin",
-                 "measured", "--quiet"], after(12.0), [], lambda: (k / "fitted.toml").exists()),
+                 "measured", "--quiet"], after(4.0), [], lambda: (k / "fitted.toml").exists()),
         ("diagnose", ["diagnose", "--data", f["sample"], "--out", k / "diagnosis", "--quick", "--no-landing"],
          after(20.0), [], lambda: (k / "diagnosis" / "report.md").exists()),
     ]
     rows = []
     for job, argv, ready, again, done in jobs:
+        if wanted and job not in wanted:
+            continue
         p = start(argv)
         ran = kill_when(p, ready)
+        if ran is None:
+            rows.append(dict(fault="kill -9", target=job, command=command(argv), skipped="finished before the kill"))
+            print(json.dumps(rows[-1]), flush=True)
+            continue
         left = temporaries(k)
         r = run(argv + again)
         rows.append(dict(fault="kill -9", target=job, command=command(argv).replace(str(work), "W"),
@@ -310,7 +322,7 @@ def markdown(rows: list[dict]) -> str:
     out = ["| fault | what | command | exit | what the user reads | left behind |", "|---|---|---|---|---|---|"]
     for r in rows:
         if "skipped" in r:
-            out.append(f"| {r['fault']} | | | | skipped: {r['skipped']} | |")
+            out.append(f"| {r['fault']} | {r['target']} | | | skipped: {r['skipped']} | |")
             continue
         if r["fault"] == "kill -9":
             said = (f"killed after {r['killed_after_s']:.0f} s; `{r['rerun'].replace('ttsim ', '', 1)}` "
@@ -331,21 +343,32 @@ def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="folder for faults.json and faults.md (default: print)")
     p.add_argument("--flips", type=int, default=2, help="bit flips per file kind (default: %(default)s)")
-    p.add_argument("--only", default="disk,flips,kill", help="which faults: any of disk, flips, kill")
+    p.add_argument("--only", default="disk,flips,kill", help="which faults: any of disk, flips, kill (the rows of "
+                   "the others already in --out's faults.json are kept)")
+    p.add_argument("--targets", default="", help="only these rows' targets, comma-separated (e.g. 'generate,fit', "
+                   "'model file (fit)'); default: all")
     args = p.parse_args(argv)
     only = set(args.only.split(","))
+    wanted = tuple(j for j in args.targets.split(",") if j)
     with tempfile.TemporaryDirectory(prefix="ttsim-faults-") as tmp:
         work = Path(tmp)
         print("preparing the inputs (a CSV log, a fitted model, a short PPO run) ...", flush=True)
         files = prepare(work)
         rows = []
         if "disk" in only:
-            rows += disk_rows(files, work)
+            rows += disk_rows(files, work, wanted)
         if "flips" in only:
-            rows += flip_rows(files, work, args.flips)
+            rows += flip_rows(files, work, args.flips, wanted)
         if "kill" in only:
-            rows += kill_rows(files, work)
+            rows += kill_rows(files, work, wanted)
         rows = json.loads(json.dumps(rows).replace(str(work), "W"))  # the run's own folder, as the commands name it
+    kept = []
+    if args.out is not None and (args.out / "faults.json").exists():  # rows of faults not run again
+        new = {(r["fault"], r["target"]) for r in rows}
+        kept = [r for r in json.loads((args.out / "faults.json").read_text())["rows"]
+                if (r["fault"], r["target"]) not in new]
+    order = {"disk full": 0, "bit flip": 1, "kill -9": 2}
+    rows = sorted(kept + rows, key=lambda r: order[r["fault"]])  # stable: each fault's rows keep their order
     doc = dict(machine=platform.platform(), load=os.getloadavg(), rows=rows)
     text = markdown(rows)
     print(text)

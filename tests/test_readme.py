@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-GRAD = re.compile(r"^jax\.grad\((.+)\)\((\w+)\)", re.M)  # the example's one line ``jax.grad(f)(x)``
+GRAD = re.compile(r"^(?:\w+ = )?jax\.grad\((.+)\)\((\w+)\)", re.M)  # the example's line ``g = jax.grad(f)(x)``
 
 
 def api_example() -> str:

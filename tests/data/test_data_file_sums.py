@@ -102,3 +102,19 @@ def test_a_flipped_bit_in_a_truth_file_is_refused(tmp_path):
         (copy / name).write_bytes(bytes(data))
         with pytest.raises(DataError, match=name.replace(".", r"\.")):
             load_truth(copy)
+
+
+def test_data_info_checks_every_recorded_file_the_truth_too(tmp_path, capsys):
+    """``ttsim data info``, the integrity check a user runs, verifies the files ``load`` leaves to
+    their own readers (a generator's truth files), naming the damaged one."""
+    from ttsim_jax.cli import main
+
+    for name in ("truth.json", "truth_events.parquet"):
+        copy = tmp_path / name
+        shutil.copytree(SAMPLE, copy)
+        data = bytearray((copy / name).read_bytes())
+        data[len(data) // 3] ^= 2
+        (copy / name).write_bytes(bytes(data))
+        assert main(["data", "info", str(copy)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and name in err[0] and "corrupted" in err[0], err

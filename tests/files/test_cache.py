@@ -52,4 +52,4 @@ def test_compile_notice_prints_one_line_only_for_a_slow_call(capsys):
         time.sleep(0.5)
     time.sleep(0.6)  # past the quick block's timer: cancelled, it says nothing
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("ttsim_jax: compiling the slow program: about 120 s the first time")
+    assert len(lines) == 1 and lines[0].startswith("ttsim_jax: preparing the slow program: compiling takes about 120 s the first time")

@@ -125,7 +125,7 @@ def cmd_import(args) -> int:
 def cmd_info(args) -> int:
     """``data info``: load without stopping at problems, then summarise them."""
     from ttsim_jax.data.errors import DataWarning
-    from ttsim_jax.data.io import METADATA_FILE, load, parquet_files, table_path, unprotected_files
+    from ttsim_jax.data.io import METADATA_FILE, load, parquet_files, table_path, unprotected_files, verify_files
     from ttsim_jax.data.schema import TABLES
     from ttsim_jax.data.summary import format_info, info
     from ttsim_jax.data.validate import borderline, problems
@@ -133,6 +133,7 @@ def cmd_info(args) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DataWarning)  # reported below, with the rest
         ds = load(args.path, validate=False)
+    verify_files(args.path)  # the files load leaves to their readers too (a generator's truth)
     files = {name: table_path(args.path, name) for name in TABLES}
     files["metadata"] = f"{args.path}/{METADATA_FILE}"
     found = problems(ds, files)

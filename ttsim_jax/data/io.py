@@ -208,9 +208,10 @@ def _write_metadata(directory: Path, meta: dict, dataset_id: str) -> None:
     (directory / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 
-def verify_files(path, names) -> None:
-    """Refuses any of the files ``names`` of dataset directory ``path`` whose SHA-256 is not the
-    one its metadata.json recorded (:func:`check_file_sums`; nothing to check before schema 1.4)."""
+def verify_files(path, names=None) -> None:
+    """Refuses any of the files ``names`` (default: every file it records) of dataset directory
+    ``path`` whose SHA-256 is not the one its metadata.json recorded (:func:`check_file_sums`;
+    nothing to check before schema 1.4)."""
     check_file_sums(path, _metadata_dict(path)[0].get(FILE_SUMS_KEY, {}), names)
 
 

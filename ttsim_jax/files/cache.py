@@ -61,8 +61,9 @@ def enable_compilation_cache() -> str | None:
 @contextlib.contextmanager
 def compile_notice(what: str, expected_s: float, after_s: float = 3.0):
     """Prints one line to stderr if the block is still running after ``after_s`` seconds: a first
-    call is compiling ``what``, which takes about ``expected_s`` seconds the first time; quick
-    calls (a program in memory or loaded from the compilation cache) print nothing.
+    call is compiling ``what`` (about ``expected_s`` seconds the first time) or loading it from the
+    persistent compilation cache (seconds), and the line says what each takes; quick calls (a
+    program in memory) print nothing.
 
     Arguments:
         what: the program, as the line names it ("the ReturnBall step for 8 environments").
@@ -72,10 +73,13 @@ def compile_notice(what: str, expected_s: float, after_s: float = 3.0):
     def say():
         import jax
 
-        later = ("later runs load it from the compilation cache" if jax.config.jax_compilation_cache_dir
-                 else "the compilation cache is off")
-        print(f"ttsim_jax: compiling {what}: about {expected_s:.0f} s the first time on 2 CPU cores; {later}",
-              file=sys.stderr, flush=True)
+        # whether XLA compiles or loads the program from the persistent cache is not known here
+        # (JAX decides inside the call), so the line says what either takes, not which it is
+        cache = jax.config.jax_compilation_cache_dir
+        how = (f"compiling takes about {expected_s:.0f} s the first time on 2 CPU cores, loading it from the "
+               f"compilation cache a few seconds" if cache else
+               f"compiling takes about {expected_s:.0f} s on 2 CPU cores (the compilation cache is off)")
+        print(f"ttsim_jax: preparing {what}: {how}", file=sys.stderr, flush=True)
 
     timer = threading.Timer(after_s, say)
     timer.daemon = True
