@@ -86,6 +86,16 @@ def test_an_upgraded_generated_dataset_sums_its_truth_too(tmp_path):
     assert "truth.json" in sums and sorted(sums) == sorted(p.name for p in old.iterdir() if p.name != METADATA_FILE)
 
 
+def damaged_copy(src: Path, dst: Path, name: str, where: float, mask: int) -> Path:
+    """A copy of dataset ``src`` at ``dst`` whose file ``name`` has the bits ``mask`` of the byte
+    at the fraction ``where`` of its length flipped."""
+    shutil.copytree(src, dst)
+    data = bytearray((dst / name).read_bytes())
+    data[int(len(data) * where)] ^= mask
+    (dst / name).write_bytes(bytes(data))
+    return dst
+
+
 def test_a_flipped_bit_in_a_truth_file_is_refused(tmp_path):
     from ttsim_jax.reality import Generated, load_truth, write
 
@@ -95,11 +105,7 @@ def test_a_flipped_bit_in_a_truth_file_is_refused(tmp_path):
                     truth_observations=truth.observations, wall_time_s=0.0), out)
     load_truth(out)  # as written
     for name in ("truth.json", "truth_events.parquet"):
-        copy = tmp_path / name
-        shutil.copytree(out, copy)
-        data = bytearray((copy / name).read_bytes())
-        data[len(data) // 2] ^= 4
-        (copy / name).write_bytes(bytes(data))
+        copy = damaged_copy(out, tmp_path / name, name, 1 / 2, 4)
         with pytest.raises(DataError, match=name.replace(".", r"\.")):
             load_truth(copy)
 
@@ -110,11 +116,7 @@ def test_data_info_checks_every_recorded_file_the_truth_too(tmp_path, capsys):
     from ttsim_jax.cli import main
 
     for name in ("truth.json", "truth_events.parquet"):
-        copy = tmp_path / name
-        shutil.copytree(SAMPLE, copy)
-        data = bytearray((copy / name).read_bytes())
-        data[len(data) // 3] ^= 2
-        (copy / name).write_bytes(bytes(data))
+        copy = damaged_copy(SAMPLE, tmp_path / name, name, 1 / 3, 2)
         assert main(["data", "info", str(copy)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and name in err[0] and "corrupted" in err[0], err
