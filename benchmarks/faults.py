@@ -339,6 +339,37 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(out) + "\n"
 
 
+def summary(rows: list[dict]) -> str:
+    """One line per fault and target, for the docs: what a user reads and what is left."""
+    out = ["| fault | what | command | result |", "|---|---|---|---|"]
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["fault"], r["target"]), []).append(r)
+    for (fault, target), rs in groups.items():
+        r = rs[0]
+        if "skipped" in r:
+            out.append(f"| {fault} | {target} | | skipped: {r['skipped']} |")
+            continue
+        if fault == "kill -9":
+            ok = r["rc"] == 0 and r["finished"] and not r["temporaries_after_rerun"]
+            left = ", ".join(r["temporaries_after_kill"]) or "nothing"
+            result = (f"killed after {r['killed_after_s']:.0f} s, leaving {left}; "
+                      + ("`--resume` " if r["rerun"].endswith("--resume") else "the same command ")
+                      + ("finishes, nothing left" if ok else f"FAILS (exit {r['rc']})"))
+        else:
+            clear = sum(x["rc"] == 2 and x["error_lines"] == 1 and not x["traceback"] for x in rs)
+            clean = sum(not x.get("temporaries") and not x.get("left") and x.get("earlier_output_kept") is not False
+                        for x in rs)
+            what = (f"{clear} of {len(rs)} refused in one `error:` line naming the file" if fault == "bit flip" else
+                    "one `error:` line" if clear == len(rs) else "NOT one error line")
+            result = what + ("" if fault == "bit flip" else
+                             ", nothing half-written" + ("" if clean == len(rs) else " NOT: see faults.md")
+                             + (", the earlier output kept" if r.get("earlier_output_kept") else ""))
+        cmd = r["command"].replace("|", "\\|")
+        out.append(f"| {fault} | {target} | `{cmd}` | {result} |")
+    return "\n".join(out) + "\n"
+
+
 def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="folder for faults.json and faults.md (default: print)")
@@ -361,7 +392,8 @@ def main(argv=None) -> list[dict]:
             rows += flip_rows(files, work, args.flips, wanted)
         if "kill" in only:
             rows += kill_rows(files, work, wanted)
-        rows = json.loads(json.dumps(rows).replace(str(work), "W"))  # the run's own folder, as the commands name it
+        # the run's own folder as W, the repository's files relative to it, as the commands name them
+        rows = json.loads(json.dumps(rows).replace(str(work), "W").replace(str(REPO) + "/", ""))
     kept = []
     if args.out is not None and (args.out / "faults.json").exists():  # rows of faults not run again
         new = {(r["fault"], r["target"]) for r in rows}
@@ -376,6 +408,7 @@ def main(argv=None) -> list[dict]:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "faults.json").write_text(json.dumps(doc, indent=1) + "\n")
         (args.out / "faults.md").write_text(text)
+        (args.out / "faults_summary.md").write_text(summary(rows))
     return rows
 
 
