@@ -86,7 +86,7 @@ def test_a_gap_no_accepted_effect_acts_in_is_named():
     out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.3), "flight": floor(0.005, 0.002)})
     v = verdict(out, [worn])
     assert v["level"] == "partly explained" and v["open"] == ["flight"]
-    assert "Not addressed by any accepted effect: the flight gap (error 0.005 m, noise floor 0.002 m)" in v["text"]
+    assert "Not addressed by any accepted effect: the flight gap (error 5 mm, noise floor 2 mm)" in v["text"]
     # a flight error at its floor (within the intervals) or above it by less than the resolution is no gap
     out["floor"]["flight"] = floor(0.00201, 0.002, lo=0.0019, hi=0.0021)
     assert verdict(out, [worn])["level"] == "explained"

@@ -148,3 +148,25 @@ def test_an_import_onto_a_really_full_disk_says_so_and_keeps_the_earlier_dataset
     assert {p.name: p.read_bytes() for p in target.iterdir()} == before
     assert leftovers(small_filesystem) == []
     load(target)
+
+
+@pytest.mark.slow  # eleven commands, each compiling its programs: about 6 minutes
+def test_every_writer_on_a_really_full_disk_says_so_and_leaves_nothing(small_filesystem):
+    """Each writer of the fault table (benchmarks/faults.py: simulate --save and --plot, data
+    import, upgrade, generate, fit, evaluate, diagnose, play --gif, train ppo and residual) on a
+    tmpfs filled to the brim: exit 2, one ``error:`` line saying so, no traceback, no temporary,
+    nothing half-written, an earlier output kept."""
+    import importlib.util
+    import tempfile
+
+    spec = importlib.util.spec_from_file_location("faults", SAMPLE.parents[3] / "benchmarks" / "faults.py")
+    faults = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(faults)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = faults.disk_rows(faults.prepare(Path(tmp)), Path(tmp))
+    assert len(rows) == len(faults.writers({k: Path() for k in ("log", "sample", "ppo", "contacts", "residual")},
+                                           Path()))
+    for r in rows:
+        assert r["rc"] == 2 and r["error_lines"] == 1 and not r["traceback"], r
+        assert "No space left on device" in r["error"] and r["temporaries"] == [] and r["left"] == [], r
+        assert r["earlier_output_kept"] is not False, r

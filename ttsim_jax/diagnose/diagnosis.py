@@ -38,7 +38,7 @@ from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEP
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.limits import limits
 from ttsim_jax.diagnose.phases import collect
-from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS, UNITS,  # noqa: F401 (public here too)
+from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS,  # noqa: F401 (public here too)
                                         gap_shares, implausible, interchangeable, open_gaps, verdict)
 from ttsim_jax.errors import UserError
 

@@ -17,16 +17,50 @@ import numpy as np
 from ttsim_jax.diagnose.diagnosis import jsonable
 from ttsim_jax.diagnose.phases import REGIMES
 from ttsim_jax.diagnose.spin_record import text as correction_text
-from ttsim_jax.diagnose.where import FLAG_RATIO, UNITS
+from ttsim_jax.diagnose.where import FLAG_RATIO, SHOWN, UNITS
 from ttsim_jax.files.atomic import atomic_write
 
 FIGURES = {"where": "gap_by_regime.png", "effects": "effects.png", "before_after": "before_after.png"}
-#: Displayed unit and factor per phase error unit.
-_SHOW = {"m": ("mm", 1e3), "m/s": ("m/s", 1.0)}
 
 
 def _show(phase):
-    return _SHOW[UNITS[phase]]
+    return SHOWN[UNITS[phase]]
+
+
+def params_text(params: dict, name: str = "", limit: int = 200) -> str:
+    """A candidate's fitted parameters as the report's table shows them: ``key = value`` with
+    three significant digits, the effect's own name left off the keys, parameters fitted to zero
+    everywhere (unused gust terms) left out, and at most about ``limit`` characters (then a count
+    of the rest; every value is in diagnosis.json)."""
+    items = []
+
+    def walk(key, value):
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{key}.{k}" if key else str(k), v)
+            return
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            items.append(f"{key} = {value}")
+            return
+        if a.size and not np.any(a):
+            return
+        text = (f"{a.item():.3g}" if a.ndim == 0 else
+                np.array2string(a, separator=", ", max_line_width=10**6, formatter={"float_kind": lambda x: f"{x:.3g}"}))
+        parts = key.split(".")
+        sessions = [k for k in parts if k.isdigit()]  # per-session fits are keyed by the session's index
+        label = ".".join(k for k in parts if not k.isdigit()) + (f" (session {', '.join(sessions)})" if sessions else "")
+        items.append(f"{label} = {text.replace(chr(10), '')}")
+
+    walk("", jsonable(params.get(name, params) if set(params) == {name} else params))
+    shown_items, length = [], 0
+    for item in items:
+        if shown_items and length + len(item) > limit:
+            return "; ".join(shown_items) + f"; {len(items) - len(shown_items)} more in diagnosis.json"
+        shown_items.append(item)
+        length += len(item) + 2
+    return "; ".join(shown_items) or "none"
 
 
 def plot_where(where: dict, path, columns: int = 4) -> Path:
@@ -98,6 +132,11 @@ def plot_effects(candidates: list, path) -> Path:
     ax.axvline(0, color="k", lw=0.8)
     ax.set_xlabel("held-out RMS error reduction [%] (95 % interval)")
     ax.set_title("candidate effects, ranked")
+    from matplotlib.patches import Patch
+
+    shown = dict.fromkeys(p for _, p, _ in rows)  # the phases the bars are of, in their order
+    ax.legend(handles=[Patch(color=colours.get(p, "grey"), alpha=0.8, label=f"{p} error") for p in shown],
+              title="phase", fontsize=8, title_fontsize=8, loc="lower right")
     return save_figure(fig, path)
 
 
@@ -246,8 +285,7 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
               "radius x spin error); 95 % paired bootstrap interval).", "",
               "| rank | effect | phase | held-out reduction [%] | significant | fitted parameters |", "|---|---|---|---|---|---|"]
     for c in out["candidates"]:
-        params = json.dumps(jsonable(c["params"]))
-        params = params if len(params) < 160 else params[:157] + "..."
+        params = params_text(c["params"], c["name"])
         for p in c["phases"]:
             h = c["heldout"][p]
             lines.append(f"| {c['rank']} | {c['name']} | {p} | {_pm(h['pct'], h['ci95'], 1.0, '{:.1f}')} | "

@@ -13,6 +13,7 @@ import math
 from ttsim_jax.diagnose.candidates import MIN_GAIN
 from ttsim_jax.diagnose.spin_record import NAME as NAME_SPIN, text as correction_text
 from ttsim_jax.diagnose.specs import PHASES
+from ttsim_jax.diagnose.where import shown
 
 
 #: Share of the sessions beyond which a per-session effect's implausible fits reject it (a session
@@ -58,8 +59,8 @@ def _where_text(out: dict) -> list:
     lines = []
     for p in open_gaps(out):
         f = out["floor"][p]
-        lines.append(f"{p}: error {f['error']:.3g} {UNITS[p]}, {f['error'] / f['floor']:.1f} x its noise floor "
-                     f"{f['floor']:.3g} {UNITS[p]}")
+        lines.append(f"{p}: error {shown(p, f['error'])}, {f['error'] / f['floor']:.1f} x its noise floor "
+                     f"{shown(p, f['floor'])}")
     for p, w in out["where"].items():
         for name, label in w["flagged"]:
             row = next(r for r in w["regimes"][name] if r["label"] == label)
@@ -83,8 +84,6 @@ def interchangeable(candidates: list) -> dict:
 #: Share of a phase's removable gap that the accepted effects must close on held-out data, in every
 #: phase they act in, for the verdict "explained" (below it: "partly explained").
 EXPLAINED_SHARE = 0.7
-#: Units of the phases' errors, for the verdict's text.
-UNITS = {"flight": "m", "table": "m/s", "racket": "m/s"}
 
 
 def gap_shares(out: dict) -> dict:
@@ -268,12 +267,11 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
                 f"{h['ci95'][0]:.1f} to {h['ci95'][1]:.1f} %)")
 
     def gap(p, g):
-        u = UNITS[p]
         if not g.get("floor_known", True):  # e.g. states measured directly: no positions to read a noise from
-            return (f"the {p} gap (error {g['before']:.3g} {u} on held-out data; its noise floor is not known, so all "
-                    "of it is counted as removable)")
-        return (f"the {p} gap (error {g['before']:.3g} {u} on held-out data, noise floor {g['floor']:.3g} {u}, "
-                f"removable {g['removable']:.3g} {u})")
+            return (f"the {p} gap (error {shown(p, g['before'])} on held-out data; its noise floor is not known, so "
+                    "all of it is counted as removable)")
+        return (f"the {p} gap (error {shown(p, g['before'])} on held-out data, noise floor {shown(p, g['floor'])}, "
+                f"removable {shown(p, g['removable'])})")
 
     rejected = ""
     if beyond:
@@ -288,7 +286,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
     if untouched:
         fl = out["floor"]
         rest = " Not addressed by any accepted effect: " + "; ".join(
-            f"the {p} gap (error {fl[p]['error']:.3g} {UNITS[p]}, noise floor {fl[p]['floor']:.3g} {UNITS[p]})"
+            f"the {p} gap (error {shown(p, fl[p]['error'])}, noise floor {shown(p, fl[p]['floor'])})"
             for p in untouched) + "."
     names = dict(effects=[c.spec.name for c in significant], redundant=[c.spec.name for c in redundant],
                  implausible=[c.spec.name for c in beyond], shares=shares, gaps=gaps, open=untouched, where=where)

@@ -44,6 +44,15 @@ MIN_GROUPS = 3
 N_BINS = 4
 #: Units of each phase's error.
 UNITS = {"flight": "m", "table": "m/s", "racket": "m/s", "landing": "m"}
+#: The unit a report shows each SI unit of :data:`UNITS` in, and the factor to it: positions in mm
+#: (a flight's error is millimetres), velocities in m/s; one per quantity in the verdict and tables.
+SHOWN = {"m": ("mm", 1e3), "m/s": ("m/s", 1.0)}
+
+
+def shown(phase: str, value: float, digits: int = 3) -> str:
+    """``value`` (in the phase's unit of :data:`UNITS`) as the reports show it: "4.39 mm"."""
+    unit, factor = SHOWN[UNITS[phase]]
+    return f"{value * factor:.{digits}g} {unit}"
 
 
 def flight_items(fl, residuals, states, radius: float, rows=None) -> dict:
