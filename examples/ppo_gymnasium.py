@@ -44,6 +44,10 @@ def parse(argv=None):
     p.add_argument("--ent-coef", type=float, default=0.0)
     p.add_argument("--vf-coef", type=float, default=0.5)
     p.add_argument("--max-grad-norm", type=float, default=0.5)
+    p.add_argument("--eval-every", type=int, default=8, help="iterations between evaluations of the mean action "
+                   "on held-out episodes (0: only before and after training)")
+    p.add_argument("--eval-rounds", type=int, default=2,
+                   help="episodes per environment in an evaluation (held-out seeds, the same every time)")
     return p.parse_args(argv)
 
 
@@ -57,15 +61,34 @@ def make_env(args):
     env = wrappers.FlattenObservation(env)
     env = wrappers.RecordEpisodeStatistics(env)
     env = wrappers.ClipAction(env)
-    env = wrappers.NormalizeObservation(env)
+    norm = env = wrappers.NormalizeObservation(env)
     env = wrappers.TransformObservation(env, lambda obs: np.clip(obs, -10, 10))
     env = wrappers.NormalizeReward(env, gamma=args.gamma)
-    return wrappers.TransformReward(env, lambda reward: np.clip(reward, -10, 10))
+    return wrappers.TransformReward(env, lambda reward: np.clip(reward, -10, 10)), norm
+
+
+def evaluate(envs, norm, train_norm, policy, rounds: int, seed: int) -> float:
+    """Legal-return rate of ``policy(obs) -> action`` over ``rounds`` episodes per environment of
+    ``envs`` (its own environments, reset with held-out seeds: the same episodes every time), the
+    observations normalised with the training statistics, frozen."""
+    norm.obs_rms, norm.update_running_mean = train_norm.obs_rms, False
+    legal = []
+    for r in range(rounds):
+        obs, _ = envs.reset(seed=seed + r)
+        done = np.zeros(envs.num_envs, bool)
+        while not done.all():
+            obs, _, terminated, truncated, info = envs.step(np.asarray(policy(np.asarray(obs, np.float32))))
+            ended = (terminated | truncated) & ~done
+            if ended.any():
+                legal += np.asarray(info["legal"])[ended].tolist()
+            done |= terminated | truncated
+    return float(np.mean(legal))
 
 
 def main(argv=None) -> dict:
     args = parse(argv)
-    envs = make_env(args)
+    envs, train_norm = make_env(args)
+    eval_envs, eval_norm = make_env(args)  # the same shapes: the programs compiled for training serve it
     n, t = args.num_envs, args.num_steps
     iterations = max(args.total_timesteps // (n * t), 1)
     net = ActorCritic(action_dim=envs.single_action_space.shape[0], hidden=(64, 64))
@@ -80,6 +103,21 @@ def main(argv=None) -> dict:
         mean, log_std, value = net.apply(params, obs)
         action = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
         return action, gaussian_log_prob(mean, log_std, action), value
+
+    @jax.jit
+    def mean_action(params, obs):
+        return net.apply(params, obs)[0]
+
+    def held_out(policy_params=None):
+        policy = ((lambda obs: np.zeros((n,) + envs.single_action_space.shape, np.float32)) if policy_params is None
+                  else (lambda obs: mean_action(policy_params, obs)))
+        return evaluate(eval_envs, eval_norm, train_norm, policy, args.eval_rounds, held_out_seed)
+
+    held_out_seed = held_out_seed_of(args)
+    scripted = held_out()  # action 0: the task's scripted stroke alone
+    print(f"held-out legal-return rate: scripted stroke (action 0) {scripted:.3f} over {args.eval_rounds * n} "
+          "episodes", flush=True)
+    curve = []
 
     @jax.jit
     def update(params, opt_state, data, key):
@@ -125,12 +163,24 @@ def main(argv=None) -> dict:
         params, opt_state, loss = update(params, opt_state, jax.tree.map(lambda a: a.reshape((n * t,) + a.shape[2:]),
                                                                           batch), k_update)
         recent = slice(-100, None)
-        print(f"iteration {iteration}/{iterations}  steps {iteration * n * t:,}  "
-              f"SPS {iteration * n * t / (time.perf_counter() - start):,.0f}  loss {float(loss):+.3f}  "
-              f"episodes {len(returns)}  return {np.mean(returns[recent]) if returns else float('nan'):+.3f}  "
-              f"legal {np.mean(legal[recent]) if legal else float('nan'):.2f}", flush=True)
+        line = (f"iteration {iteration}/{iterations}  steps {iteration * n * t:,}  "
+                f"SPS {iteration * n * t / (time.perf_counter() - start):,.0f}  loss {float(loss):+.3f}  "
+                f"episodes {len(returns)}")
+        if returns:  # the sampled actions' episodes ended so far (none yet: nothing to show, not NaN)
+            line += f"  return {np.mean(returns[recent]):+.3f}  legal (sampled actions) {np.mean(legal[recent]):.2f}"
+        if iteration == iterations or (args.eval_every and iteration % args.eval_every == 0):
+            curve.append((iteration * n * t, held_out(params)))
+            line += f"  held-out legal (mean action) {curve[-1][1]:.3f} (scripted stroke {scripted:.3f})"
+        print(line, flush=True)
     envs.close()
-    return {"iterations": iterations, "episodes": len(returns), "returns": returns, "loss": float(loss)}
+    eval_envs.close()
+    return {"iterations": iterations, "episodes": len(returns), "returns": returns, "loss": float(loss),
+            "scripted_legal": scripted, "held_out_legal": curve}
+
+
+def held_out_seed_of(args) -> int:
+    """The first seed of the evaluation's resets, far from the training's (``args.seed``)."""
+    return args.seed + 10_000
 
 
 if __name__ == "__main__":

@@ -127,10 +127,13 @@ def test_actions_are_checked_naming_the_space_and_the_environment():
 def test_cleanrl_style_example_trains_a_few_updates(example, capsys):
     out = example("ppo_gymnasium").main(["--task", TASK, "--override", "shots.bank=64", "--override", "shots.aim=false",
                         "--num-envs", str(N), "--num-steps", "64", "--total-timesteps", str(2 * N * 64),
-                        "--num-minibatches", "2", "--update-epochs", "1"])
+                        "--num-minibatches", "2", "--update-epochs", "1", "--eval-every", "0", "--eval-rounds", "1"])
     assert out["iterations"] == 2 and np.isfinite(out["loss"])
     assert out["episodes"] >= 1 and all(np.isfinite(out["returns"]))
-    assert "iteration 2/2" in capsys.readouterr().out
+    # the mean action evaluated on held-out episodes after training, beside the scripted stroke's
+    assert 0.0 <= out["scripted_legal"] <= 1.0 and [s for s, _ in out["held_out_legal"]] == [2 * N * 64]
+    text = capsys.readouterr().out
+    assert "iteration 2/2" in text and "held-out legal (mean action)" in text and "nan" not in text
 
 
 ASYNC = """
