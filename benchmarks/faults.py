@@ -165,6 +165,8 @@ def writers(f: dict, d: Path) -> list[tuple[str, list, Path]]:
         ("diagnosis report", ["diagnose", "--data", f["sample"], "--out", d / "diagnosis", "--quick", "--no-landing"],
          d / "diagnosis"),
         ("animation (GIF)", ["play", "--episodes", 2, "--gif", d / "rally.gif"], d / "rally.gif"),
+        ("sensitivity report", ["sensitivity", "--shots", 8, "--mode", "fwd", "--no-check", "--out", d / "sensitivity"],
+         d / "sensitivity"),
         ("PPO checkpoint", ["train", "ppo", "--config", f["ppo"], "--out", d / "ppo", "--quiet"], d / "ppo"),
         ("racket network", ["train", "residual", "--data", f["contacts"], "--out", d / "net.ttres", "--config",
                             f["residual"], "--epochs", 2, "--quiet", "--force"], d / "net.ttres"),

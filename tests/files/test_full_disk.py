@@ -150,10 +150,10 @@ def test_an_import_onto_a_really_full_disk_says_so_and_keeps_the_earlier_dataset
     load(target)
 
 
-@pytest.mark.slow  # eleven commands, each compiling its programs: about 6 minutes
+@pytest.mark.slow  # twelve commands, each compiling its programs: about 7 minutes
 def test_every_writer_on_a_really_full_disk_says_so_and_leaves_nothing(small_filesystem):
     """Each writer of the fault table (benchmarks/faults.py: simulate --save and --plot, data
-    import, upgrade, generate, fit, evaluate, diagnose, play --gif, train ppo and residual) on a
+    import, upgrade, generate, fit, evaluate, diagnose, play --gif, sensitivity, train ppo and residual) on a
     tmpfs filled to the brim: exit 2, one ``error:`` line saying so, no traceback, no temporary,
     nothing half-written, an earlier output kept."""
     import importlib.util
