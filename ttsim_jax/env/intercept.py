@@ -50,7 +50,7 @@ from ttsim_jax.env.racket import clip_workspace, rotation
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.physics.numerics import component_norm, safe_norm
+from ttsim_jax.physics.numerics import component_norm, safe_norm, safe_sqrt
 from ttsim_jax.state import Racket
 
 if TYPE_CHECKING:
@@ -134,8 +134,7 @@ def _fall(pos, vel, acc, z):
     acceleration ``acc`` (B, 3) (its z part negative); (B,), (B, 3), (B, 3). A ball already below z
     lands at once; one that never rises to z is taken to its apex."""
     down = -acc[:, 2]
-    disc = jnp.maximum(vel[:, 2] ** 2 + 2.0 * down * (pos[:, 2] - z), 0.0)
-    t = jnp.maximum((vel[:, 2] + jnp.sqrt(disc)) / down, 0.0)
+    t = jnp.maximum((vel[:, 2] + safe_sqrt(vel[:, 2] ** 2 + 2.0 * down * (pos[:, 2] - z))) / down, 0.0)
     return t, _fly(pos, vel, acc, t)
 
 
@@ -145,7 +144,7 @@ def _reach(pos, vel, acc, x):
     gap = x - pos[:, 0]
     speed = jnp.where(vel[:, 0] > MIN_SPEED, vel[:, 0], 1.0)
     disc = speed ** 2 + 2.0 * acc[:, 0] * gap
-    root = jnp.where(disc > 0.0, jnp.sqrt(jnp.maximum(disc, 0.0)), speed)
+    root = jnp.where(disc > 0.0, safe_sqrt(disc), speed)
     return 2.0 * gap / (speed + root)
 
 
@@ -349,7 +348,7 @@ def _invert(p: InterceptParams, v_in, spin, v_out):
     push = dot(change(n), n)
     # e1 s^2 + (1 + e0) s - push = 0, the root that tends to push / (1 + e0) as e1 -> 0
     a = 1.0 + p.e_racket
-    s = 2.0 * push / (a + jnp.sqrt(jnp.maximum(a * a + 4.0 * p.e_slope * push, 0.0)))
+    s = 2.0 * push / (a + safe_sqrt(a * a + 4.0 * p.e_slope * push))
     speed = s + dot(vi, n)
     # rotation(angle)[:, 0] = (-cos p cos y, -cos p sin y, sin p)
     angle = jnp.stack([jnp.arcsin(jnp.clip(n[2], -1.0, 1.0)), jnp.arctan2(-n[1], -n[0])], -1)

@@ -21,6 +21,13 @@ def safe_norm(x, axis=-1, keepdims=False):
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
+def safe_sqrt(x):
+    """sqrt(max(x, 0)) whose gradient is 0 (not NaN) where x <= 0: ``jnp.sqrt(jnp.maximum(x, 0))``
+    multiplies sqrt's infinite slope at 0 by max's zero one there, which is NaN."""
+    ok = x > 0.0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
 def component_norm(*components):
     """:func:`safe_norm` of a vector given by its components (elementwise arithmetic only, no
     reduction: in a batched kernel a reduction over a short axis is an operation of its own)."""
