@@ -22,22 +22,30 @@ OVERRIDES = {"shots.bank": 32, "shots.aim": False}
 
 # float32, as the environment runs by default (the suite runs in float64): in a process of its own
 FLOAT32 = """
+import sys
 import jax, jax.numpy as jnp
+sys.path.insert(0, {here!r})
+from test_env_gradient import episode_return
 from ttsim_jax.env import SingleReturnBall, load_task_config
-env = SingleReturnBall(load_task_config("return_ball", {"shots.bank": 32, "shots.aim": False}))
-params = env.default_params()
-_, state = env.reset(jax.random.PRNGKey(0), params)
-
-def episode_return(actions):
-    def body(s, a):
-        _, s, r, *_ = env.step_env(jax.random.PRNGKey(1), s, a, params)
-        return s, r
-    return jax.lax.scan(body, state, actions)[1].sum()
-
-g = jax.jit(jax.grad(episode_return))(jnp.zeros((150, env.action_dim)))
+env = SingleReturnBall(load_task_config("return_ball", {{"shots.bank": 32, "shots.aim": False}}))
+g = jax.jit(jax.grad(episode_return(env)))(jnp.zeros((150, env.action_dim)))
 assert g.dtype == jnp.float32, g.dtype
-print("FINITE" if bool(jnp.isfinite(g).all()) else f"NOT FINITE: {int(jnp.isnan(g).sum())} NaN")
+print("FINITE" if bool(jnp.isfinite(g).all()) else f"NOT FINITE: {{int(jnp.isnan(g).sum())}} NaN")
 """
+
+
+def episode_return(env):
+    """actions (T, 5) -> the summed reward of T steps of ``env`` (no reset) from its first shot."""
+    params = env.default_params()
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+
+    def total(actions):
+        def body(s, a):
+            _, s, r, *_ = env.step_env(jax.random.PRNGKey(1), s, a, params)
+            return s, r
+        return jax.lax.scan(body, state, actions)[1].sum()
+
+    return total
 
 
 @pytest.mark.slow
@@ -48,7 +56,8 @@ def test_the_gradient_through_a_whole_float32_episode_is_finite():
     repo = Path(__file__).resolve().parents[2]
     env = dict(os.environ, PYTHONPATH=str(repo) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("JAX_ENABLE_X64", None)
-    done = subprocess.run([sys.executable, "-c", FLOAT32], env=env, capture_output=True, text=True, timeout=900)
+    script = FLOAT32.format(here=str(Path(__file__).resolve().parent))
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().splitlines()[-1] == "FINITE", done.stdout
 
@@ -59,18 +68,10 @@ def test_the_gradient_is_the_returns_finite_difference():
     difference. The step is 1e-3 in [-1, 1] actions: the events stay the same, and the rewards,
     float32 whatever the default float, resolve the difference to about 1e-4."""
     env = SingleReturnBall(load_task_config("return_ball_accel", OVERRIDES))
-    params = env.default_params()
-    _, state = env.reset(jax.random.PRNGKey(0), params)
-
-    def episode_return(actions):
-        def body(s, a):
-            _, s, r, *_ = env.step_env(jax.random.PRNGKey(1), s, a, params)
-            return s, r
-        return jax.lax.scan(body, state, actions)[1].sum()
-
+    total = episode_return(env)
     actions = jnp.zeros((20, env.action_dim), jnp.float64)
-    grad = np.asarray(jax.jit(jax.grad(episode_return))(actions))
-    f = jax.jit(episode_return)
+    grad = np.asarray(jax.jit(jax.grad(total))(actions))
+    f = jax.jit(total)
     assert np.isfinite(grad).all()
     for k, j in ((0, 0), (5, 1), (12, 0)):
         e = jnp.zeros_like(actions).at[k, j].set(1e-3)
