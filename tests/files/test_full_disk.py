@@ -3,7 +3,6 @@ error line naming the path, leaves no temporary behind and keeps any previous ou
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import shutil
@@ -119,12 +118,15 @@ def small_filesystem(tmp_path):
     subprocess.run(["umount", "-l", str(where)], check=False)
 
 
-def fill(folder: Path) -> None:
-    """Fills ``folder``'s filesystem to its last byte."""
-    for name, chunk in ((".filler", 65536), (".filler_tail", 1)):
-        with contextlib.suppress(OSError), open(folder / name, "wb", buffering=0) as f:
-            while True:
-                f.write(b"\0" * chunk)
+def fault_script():
+    """benchmarks/faults.py, the fault table's script, as a module (its filling of a disk and its
+    rows of writers are the tests' too)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("faults", SAMPLE.parents[3] / "benchmarks" / "faults.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_an_import_onto_a_really_full_disk_says_so_and_keeps_the_earlier_dataset(small_filesystem, tmp_path, capsys):
@@ -141,7 +143,7 @@ def test_an_import_onto_a_really_full_disk_says_so_and_keeps_the_earlier_dataset
     target = small_filesystem / "dataset"
     save(earlier, target)
     before = {p.name: p.read_bytes() for p in target.iterdir()}
-    fill(small_filesystem)
+    fault_script().fill(small_filesystem)
     assert main(["data", "import", "--source", "csv", str(log), "--out", str(target), "--force"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert len(err) == 1 and "No space left on device" in err[0] and str(target) in err[0], err
@@ -156,12 +158,9 @@ def test_every_writer_on_a_really_full_disk_says_so_and_leaves_nothing(small_fil
     import, upgrade, generate, fit, evaluate, diagnose, play --gif, sensitivity, train ppo and residual) on a
     tmpfs filled to the brim: exit 2, one ``error:`` line saying so, no traceback, no temporary,
     nothing half-written, an earlier output kept."""
-    import importlib.util
     import tempfile
 
-    spec = importlib.util.spec_from_file_location("faults", SAMPLE.parents[3] / "benchmarks" / "faults.py")
-    faults = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(faults)
+    faults = fault_script()
     with tempfile.TemporaryDirectory() as tmp:
         rows = faults.disk_rows(faults.prepare(Path(tmp)), Path(tmp))
     assert len(rows) == len(faults.writers({k: Path() for k in ("log", "sample", "ppo", "contacts", "residual")},
