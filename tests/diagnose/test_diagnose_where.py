@@ -126,3 +126,29 @@ def test_spearman_ties_and_constants():
     x = np.repeat([0.0, 1.0], 10)
     rho, _ = spearman(x, np.tile(np.arange(10.0), 2))
     assert rho == pytest.approx(0.0, abs=1e-12)
+
+
+def test_segment_lengths_alone_make_no_dependence():
+    """A perfect model's flight residuals: the noise less its projection on each segment's fit
+    (here a quadratic per axis: 3 parameters, as a segment flown with a latent spin), over
+    segments of 12-80 samples. The short segments' residuals are smaller, which without
+    :func:`~ttsim_jax.diagnose.where.null_scale` reads as a dependence on the time since the
+    contact (the segment's length)."""
+    rng = np.random.default_rng(4)
+    s, t_len, dt, sigma = 1500, 80, 1.0 / 150.0, 0.0015
+    n = rng.integers(12, t_len + 1, s)
+    tau = np.tile(np.arange(t_len) * dt, (s, 1))
+    mask = (np.arange(t_len)[None] < n[:, None]).astype(np.float64)
+    res = np.zeros((s, t_len, 3))
+    for i in range(s):
+        a = np.vander(tau[i, :n[i]], 3)
+        e = rng.normal(0.0, sigma, (n[i], 3))
+        res[i, :n[i]] = e - a @ np.linalg.lstsq(a, e, rcond=None)[0]
+    pos = np.stack([3.0 * tau, 0.5 * tau, 0.3 + 2.0 * tau - 4.905 * tau**2], -1)
+    fl = Flights(t0=np.zeros(s), tau=tau, pos=pos, mask=mask, spin=np.zeros((s, 3)), session=np.zeros(s, np.int64),
+                 segment_id=np.arange(s), n=s, spin_source=np.full(s, "latent"))
+    states = np.tile([0.0, 0.0, 0.3, 3.0, 0.5, 2.0], (s, 1)) + rng.normal(0.0, 0.5, (s, 6))
+    it = W.flight_items(fl, res, states, 0.02)
+    assert not any(d["quantity"] == "since_contact" for d in dependence(it))
+    raw = {k: v for k, v in it.items() if k != "null_scale"}
+    assert any(d["quantity"] == "since_contact" and d["error"] == "|error|" for d in dependence(raw))

@@ -3,7 +3,10 @@
 :func:`dependence`: which measured quantities a phase's errors depend on, whatever the cause: the
 Spearman rank correlation, over groups (segment or contact means, so that a segment's many
 observations count once), of the error magnitude and of each signed error component with every
-numeric regime quantity. A dependence is *significant* when |rho| >= :data:`MIN_RHO` and its
+numeric regime quantity. A flight error's magnitude is divided by what a perfect model leaves of
+the noise in its segment (:func:`ttsim_jax.diagnose.where.null_scale`): without it, a record
+without spin, whose flights are fitted with three more parameters each, read "|error| depends on
+since_contact (rho +0.32)" with no effect at all, the short segments' residuals being smaller. A dependence is *significant* when |rho| >= :data:`MIN_RHO` and its
 two-sided p-value (t approximation) is below :data:`MAX_P`.
 
 Effects on the record are sized, not fitted as physics (:func:`record_sizes`):
@@ -79,7 +82,8 @@ def dependence(item: dict, components=None, names=("x", "y", "z")) -> list:
     g = int(grp.max()) + 1 if len(grp) else 0
     cnt = np.maximum(np.bincount(grp, minlength=g), 1)
     mean = lambda v: np.bincount(grp, np.asarray(v, np.float64), minlength=g) / cnt  # noqa: E731
-    targets = {"|error|": mean(item["error"])}
+    # a flight residual's size under a perfect model depends on its segment's length (where.null_scale)
+    targets = {"|error|": mean(np.asarray(item["error"]) / item.get("null_scale", 1.0))}
     if components is not None:
         comp = np.asarray(components, np.float64)
         for k in range(comp.shape[1]):
