@@ -136,8 +136,9 @@ def test_sidespun_flights_are_fitted_near_the_noise(model):
     along acts through |w| and, as the direction of flight turns, a little across it, so a fit
     started at 0 along the flight stays near there. From the guess and three times it alone these
     flights were fitted to 1.46x the floor (RMS over the segments); with the starts along the
-    flight, 1.14x (the prior on the spin along the flight, 50 rad/s wide, holds the rest back:
-    300 rad/s wide it reaches 1.05x)."""
+    flight (where the first two leave a segment above the others), 1.15x (the prior on the spin
+    along the flight, 50 rad/s wide, holds the rest back: 300 rad/s wide and every start on every
+    segment, 1.05x)."""
     rng = np.random.default_rng(7)
     s = 24
     d = np.stack([np.ones(s), np.zeros(s), np.zeros(s)], -1)

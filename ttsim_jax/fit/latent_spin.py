@@ -29,13 +29,13 @@ across it (:func:`initial_guess`). One start is not enough (:func:`start_spins`)
   flight turns, a little across it; a fit started at 0 there barely moves (the cost's slope is
   about 0) however large the true one is, and trades it against the size across the flight.
 
-So every segment is fitted from :data:`STARTS` starts: the guess, the guess three times as large,
-and spins of :data:`VALLEY_ALONG` along the flight whose part across holds the guess's Magnus
-force; after :data:`KEEP_AFTER` passes of iterations the :data:`KEEP` best go on. On 300 flights of
-conti2026's physics with spins of 30-600 rad/s about random axes, the fits' position RMSE over the
-floor (the noise a fit of the initial state leaves) fell from 1.19x (the guess and three times it)
-to 1.04x, and the error of the spin across the flight from 3.7 to 3.2 rad/s (median), for 1.5x the
-time.
+So every segment is fitted from the guess and three times it, and a segment whose best fit stays
+well above the others' error (:data:`RESCUE`) from spins of :data:`VALLEY_ALONG` along the flight
+too, their part across sized to the guess's Magnus force. On 300 flights of conti2026's physics
+with spins of 30-600 rad/s about random axes, the fits' position RMSE over the floor (the noise a
+fit of the initial state leaves) fell from 1.19x (the guess and three times it) to 1.04x with all
+six starts on every segment, and the error of the spin across the flight from 3.7 to 3.2 rad/s
+(median).
 """
 
 from __future__ import annotations
@@ -64,14 +64,12 @@ ITERATIONS = 20
 #: every fit of a call has converged or run out of its pass's iterations (:data:`PASSES`); on 1,000
 #: segments (2 CPU cores) calls of 128 took 0.76x the time of calls of 64 and the same as 256.
 BATCH = 128
-#: Fits per segment (:func:`start_spins`, the module docstring says why one is not enough).
+#: Starts per segment (:func:`start_spins`, the module docstring says why one is not enough):
+#: every segment is fitted from the first BASE_STARTS, and from the others where its best fit's
+#: RMSE stands above RESCUE times the median of the segments fitted together.
 STARTS = 6
-#: After KEEP_AFTER passes (:data:`PASSES`) only the KEEP fits of least cost of each segment go
-#: on. Kept after the first pass instead (5 iterations), they were not yet the ones that end best
-#: (RMSE over the floor 1.09x against 1.03x with every fit kept to the end, on the 300 flights of
-#: the module docstring); after the second, 1.04x in 0.84x the time.
-KEEP = 2
-KEEP_AFTER = 2
+BASE_STARTS = 2
+RESCUE = 1.15
 #: Spins along the flight of the starts that hold the guess's Magnus force [rad/s] (both signs:
 #: the direction of flight turns in flight, so a spin along its mean is partly across it at the
 #: ends), and the grid the part across is sized on.
@@ -330,17 +328,20 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
     m = jax.tree.map(lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else x,
                      model.replace(residual=None))
     scalar = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    # Every (segment, start) is a fit of its own (start_spins), run in passes
-    # (PASSES): each runs the fits the one before left unconverged, for its share of the
-    # iterations, in calls of their own.
+    # Every (segment, start) is a fit of its own (start_spins), run in passes (PASSES): each runs
+    # the fits the one before left unconverged, for its share of the iterations, in calls of their
+    # own. The starts along the flight are run only for the segments the first two leave well above
+    # the others' error (RESCUE).
     seg = np.repeat(np.arange(n_seg), STARTS)
     rank = np.tile(np.arange(STARTS), n_seg)
     theta = np.full((len(seg), 9), np.nan)
     cost = np.full(len(seg), np.inf)
     jtj = np.full((len(seg), 9, 9), np.nan)
     along = np.full((n_seg, 3), np.nan)
-    todo = np.flatnonzero(lengths[seg] >= min_samples)
     args = (scalar(noise), scalar(prior_along), scalar(prior_any))
+    shares = np.cumsum(PASSES) / np.sum(PASSES)
+    budget = np.diff(np.concatenate([[0], np.round(shares * iterations).astype(int)]))
+    done = np.zeros(n_seg, int)
 
     def calls(rows_of):
         for idx, (tau, pos, mask, _), n_max in batches([times[i] for i in seg[rows_of]],
@@ -350,34 +351,38 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
             yield rows_of[np.asarray(idx)], pad, (jnp.asarray(tau), jnp.asarray(pos), jnp.asarray(mask),
                                                   jnp.asarray(n_max))
 
-    for rows, pad, arrays in calls(todo):
-        start, ax = jax.device_get(_starts(m, *arrays[:3], jnp.asarray(pad(rank[rows]))))
-        theta[rows] = np.asarray(start[:len(rows)], np.float64)
-        along[seg[rows]] = np.asarray(ax[:len(rows)], np.float64)
-    shares = np.cumsum(PASSES) / np.sum(PASSES)
-    budget = np.diff(np.concatenate([[0], np.round(shares * iterations).astype(int)]))
-    finished = 0
-    for k_pass, n_iter in enumerate(budget):
-        if not len(todo) or n_iter <= 0:
-            continue
-        left = []
+    def run(todo):
         for rows, pad, arrays in calls(todo):
-            start = np.where(np.isfinite(theta[rows]), theta[rows], 0.0)
-            raw = jax.device_get(_fit_batch(m, *arrays, *args, jnp.asarray(pad(start), dtype),
-                                            jnp.asarray(int(n_iter))))
-            k = len(rows)
-            theta[rows] = np.asarray(raw["theta"][:k], np.float64)
-            cost[rows] = np.asarray(raw["cost"][:k], np.float64)
-            jtj[rows] = np.asarray(raw["jtj"][:k], np.float64)
-            going = ~np.asarray(raw["converged"][:k], bool) & np.isfinite(theta[rows]).all(1)
-            left.append(rows[going])
-            finished += int((~going).sum())
-            if progress is not None:
-                progress(min(n_seg, finished // STARTS))
-        todo = np.concatenate(left) if left else np.zeros(0, int)
-        if k_pass + 1 >= KEEP_AFTER:  # only the KEEP best fits of each segment go on
-            order = np.argsort(np.argsort(cost.reshape(n_seg, STARTS), axis=1, kind="stable"), axis=1).ravel()
-            todo = todo[order[todo] < KEEP]
+            start, ax = jax.device_get(_starts(m, *arrays[:3], jnp.asarray(pad(rank[rows]))))
+            theta[rows] = np.asarray(start[:len(rows)], np.float64)
+            along[seg[rows]] = np.asarray(ax[:len(rows)], np.float64)
+        for n_iter in budget:
+            if not len(todo) or n_iter <= 0:
+                continue
+            left = []
+            for rows, pad, arrays in calls(todo):
+                start = np.where(np.isfinite(theta[rows]), theta[rows], 0.0)
+                raw = jax.device_get(_fit_batch(m, *arrays, *args, jnp.asarray(pad(start), dtype),
+                                                jnp.asarray(int(n_iter))))
+                k = len(rows)
+                theta[rows] = np.asarray(raw["theta"][:k], np.float64)
+                cost[rows] = np.asarray(raw["cost"][:k], np.float64)
+                jtj[rows] = np.asarray(raw["jtj"][:k], np.float64)
+                going = ~np.asarray(raw["converged"][:k], bool) & np.isfinite(theta[rows]).all(1)
+                left.append(rows[going])
+                np.add.at(done, seg[rows[~going]], 1)
+                if progress is not None:
+                    progress(int(np.count_nonzero(done >= BASE_STARTS)))
+            todo = np.concatenate(left) if left else np.zeros(0, int)
+
+    fits = np.flatnonzero((lengths[seg] >= min_samples) & (rank < BASE_STARTS))
+    run(fits)
+    best = cost.reshape(n_seg, STARTS).min(1)
+    rmse = np.sqrt(np.maximum(best, 0.0) / np.maximum(lengths, 1))
+    usable = np.isfinite(rmse) & (lengths >= min_samples)
+    if usable.any():
+        rescue = (lengths >= min_samples) & ~(rmse <= RESCUE * np.median(rmse[usable]))
+        run(np.flatnonzero(rescue[seg] & (rank >= BASE_STARTS)))
     fitted = np.flatnonzero(lengths >= min_samples)
     if len(fitted):
         th = theta.reshape(n_seg, STARTS, 9)[fitted]
