@@ -172,6 +172,25 @@ def test_every_layer_name_is_a_package_or_module():
     assert not stale, f"names in LAYERS that are no package or module of ttsim_jax: {stale}"
 
 
+def test_every_name_of_a_face_is_its_modules():
+    """Each lazily exported name is defined in the module its face names, and a name that is also a
+    submodule's (``ttsim_jax.data.validate``) is still the object once that submodule is imported
+    (the import system sets the package's attribute to the module: the face must bind it eagerly)."""
+    import importlib
+    import inspect
+
+    wrong = []
+    for package, names in faces(MODS).items():
+        for name, module in names.items():
+            if name not in vars(importlib.import_module(module)):
+                wrong.append(f"{package}.{name}: not in {module}")
+            if f"{package}.{name}" in MODS:
+                importlib.import_module(f"{package}.{name}")
+                if inspect.ismodule(getattr(importlib.import_module(package), name)):
+                    wrong.append(f"{package}.{name}: the submodule replaces the name")
+    assert not wrong, wrong
+
+
 def test_a_name_from_a_lazy_face_is_an_arrow_to_its_module():
     """``from ttsim_jax import load_model`` in a package is an arrow to the module holding it (the
     root's face would hide it from the layer check)."""
