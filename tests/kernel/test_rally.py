@@ -186,6 +186,18 @@ def test_recording_above_memory_budget_is_refused_with_size():
         simulate(m, b, 1000, max_events=10**6, execution=Execution(memory_budget_bytes=2**20))
 
 
+def test_the_kernels_default_budget_is_the_packages(monkeypatch):
+    """Without a budget of its own, a rollout is held to the one ``ttsim --memory-budget`` and
+    ``TTSIM_MEMORY_BUDGET`` set (``ttsim_jax.sizes``), and says so."""
+    m = load_model("conti2026")
+    b = serve_batch(2)
+    monkeypatch.setenv("TTSIM_MEMORY_BUDGET", "1M")
+    with pytest.raises(ValueError, match=r"budget of 0\.00 GiB \(set by --memory-budget or TTSIM_MEMORY_BUDGET\)"):
+        simulate(m, b, 1000, max_events=10**6)
+    monkeypatch.setenv("TTSIM_MEMORY_BUDGET", "64G")
+    assert jax.eval_shape(lambda b: simulate(m, b, 1000, max_events=10**6), b).events.pre.pos.shape[1] == 10**6
+
+
 def test_floor_stops_the_ball():
     m = load_model("conti2026")
     # off the near end of the table, away from the racket

@@ -42,7 +42,8 @@ class Execution:
             differentiates the reference path.
         memory_budget_bytes: a rollout whose state, event log and recording
             (:func:`~ttsim_jax.kernel.rollout.memory_bytes`) need more is refused before compiling,
-            with the sizes.
+            with the sizes; default None: the package's one budget (:func:`ttsim_jax.sizes.budget_bytes`:
+            ``TTSIM_MEMORY_BUDGET``, ``ttsim --memory-budget``, else half the memory available).
     """
 
     contact_capacity: int | None = None
@@ -51,7 +52,7 @@ class Execution:
     block_size: int | None = None
     buffering: str | None = None
     fused: bool | str = "auto"
-    memory_budget_bytes: int = 2 << 30
+    memory_budget_bytes: int | None = None
 
     def __post_init__(self):
         if self.fused not in (True, False, "auto"):

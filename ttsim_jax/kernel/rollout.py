@@ -28,7 +28,7 @@ from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.step import refused_starts, step
 from ttsim_jax.params import Model
 from ttsim_jax.physics import events as ev
-from ttsim_jax.sizes import SizeError
+from ttsim_jax.sizes import SizeError, budget_bytes
 from ttsim_jax.state import Ball
 
 
@@ -458,7 +458,6 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     execution = with_options(execution, options, "rollout")
     contact_capacity, remat, reference = execution.contact_capacity, execution.remat, execution.reference
     block_size, buffering, fused = execution.block_size, execution.buffering, execution.fused
-    memory_budget_bytes = execution.memory_budget_bytes
     ball = state.ball
     if ball.pos.ndim != 2 or ball.pos.shape[-1] != 3:
         raise ValueError(f"state.ball fields must be (B, 3); got pos {ball.pos.shape}")
@@ -468,14 +467,16 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     if record_every and n_steps % record_every:
         raise ValueError(f"record_every={record_every} must divide n_steps={n_steps}")
     need = memory_bytes(batch, n_steps, record_every, max_events, ball.pos.dtype)
+    memory_budget_bytes, source = budget_bytes(execution.memory_budget_bytes)
     if need["total"] > memory_budget_bytes:
         gib = lambda n: f"{n / 2**30:.2f} GiB"  # noqa: E731
         raise SizeError(
             f"a rollout of {batch} balls for {n_steps} steps (record_every={record_every}, "
             f"max_events={max_events}) needs {gib(need['total'])} (state {gib(need['state'])}, event log "
             f"{gib(need['event_log'])}, recording {gib(need['recording'])}), above the memory budget of "
-            f"{gib(memory_budget_bytes)}; record less often (record_every), log fewer events (max_events), "
-            "run fewer balls per call, or raise memory_budget_bytes")
+            f"{gib(memory_budget_bytes)} ({source}); record less often (record_every), log fewer events "
+            "(max_events), run fewer balls per call, or raise the budget (Execution(memory_budget_bytes=...), "
+            "TTSIM_MEMORY_BUDGET)")
     axes = _resolve_axes(model, model_axes)
     _check_per_ball(model, axes, batch)
     schedule, policy, batched = None, None, False
