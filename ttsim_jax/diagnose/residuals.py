@@ -6,8 +6,9 @@ observations count once), of the error magnitude and of each signed error compon
 numeric regime quantity. A flight error's magnitude is divided by what a perfect model leaves of
 the noise in its segment (:func:`ttsim_jax.diagnose.where.null_scale`): without it, a record
 without spin, whose flights are fitted with three more parameters each, read "|error| depends on
-since_contact (rho +0.32)" with no effect at all, the short segments' residuals being smaller. A dependence is *significant* when |rho| >= :data:`MIN_RHO` and its
-two-sided p-value (t approximation) is below :data:`MAX_P`.
+since_contact (rho +0.32)" with no effect at all, the short segments' residuals being smaller. A
+dependence is *significant* when |rho| >= :data:`MIN_RHO` and its two-sided p-value (t
+approximation) is below :data:`MAX_P`.
 
 Effects on the record are sized, not fitted as physics (:func:`record_sizes`):
 

@@ -207,20 +207,19 @@ def start_spins(model, tau, pos, mask):
     return jnp.stack([theta0.at[6:].set(w) for w in spins]), along
 
 
-def fit_start(model, tau, pos, mask, n, noise, prior_along, prior_any, start, iterations):
-    """The latent-spin fit of one padded segment from ``start`` (9,) (:func:`start_spins`', or a fit
-    that ran out of iterations before), for at most ``iterations`` (traced) Levenberg-Marquardt
-    iterations. Returns a dict of ``theta`` (9,), ``cost``, ``jtj``, ``along`` (3,) the unobserved
-    axis and ``converged`` (it stopped before ``iterations``)."""
-    _, along = initial_guess(model, tau, pos, mask)
+def fit_start(model, tau, pos, mask, n, noise, prior_along, prior_any, start, along, iterations):
+    """The latent-spin fit of one padded segment from ``start`` (9,) (one of :func:`start_spins`, or
+    a fit that ran out of iterations before), with the spin's prior along ``along`` (3,) (the
+    unobserved axis :func:`start_spins` gives), for at most ``iterations`` (traced)
+    Levenberg-Marquardt iterations. Returns a dict of ``theta`` (9,), ``cost``, ``jtj`` and
+    ``converged`` (it stopped before ``iterations``)."""
     prior = spin_prior(along, prior_along, prior_any)
 
     def normal(theta):
         return normal_equations(model, theta, tau, pos, mask, n, noise, prior)
 
     theta, cost, h, _, k = levenberg_marquardt(normal, start, iterations, tol=TOL, stop_on_failure=False)
-    return dict(theta=theta, cost=jnp.where(jnp.isfinite(cost), cost, jnp.inf), jtj=h, along=along,
-                converged=k < iterations)
+    return dict(theta=theta, cost=jnp.where(jnp.isfinite(cost), cost, jnp.inf), jtj=h, converged=k < iterations)
 
 
 def _starts_impl(model, tau, pos, mask, rank):
@@ -231,9 +230,9 @@ def _starts_impl(model, tau, pos, mask, rank):
     return jax.vmap(one)(tau, pos, mask, rank)
 
 
-def _fit_batch_impl(model, tau, pos, mask, n_max, noise, prior_along, prior_any, start, iterations):
-    return jax.vmap(lambda a, b, c, d: fit_start(model, a, b, c, n_max, noise, prior_along, prior_any, d,
-                                                 iterations))(tau, pos, mask, start)
+def _fit_batch_impl(model, tau, pos, mask, n_max, noise, prior_along, prior_any, start, along, iterations):
+    return jax.vmap(lambda a, b, c, d, e: fit_start(model, a, b, c, n_max, noise, prior_along, prior_any, d, e,
+                                                    iterations))(tau, pos, mask, start, along)
 
 
 _starts = jax.jit(_starts_impl)
@@ -363,7 +362,7 @@ def fit_latent_spin(times: Sequence[np.ndarray], positions: Sequence[np.ndarray]
             for rows, pad, arrays in calls(todo):
                 start = np.where(np.isfinite(theta[rows]), theta[rows], 0.0)
                 raw = jax.device_get(_fit_batch(m, *arrays, *args, jnp.asarray(pad(start), dtype),
-                                                jnp.asarray(int(n_iter))))
+                                                jnp.asarray(pad(along[seg[rows]]), dtype), jnp.asarray(int(n_iter))))
                 k = len(rows)
                 theta[rows] = np.asarray(raw["theta"][:k], np.float64)
                 cost[rows] = np.asarray(raw["cost"][:k], np.float64)
