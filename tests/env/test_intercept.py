@@ -2,7 +2,8 @@
 drag-free flight, the mirror law against the kernel's racket contact, the tracked racket meeting the
 ball at the predicted point within its limits, extreme actions, the spaces and gymnasium's checker.
 
-One compiled environment shape: 8 environments in intercept mode (module fixture), plus the
+One compiled environment shape: 8 environments in intercept mode with a target drawn per episode
+(module fixture; a fixed target is the same program with a spread of 0), plus the
 single-environment checker; the predictor and the mirror law run eagerly on small arrays.
 """
 
@@ -28,6 +29,8 @@ N = 8
 # the "accel" task switched to the intercept mode: its tracker settings are the code's defaults
 ACCEL = "return_ball_accel"
 OVERRIDES = {"shots.bank": 64, "shots.aim": True, "control.action": "intercept"}
+# the goal-conditioned form (configs/tasks/return_ball_goal.toml's box)
+GOAL = {"reward.target_point": [-0.75, 0.0], "reward.target_spread": [0.45, 0.55], "observation.target": True}
 G = 9.81
 
 
@@ -299,9 +302,9 @@ def test_return_planned_with_its_spin_lands_on_the_target_through_the_kernel(par
 
 @pytest.fixture(scope="module")
 def episode():
-    """8 environments in intercept mode played with action 0 until every one finished, with the
-    prediction made before each step."""
-    env = ReturnBall(load_task_config("return_ball", OVERRIDES), N)
+    """8 environments in intercept mode, each with its own target, played with action 0 until every
+    one finished, with the prediction made before each step."""
+    env = ReturnBall(load_task_config("return_ball", dict(OVERRIDES, **GOAL)), N)
     p = env.default_params()
     key = jax.random.PRNGKey(3)
     _, state = jit_reset(env, key, p)
@@ -313,7 +316,7 @@ def episode():
         point, v_hit, t, valid = intercept.predict(p.intercept, state.rally.ball.pos, state.rally.ball.vel,
                                                    state.progress.bounced, state.rally.ball.spin)
         flight, _, _ = intercept.stroke(p.intercept, jnp.zeros((N, 5)))
-        _, swing = intercept.mirror(p.intercept, point, v_hit, state.rally.ball.spin, p.target, flight)
+        _, swing = intercept.mirror(p.intercept, point, v_hit, state.rally.ball.spin, state.target, flight)
         return point, v_hit, t, valid, swing
 
     for i in range(env.max_steps):
@@ -322,7 +325,8 @@ def episode():
         rows.append(dict(racket=state.racket, point=np.asarray(point), swing=np.asarray(swing), t=np.asarray(t),
                          valid=np.asarray(valid), v_hit=np.asarray(v_hit),
                          contact=np.asarray(out[5]["contact"]), done=done.copy(), obs=np.asarray(out[0]),
-                         reward=np.asarray(out[2])))
+                         reward=np.asarray(out[2]), target=np.asarray(state.target),
+                         outcome=np.asarray(out[5]["outcome"]), landing=np.asarray(out[1].progress.landing)))
         state = out[1]
         done |= np.asarray(out[3]) | np.asarray(out[4])
         if done.all():
@@ -364,10 +368,10 @@ def test_observed_plan_is_the_prediction_the_tracker_acts_on_next(episode):
     prediction the tracker makes from the same ball at the next step: point, velocity / 10, time,
     valid; zeros where there is none."""
     env, p, rows = episode
-    assert env.config.observation.plan and env.obs_dim == 25 + 8
+    assert env.config.observation.plan and env.obs_dim == 25 + 8 + 2
     seen_valid = seen_invalid = 0
     for now, nxt in zip(rows[:-1], rows[1:]):
-        plan = now["obs"][:, -8:]
+        plan = now["obs"][:, -10:-2]
         for b in np.flatnonzero(~nxt["done"]):
             if nxt["valid"][b]:
                 seen_valid += 1
@@ -379,6 +383,35 @@ def test_observed_plan_is_the_prediction_the_tracker_acts_on_next(episode):
                 seen_invalid += 1
                 np.testing.assert_array_equal(plan[b], np.zeros(8, np.float32))
     assert seen_valid > 50 and seen_invalid > 5
+
+
+def test_each_episode_aims_at_its_own_target_which_it_observes(episode):
+    """A target drawn per episode (``[reward] target_spread``): inside its box, different across
+    episodes, constant through one, the observation's last two entries; the scripted stroke
+    (action 0) lands a legal return near its own episode's target, nearer than to the others', and
+    the reward's target term is scored against it."""
+    env, p, rows = episode
+    target = rows[0]["target"]
+    lo, hi = np.array([-1.2, -0.55]), np.array([-0.3, 0.55])
+    assert ((target >= lo - 1e-6) & (target <= hi + 1e-6)).all()
+    assert np.ptp(target, axis=0).min() > 0.2  # 8 draws spread over the box
+    for r in rows:
+        np.testing.assert_array_equal(r["target"], target)
+        np.testing.assert_array_equal(r["obs"][:, -2:], target)
+    # the step each legal return landed (the outcome stays set after it)
+    legal = [(b, next(i for i, r in enumerate(rows) if r["outcome"][b] == 1)) for b in range(N)
+             if any(r["outcome"][b] == 1 for r in rows)]
+    assert len(legal) >= 5, legal  # of 8 shots with this seed
+    own, others = [], []
+    for b, i in legal:
+        land = rows[i]["landing"][b]
+        own.append(np.linalg.norm(land - target[b]))
+        others.append(np.mean([np.linalg.norm(land - target[o]) for o in range(N) if o != b]))
+        # legal + target * (1 - d / target_scale) for the episode's own target, d < target_scale
+        w = p.reward
+        want = float(w["legal"]) + float(w["target"]) * max(0.0, 1.0 - own[-1] / float(w["target_scale"]))
+        assert abs(rows[i]["reward"][b] - want) < 1e-4 + float(w["motion"])
+    assert np.median(own) < 0.2 and np.median(own) < 0.4 * np.median(others), (own, others)
 
 
 def test_extreme_and_non_finite_actions_stay_finite(episode):

@@ -340,6 +340,28 @@ def test_start_below_the_clearance_over_the_table_is_refused():
         ReturnBall(config, 2).default_params()
 
 
+def test_a_target_drawn_per_episode_must_be_observed_and_lie_on_the_opponents_half():
+    """``[reward] target_spread`` draws each episode's target: refused unless the policy observes it,
+    with a negative half-width, and where the box reaches past the opponent's half (at the
+    parameters, which know the table); the bundled goal task loads and names its two entries."""
+    from ttsim_jax.env.return_ball import ReturnBall
+
+    with pytest.raises(ConfigError, match=r"return_ball_accel.toml: \[reward\] target_spread = \[0.2, 0.2\] .*"
+                                          r"\[observation\] target = true"):
+        load_task_config(TASK, {"reward.target_spread": [0.2, 0.2]})
+    with pytest.raises(ConfigError, match=r"\[reward\] target_spread = \[-0.1, 0.2\]: must not be negative"):
+        load_task_config(TASK, {"reward.target_spread": [-0.1, 0.2], "observation.target": True})
+    for point, spread in (([-0.9, 0.0], [1.0, 0.0]), ([-0.2, 0.0], [0.3, 0.0]), ([-0.9, 0.5], [0.0, 0.3])):
+        config = load_task_config(TASK, dict(OVERRIDES, **{"reward.target_point": point, "reward.target_spread": spread,
+                                                           "observation.target": True}))
+        with pytest.raises(ConfigError, match=r"return_ball_accel.toml: \[reward\] target_point = .* reaches beyond "
+                                              r"the opponent's half"):
+            ReturnBall(config, 2).sizing_params()
+    goal = ReturnBall(load_task_config("return_ball_goal", {"shots.bank": 8, "shots.aim": False}), 2)
+    assert goal.observation_names[-2:] == ("target.x", "target.y") and goal.obs_dim == 35
+    assert goal.config.reward.target_spread == (0.45, 0.55)
+
+
 def test_sizing_params_have_the_drawn_parameters_shapes_without_drawing_the_bank(monkeypatch):
     """What a job is sized by before it is refused (``rl.training.memory_bytes``): the parameters'
     shapes and dtypes, without drawing or aiming the shot bank (20 s and more on a cold cache)."""

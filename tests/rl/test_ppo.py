@@ -200,7 +200,8 @@ def test_a_checkpoint_of_other_shapes_than_its_task_now_is_refused_naming_the_le
 
 def test_a_checkpoint_from_before_the_plan_in_the_state_restores_with_zeros_there():
     """Checkpoints written before the environment state carried the tracker's plan (derived state)
-    still restore: zeros there, which a resumed run recomputes and ``ttsim play`` does not read."""
+    or the episode's target still restore: zeros for the plan, which a resumed run recomputes and
+    ``ttsim play`` does not read; the fresh state's target (the task's fixed one)."""
     from flax import serialization
 
     from ttsim_jax.env.config import load_task_config
@@ -212,10 +213,15 @@ def test_a_checkpoint_from_before_the_plan_in_the_state_restores_with_zeros_ther
     assert state.plan.shape == (4, 8)
     template = {"env_state": state}
     old = jax.tree.map(lambda s: np.ones(s.shape, s.dtype), serialization.to_state_dict(template))
-    del old["env_state"]["plan"]
+    del old["env_state"]["plan"], old["env_state"]["target"]
     restored = restore_runner(template, {"runner": old}, "old.msgpack")
     np.testing.assert_array_equal(restored["env_state"].plan, np.zeros((4, 8), np.float32))
     np.testing.assert_array_equal(restored["env_state"].t, np.ones(4, np.int32))
+    # nor the episode's target (every task had a fixed one then): a resumed run's template gives it
+    np.testing.assert_array_equal(restored["env_state"].target, np.zeros((4, 2), np.float32))
+    concrete = {"env_state": state.replace(target=jnp.tile(params.target, (4, 1)))}
+    restored = restore_runner(concrete, {"runner": old}, "old.msgpack")
+    np.testing.assert_array_equal(restored["env_state"].target, np.tile(np.asarray(params.target), (4, 1)))
 
 
 def test_train_is_callable_from_the_package():

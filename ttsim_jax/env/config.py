@@ -92,7 +92,8 @@ class ObservationConfig:
             observed ball position [m] and velocity [m/s]; latency_steps: the ball is observed as it
             was this many control steps ago; plan: append the intercept tracker's prediction of the
             hit (:func:`~ttsim_jax.env.intercept.predict` of the observed ball: point, velocity,
-            time to it, whether one exists), in either action mode.
+            time to it, whether one exists), in either action mode; target: append the episode's
+            target point (x, y) [m] (needed where ``[reward] target_spread`` draws one per episode).
     """
 
     spin: bool = True
@@ -100,6 +101,7 @@ class ObservationConfig:
     noise_vel: float = 0.0
     latency_steps: int = 0
     plan: bool = False
+    target: bool = False
 
 
 @dataclass(frozen=True)
@@ -125,11 +127,17 @@ ResidualConfig = TaskResidualConfig
 
 @dataclass(frozen=True)
 class RewardConfig:
+    """``[reward]``: the weights of the reward's terms (see :mod:`ttsim_jax.env.return_ball`) and the
+    return's target: ``target_point`` (x, y) [m], or with a nonzero ``target_spread`` (half-widths
+    in x and y [m]) a point drawn uniformly in ``target_point +- target_spread`` at each reset (a
+    goal-conditioned task; the policy observes it with ``[observation] target``)."""
+
     contact: float = 1.0
     legal: float = 2.0
     target: float = 1.0
     target_scale: float = 1.0
     target_point: tuple = (-0.9, 0.0)
+    target_spread: tuple = (0.0, 0.0)
     net: float = -1.0
     out: float = -1.0
     miss: float = -1.0
@@ -183,7 +191,7 @@ _POSITIVE = {"max_speed", "max_spin", "bank", "rate_hz", "physics_dt", "max_time
              "max_angle_accel", "target_scale",
              "x_hit", "swing_time", "omega", "flight_time"}
 _NON_NEGATIVE = {"noise_pos", "noise_vel", "latency_steps", "motion", "approach", "offset_y", "offset_z", "pitch",
-                 "yaw", "table_clearance"}
+                 "yaw", "table_clearance", "target_spread"}
 
 
 # Bundled tasks under their former names (the intercept mode became the default task).
@@ -282,7 +290,8 @@ def load_task_config(path=None, overrides: dict | None = None) -> TaskConfig:
 
     Arguments:
         path: a task .toml file, a bundled task name (``"return_ball"``, ``"return_ball_pro"``, their
-            "accel" forms ``"return_ball_accel"``, ``"return_ball_pro_accel"``), or
+            "accel" forms ``"return_ball_accel"``, ``"return_ball_pro_accel"``, the goal-conditioned
+            ``"return_ball_goal"``), or
             None for ``return_ball``.
         overrides: ``{"section.key": value}`` applied on top of the file (``{"shots.bank": 64}``).
 
@@ -326,7 +335,7 @@ def read_section(raw: dict, name: str, cls, source: str, positive=(), non_negati
         v = convert_value(where, getattr(defaults, key), value)
         if key in positive and (v <= 0 if not isinstance(v, tuple) else any(x <= 0 for x in v)):
             raise ConfigError(f"{where} = {value!r}: must be positive")
-        if key in non_negative and v < 0:
+        if key in non_negative and (v < 0 if not isinstance(v, tuple) else any(x < 0 for x in v)):
             raise ConfigError(f"{where} = {value!r}: must not be negative")
         values[key] = v
     return cls(**values)
@@ -387,6 +396,10 @@ def parse_task_config(raw: dict, source: str = "") -> TaskConfig:
     flight = out["intercept"].flight_time
     if flight[0] > flight[1]:
         raise ConfigError(f"{source}: [intercept] flight_time = {list(flight)}: low must not exceed high")
+    reward = out["reward"]
+    if any(reward.target_spread) and not out["observation"].target:
+        raise ConfigError(f"{source}: [reward] target_spread = {list(reward.target_spread)} draws a target per "
+                          "episode that the policy would not see: set [observation] target = true")
     residual = out["residual"]
     if residual.checkpoint:
         path = _beside(source, residual.checkpoint)

@@ -286,7 +286,7 @@ def mirror(p: InterceptParams, point, v_in, spin, target, flight):
     velocity, so that is its mean over a flight at constant C_M and spin).
 
     Arguments:
-        p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) landing point (x, y);
+        p: :class:`InterceptParams`; point, v_in, spin: (B, 3); target: (2,) or (B, 2) landing point (x, y);
         flight: (B,) [s].
 
     Returns:
@@ -361,7 +361,7 @@ def track(p: InterceptParams, limits, start, target, racket, prediction, ball_sp
 
     Arguments:
         p: :class:`InterceptParams`; limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start: (3,)
-        the racket's rest position; target: (2,) the return's target point (x, y);
+        the racket's rest position; target: (2,) or (B, 2) the return's target point (x, y);
         racket: :class:`~ttsim_jax.env.racket.RacketState` (B, ...); prediction: :func:`predict` of
         the observed ball (point, velocity, time, valid); ball_spin: (B, 3) its observed spin (0 where
         it is not observed); hit: (B,) the racket met the ball; action: (B, 5).

@@ -21,7 +21,8 @@ equal settings are equal (and hash alike), so they share their compiled programs
 
 Reward of a step (weights in ``[reward]`` of the task file):
 ``contact`` on the first legal racket contact; on a legal return ``legal + target * max(0, 1 - d /
-target_scale)`` with d the landing point's distance to ``target_point``; ``net``, ``out``, ``miss``
+target_scale)`` with d the landing point's distance to the episode's target (``target_point``, or a
+point drawn within ``target_spread`` of it at each reset); ``net``, ``out``, ``miss``
 on those faults; minus ``motion`` times the mean squared commanded acceleration (fraction of its
 limit); plus ``approach`` times the reduction of the ball-racket distance before the contact. A
 shot of the opponent that never reaches the agent's half ends the episode with no reward and is
@@ -68,8 +69,6 @@ RESET_FRACTION, RESET_MIN_ROWS = 16, 8
 CONTACT_FRACTION, CONTACT_MIN_ROWS = 128, 8
 # Cap of the ball-racket distance in the approach term [m].
 APPROACH_CAP = 3.0
-# Entries the tracker's plan adds to the observation (``[observation] plan``): point, velocity, time, valid.
-PLAN_DIM = 8
 
 
 @struct.dataclass
@@ -106,6 +105,8 @@ class EnvState:
             (:func:`~ttsim_jax.env.intercept.predict`: point, velocity, time to it, valid as 0 / 1),
             made once when the state is made and read by the observation and by the next step's
             tracker; (B, 0) otherwise.
+        target: (B, 2) the episode's target point (x, y) [m]: ``[reward] target_point``, or drawn
+            uniformly within ``target_spread`` of it at the reset.
     """
 
     rally: RallyState
@@ -117,6 +118,7 @@ class EnvState:
     distance: jnp.ndarray
     seen: Ball
     plan: jnp.ndarray
+    target: jnp.ndarray
 
 
 @struct.dataclass
@@ -131,7 +133,8 @@ class EnvParams:
             where ``rand_normal`` (P,) is set.
         limits: :class:`~ttsim_jax.env.racket.RacketLimits`; start, start_jitter: (3,) racket start.
         noise: (2,) std of the observed ball position [m] and velocity [m/s].
-        reward: dict of reward weights (see the module docstring); target: (2,) target point.
+        reward: dict of reward weights (see the module docstring); target: (2,) target point;
+            target_spread: (2,) half-widths of the box each episode's target is drawn in [m].
         intercept: :class:`~ttsim_jax.env.intercept.InterceptParams` (read in "intercept" mode).
     """
 
@@ -147,6 +150,7 @@ class EnvParams:
     noise: jnp.ndarray
     reward: dict
     target: jnp.ndarray
+    target_spread: jnp.ndarray
     intercept: intercept.InterceptParams
 
 
@@ -189,7 +193,7 @@ class ReturnBall:
         self.max_steps = self.config.max_steps
         self.period = 1.0 / self.config.control.rate_hz
         self.paths = tuple(r[0] for r in self.config.randomisation)
-        self.obs_dim = (25 if self.config.observation.spin else 22) + PLAN_DIM * self.config.observation.plan
+        self.obs_dim = len(observation_fields(self.config.observation))
         self.latency = self.config.observation.latency_steps
         self._params = None
         # what the compiled programs depend on: the task's settings (not the file they were read
@@ -262,6 +266,12 @@ class ReturnBall:
                               f"table_clearance = {r.table_clearance} (the table ends at x = "
                               f"{0.5 * float(model.table.length)} m)")
         w = c.reward
+        half_l, half_w = 0.5 * float(model.table.length), 0.5 * float(model.table.width)
+        (x, y), (dx, dy) = w.target_point, w.target_spread
+        if not (-half_l < x - dx and x + dx < 0.0 and abs(y) + dy < half_w):
+            raise ConfigError(f"{c.source}: [reward] target_point = {list(w.target_point)} with target_spread = "
+                              f"{list(w.target_spread)} reaches beyond the opponent's half of the table (x in "
+                              f"({-half_l}, 0), |y| < {half_w} m): a legal return cannot land there")
         reward = {k: f32(getattr(w, k)) for k in ("contact", "legal", "target", "target_scale", "net", "out",
                                                   "miss", "motion", "approach")}
         return EnvParams(
@@ -270,7 +280,8 @@ class ReturnBall:
             rand_normal=jnp.asarray([r[3] == "normal" for r in c.randomisation], bool),
             limits=limits, start=f32(r.start), start_jitter=f32(r.start_jitter),
             noise=f32([c.observation.noise_pos, c.observation.noise_vel]), reward=reward,
-            target=f32(w.target_point), intercept=intercept.intercept_params(self._planning_model(model), c))
+            target=f32(w.target_point), target_spread=f32(w.target_spread),
+            intercept=intercept.intercept_params(self._planning_model(model), c))
 
     def _planning_model(self, model: Model) -> Model:
         """The model the tracker plans its stroke with: the task's, or, with a ``racket_config`` and
@@ -325,8 +336,12 @@ class ReturnBall:
                          landing=jnp.zeros((b, 2), jnp.float32))
         # nothing older than the first measurement exists: the history starts filled with it
         seen = jax.tree.map(lambda a: jnp.repeat(a[:, None], self.latency + 1, axis=1), measure(k_obs, ball, params))
+        # a key of its own (not a fifth split): the other draws stay those of a task without a spread
+        target = params.target + params.target_spread * jax.random.uniform(
+            jax.random.fold_in(key, 5), (b, 2), jnp.float32, -1.0, 1.0)
         state = EnvState(rally=init_state(ball, ball_id=ids), racket=rk, progress=progress, model_values=values,
-                         shot=shot, t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None)
+                         shot=shot, t=jnp.zeros(b, jnp.int32), distance=self._distance(ball, rk), seen=seen, plan=None,
+                         target=target)
         state = state.replace(plan=self.plan(state, params))
         return self.observe(state), state
 
@@ -373,7 +388,8 @@ class ReturnBall:
         velocity / 10, angles, angle rates / 10, ball minus racket position, time [s], bounced,
         hit (the racket's state and the rally's progress are current) [, with ``[observation] plan``:
         the tracker's predicted hit point, velocity there / 10, time to it [s] and whether one
-        exists (:attr:`EnvState.plan`, the prediction from the seen ball), 0 where none does].
+        exists (:attr:`EnvState.plan`, the prediction from the seen ball), 0 where none does]
+        [, with ``[observation] target``: the episode's target point (x, y) [m]].
 
         Every entry is finite (a non-finite state reads 0) and within +-1e3."""
         ball, rk = self.seen_ball(state), state.racket
@@ -389,6 +405,8 @@ class ReturnBall:
             keep = state.plan[:, 7:] > 0.5
             parts += [jnp.where(keep, state.plan[:, :3], 0.0), jnp.where(keep, state.plan[:, 3:6] / 10.0, 0.0),
                       jnp.where(keep, state.plan[:, 6:7], 0.0), keep.astype(jnp.float32)]
+        if self.config.observation.target:
+            parts.append(state.target)
         obs = jnp.concatenate([p.astype(jnp.float32) for p in parts], axis=-1)
         return jnp.clip(jnp.nan_to_num(obs, nan=0.0, posinf=OBS_BOUND, neginf=-OBS_BOUND), -OBS_BOUND, OBS_BOUND)
 
@@ -419,7 +437,7 @@ class ReturnBall:
                 pred = (state.plan[:, :3], state.plan[:, 3:6], state.plan[:, 6], state.plan[:, 7] > 0.5)
             else:
                 pred = intercept.predict(params.intercept, seen.pos, seen.vel, state.progress.bounced, seen.spin)
-            action = intercept.track(params.intercept, params.limits, params.start, params.target, state.racket,
+            action = intercept.track(params.intercept, params.limits, params.start, state.target, state.racket,
                                      pred, seen.spin, state.progress.hit, action)
         rk, schedule, effort = racket_kin.command(params.limits, state.racket, action, self.period, self.substeps)
         # (T, B, 1, ...) as the rollout takes it, (B, T, 1, ...): the two transpositions cancel
@@ -445,7 +463,7 @@ class ReturnBall:
         ended = (progress.outcome != RUNNING) & (before.outcome == RUNNING)
         distance = self._distance(rally.ball, rk)
         w = params.reward
-        err = jnp.linalg.norm(progress.landing - params.target, axis=-1)
+        err = jnp.linalg.norm(progress.landing - state.target, axis=-1)
         legal = progress.outcome == LEGAL
         outcome_reward = jnp.select(
             [legal, progress.outcome == NET, progress.outcome == OUT,
@@ -461,7 +479,7 @@ class ReturnBall:
         seen = jax.tree.map(lambda h, now: jnp.concatenate([h[:, 1:], now[:, None]], 1), state.seen,
                             measure(k_obs, rally.ball, params))
         state = EnvState(rally=rally, racket=rk, progress=progress, model_values=state.model_values,
-                         shot=state.shot, t=t, distance=distance, seen=seen, plan=None)
+                         shot=state.shot, t=t, distance=distance, seen=seen, plan=None, target=state.target)
         state = state.replace(plan=self.plan(state, params))
         info = {"outcome": progress.outcome, "legal": legal, "contact": contact,
                 "landing_error": jnp.where(legal, err, -1.0), "shot_type": params.shot_type[state.shot]}

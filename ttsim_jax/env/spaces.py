@@ -23,7 +23,7 @@ def action_space(env) -> spaces.Box:
 
 def observation_fields(observation) -> tuple:
     """(name, unit) of each entry of a ReturnBall observation under the task's ``[observation]``
-    settings (``spin``, ``plan``), in order: e.g. ``("ball.vel.x", "10 m/s")``, the ball's x
+    settings (``spin``, ``plan``, ``target``), in order: e.g. ``("ball.vel.x", "10 m/s")``, the ball's x
     velocity in units of 10 m/s (divided by 10)."""
     def xyz(what, unit):
         return [(f"{what}.{a}", unit) for a in "xyz"]
@@ -38,4 +38,6 @@ def observation_fields(observation) -> tuple:
     if observation.plan:
         out += xyz("plan.hit_pos", "m") + xyz("plan.hit_vel", "10 m/s") + [("plan.time_to_hit", "s"),
                                                                             ("plan.exists", "0/1")]
+    if observation.target:
+        out += [("target.x", "m"), ("target.y", "m")]
     return tuple(out)

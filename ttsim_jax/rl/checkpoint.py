@@ -79,12 +79,17 @@ def restore_runner(template, payload: dict, path=""):
 
     A checkpoint written before the environment state carried the tracker's plan
     (:attr:`~ttsim_jax.env.return_ball.EnvState.plan`, derived from the rest of the state) gets
-    zeros there; :func:`~ttsim_jax.rl.training.train` recomputes it on resuming."""
+    zeros there; :func:`~ttsim_jax.rl.training.train` recomputes it on resuming. One written before
+    each episode carried its target (:attr:`~ttsim_jax.env.return_ball.EnvState.target`; every task
+    then had a fixed one) gets the template's, the task's ``target_point``."""
     stored = payload["runner"]
     state = stored.get("env_state") if isinstance(stored, dict) else None
-    if isinstance(state, dict) and "plan" not in state:
-        plan = np.zeros(serialization.to_state_dict(template)["env_state"]["plan"].shape, np.float32)
-        stored = dict(stored, env_state=dict(state, plan=plan))
+    if isinstance(state, dict) and ("plan" not in state or "target" not in state):
+        fresh = serialization.to_state_dict(template)["env_state"]
+        target = fresh["target"]  # an abstract template (``ttsim play``, which reads no state): zeros
+        target = np.zeros(target.shape, np.float32) if isinstance(target, jax.ShapeDtypeStruct) else np.asarray(target)
+        missing = {"plan": np.zeros(fresh["plan"].shape, np.float32), "target": target}
+        stored = dict(stored, env_state={**{k: v for k, v in missing.items() if k not in state}, **state})
     try:
         runner = serialization.from_state_dict(template, stored)
     except (ValueError, KeyError, TypeError) as e:
