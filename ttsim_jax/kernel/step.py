@@ -25,6 +25,7 @@ Per-ball parameters: ``model_axes`` is a pytree prefix of the model, like ``jax.
 from __future__ import annotations
 
 from functools import partial, reduce
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -71,6 +72,33 @@ class Proposal:
     racket: jnp.ndarray
     pre: Ball
     slot: jnp.ndarray
+
+
+@struct.dataclass
+class StepEvents:
+    """What :func:`_events` found for the C balls of a buffer in one step (S = ``EVENTS_PER_STEP``).
+
+    Attributes:
+        next: :class:`Ball` (C, 3) after the step.
+        events: an :class:`EventLog` of S slots per row: each row's events in the step in time order
+            (NONE after the last; ``post`` is the state before a net crossing, which changes nothing).
+        stopped: (C,) the kind that took the ball out of play in the step (0 if none).
+    """
+
+    next: Ball
+    events: EventLog
+    stopped: jnp.ndarray
+
+
+class _Stage(NamedTuple):
+    """The carry of :func:`_events`' stages: where the rest of the step starts and ends (Ball (C, 3)),
+    the fraction of the step used (C,), the candidates already met (C, slots), and which rows go on."""
+
+    start: Ball
+    end: Ball
+    tau: jnp.ndarray
+    done: jnp.ndarray
+    going: jnp.ndarray
 
 
 # --------------------------------------------------------------------------- one ball
@@ -334,10 +362,7 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     the first skipped where no row needs it (compiled once).
 
     Returns:
-        (next ball (C, 3), kind (C, S), event time (C, S), racket index (C, S), pre, log_post
-        ((C, S, 3) fields), contact (C, S, 2), sigma (C, S, 6), stopped (C,)), S = EVENTS_PER_STEP:
-        each row's events in time order (NONE after the last) and the kind that took it out of play
-        (0 if none).
+        :class:`StepEvents` of the C rows.
     """
     b = alive.shape[0]
     safe = jnp.minimum(rows, b - 1)
@@ -355,10 +380,12 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     dtype = ball.pos.dtype
     r_ax = 0 if rackets_batched else None
 
-    def stage(carry, i):
+    def stage(carry: _Stage, i):
         start, end, tau0, done, going = carry
         seg = (1.0 - tau0) * dt
-        prop = jax.vmap(detect, in_axes=(phys_axes, 0, 0, r_ax, 0, 0, 0))(m_c, start, end, r_c, seg, done, tau0 * dt)
+        with jax.named_scope("detect"):
+            prop = jax.vmap(detect, in_axes=(phys_axes, 0, 0, r_ax, 0, 0, 0))(m_c, start, end, r_c, seg, done,
+                                                                              tau0 * dt)
         kind = jnp.where(going, prop.kind, ev.NONE)
         tau = tau0 + (1.0 - tau0) * prop.tau  # of the whole step
         hit = None
@@ -368,8 +395,9 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
                    else jax.tree.map(lambda a: a[j], r_c))
             hit = jax.vmap(racket_stage.advance)(hit, tau * dt)  # the racket at the contact time
             hit = jax.vmap(racket_stage.facing)(hit, prop.pre.pos)  # turned onto the rim's normal there
-        post, x, rot = jax.vmap(respond, in_axes=(phys_axes, 0, 0, 0 if hit is not None else None))(
-            m_c, prop.pre, kind, hit)
+        with jax.named_scope("respond"):
+            post, x, rot = jax.vmap(respond, in_axes=(phys_axes, 0, 0, 0 if hit is not None else None))(
+                m_c, prop.pre, kind, hit)
         is_r = kind == ev.RACKET
         sigma = jnp.zeros(kind.shape + (6,), dtype)
         if model.residual is not None:
@@ -392,14 +420,16 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
                 keys = key[safe[sub_safe]] if own else key
                 eps = jax.vmap(lambda kk, j: draw(jax.random.fold_in(kk, j)), in_axes=(0 if own else None, 0))(
                     keys, ball_id[safe[sub_safe]])
-            out = _residual_rows(net, res_axes, x[sub_safe, :model.residual.config.n_inputs], eps)
+            with jax.named_scope("residual_network"):
+                out = _residual_rows(net, res_axes, x[sub_safe, :model.residual.config.n_inputs], eps)
             if net_rows is not None:
                 out = {k: jnp.zeros((n,) + v.shape[1:], v.dtype).at[sub].set(v, mode="drop") for k, v in out.items()}
             dv, dw = jnp.where(is_r[:, None], out["dv"], 0.0), jnp.where(is_r[:, None], out["dw"], 0.0)
             post = post.replace(vel=post.vel + matvec(rot, dv.astype(dtype)),
                                 spin=post.spin + matvec(rot, dw.astype(dtype)))
             sigma = jnp.concatenate([out["sigma_v"], out["sigma_w"]], axis=-1).astype(dtype)
-        after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, t_ax, None))(m_c, post, tau, t_c, dt)
+        with jax.named_scope("finish"):
+            after = jax.vmap(finish, in_axes=(phys_axes, 0, 0, t_ax, None))(m_c, post, tau, t_c, dt)
         bounced = ((kind == ev.TABLE) | is_r)[:, None]
         net_or_floor = ((kind == ev.NET) | (kind == ev.FLOOR))[:, None]
         # after a bounce the rest of the step starts from the bounce; after a net crossing from the
@@ -418,7 +448,7 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
             m_c, nxt_start, nxt_end, r_c, (1.0 - tau) * dt, tau * dt)
         more = jnp.stack(fixed, axis=-1) if near is None else jnp.concatenate([jnp.stack(fixed, axis=-1), near], -1)
         going = going & (bounced[:, 0] | (kind == ev.NET)) & jnp.any(more & ~done, axis=-1)
-        return (nxt_start, nxt_end, jnp.where(going, tau, tau0), done, going), record
+        return _Stage(nxt_start, nxt_end, jnp.where(going, tau, tau0), done, going), record
 
     def later(carry):
         """The stages after the first, over the rows that may have another event."""
@@ -431,11 +461,11 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
         return carry, (jnp.zeros(shape, jnp.int32), jnp.zeros(shape, dtype), -jnp.ones(shape, jnp.int32), none, none,
                        jnp.zeros(shape + (2,), dtype), jnp.zeros(shape + (6,), dtype))
 
-    carry = (ball_c, free_c, jnp.zeros(n, dtype), jnp.zeros((n, n_slots), bool), alive_c)
+    carry = _Stage(ball_c, free_c, jnp.zeros(n, dtype), jnp.zeros((n, n_slots), bool), alive_c)
     # a second event in a step is rare: the later stages run only where a row may have one (a branch)
     if unrolled:
         carry, first = stage(carry, 0)
-        carry, rest = jax.lax.cond(jnp.any(carry[4]), later, idle, carry)
+        carry, rest = jax.lax.cond(jnp.any(carry.going), later, idle, carry)
         record = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
     else:
         def one(carry, i):
@@ -443,14 +473,16 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
                 carry, rest = idle(carry)
                 return carry, jax.tree.map(lambda a: a[0], rest)
 
-            return jax.lax.cond((i == 0) | jnp.any(carry[4]), stage, none, carry, i)
+            return jax.lax.cond((i == 0) | jnp.any(carry.going), stage, none, carry, i)
 
         carry, record = jax.lax.scan(one, carry, jnp.arange(EVENTS_PER_STEP))
-    nxt = carry[1]
     kind, time, racket, pre, log_post, contact, sigma = jax.tree.map(lambda a: jnp.moveaxis(a, 0, 1), record)
-    nxt, kind, time, stopped = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, t_ax, None))(
-        ball_c, alive_c, nxt, kind, time, t_c, dt)
-    return nxt, kind, time, racket, pre, log_post, contact, sigma, stopped
+    with jax.named_scope("resolve"):
+        nxt, kind, time, stopped = jax.vmap(resolve, in_axes=(0, 0, 0, 0, 0, t_ax, None))(
+            ball_c, alive_c, carry.end, kind, time, t_c, dt)
+    found = EventLog(kind=kind, time=time, racket=racket, pre=pre, post=log_post, contact=contact, sigma=sigma,
+                     count=jnp.sum(kind != ev.NONE, axis=1, dtype=jnp.int32))
+    return StepEvents(next=nxt, events=found, stopped=stopped)
 
 
 def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog | None, rackets: Racket | None,
@@ -489,27 +521,33 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
     phys, phys_axes = model.replace(residual=None), axes.replace(residual=None)
     r_ax = 0 if rackets_batched else None
     t_ax = None if jnp.ndim(t) == 0 else 0
-    free = jax.vmap(partial(flight, integrator=integrator), in_axes=(phys_axes, 0, t_ax, None))(phys, ball, t, dt)
+    with jax.named_scope("flight"):
+        free = jax.vmap(partial(flight, integrator=integrator), in_axes=(phys_axes, 0, t_ax, None))(phys, ball, t,
+                                                                                                    dt)
     # one pass of the cheap tests gives both flags (the second is only read with a network and rackets)
-    flag, near = jax.vmap(step_flags, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free, rackets, dt)
+    with jax.named_scope("flags"):
+        flag, near = jax.vmap(step_flags, in_axes=(phys_axes, 0, 0, r_ax, None))(phys, ball, free, rackets, dt)
     flag, near = alive & flag, alive & near
     base = jax.tree.map(lambda f, o: jnp.where(alive[:, None], f, o), free, ball)
     capacity = min(capacity, b)
 
     def events(rows):
-        return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key, sample,
-                       unrolled=buffering == "single")
+        with jax.named_scope("events"):
+            return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key,
+                           sample, unrolled=buffering == "single")
 
-    def write(rows, out):
+    def write(rows, out: StepEvents):
         """The events ``out`` of the balls ``rows`` written into the batch (rows >= B are dropped)."""
-        nxt, kind, time, racket, pre, post, contact, sigma, stopped = out
+        found = out.events
+        kind = found.kind
         safe = jnp.minimum(rows, b - 1)
         put = lambda full, part: full.at[rows].set(part, mode="drop")  # noqa: E731
         def log_events(lg, stages):
             for i in stages:  # in time order
                 at = lambda a: a[:, i]  # noqa: E731
-                lg = lg.write(rows, kind[:, i] != ev.NONE, kind[:, i], time[:, i], racket[:, i],
-                              jax.tree.map(at, pre), jax.tree.map(at, post), contact[:, i], sigma[:, i])
+                lg = lg.write(rows, kind[:, i] != ev.NONE, kind[:, i], found.time[:, i], found.racket[:, i],
+                              jax.tree.map(at, found.pre), jax.tree.map(at, found.post), found.contact[:, i],
+                              found.sigma[:, i])
             return lg
 
         new_log = log
@@ -521,9 +559,9 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
             else:  # a step's second event is rare: its writes (scatters over every row) skipped without one
                 new_log = jax.lax.cond(jnp.any(kind[:, 1:] != ev.NONE), later,
                                        lambda lg: jax.tree.map(_in_place_identity, lg), new_log)
-        stops = stopped != 0
-        return (jax.tree.map(put, base, nxt), put(alive, alive[safe] & ~stops),
-                put(status, jnp.where(stops, stopped, status[safe])), new_log)
+        stops = out.stopped != 0
+        return (jax.tree.map(put, base, out.next), put(alive, alive[safe] & ~stops),
+                put(status, jnp.where(stops, out.stopped, status[safe])), new_log)
 
     if reference:
         rows = jnp.arange(b)
@@ -534,8 +572,10 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
 
         def one_buffer():
             rows = jnp.nonzero(flag, size=capacity, fill_value=b)[0]
-            return write(rows, _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t,
-                                       dt, key, sample, net_rows, unrolled=True))
+            with jax.named_scope("events"):
+                found = _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key,
+                                sample, net_rows, unrolled=True)
+            return write(rows, found)
 
         if capacity >= b:
             return one_buffer()
