@@ -161,16 +161,17 @@ SHARDED = textwrap.dedent("""
 
 
 @pytest.mark.parametrize("names", [
-    # by default the constant reading (nakashima2011's, where the drag once read Magnus's constant)
-    # and the paper's tables; with -m slow Dürr's reading too, and then every bundled model
-    pytest.param([n for n in one_per_reading(COVERED) if kernel_reading(n)[1] != "durr"], id="constant-and-tables"),
+    # by default the constant reading (nakashima2011's, where the drag once read Magnus's constant;
+    # the tables' sharded path is tests/kernel/test_sharding.py's, their fused path test_fused.py's);
+    # with -m slow the tables and Dürr's reading too, and then every bundled model
+    pytest.param([n for n in one_per_reading(COVERED) if kernel_reading(n)[1] == "constant"], id="constant"),
     pytest.param(one_per_reading(COVERED), id="each-reading", marks=pytest.mark.slow),
     pytest.param(COVERED, id="every-model", marks=pytest.mark.slow)])
 def test_sharded_fused_path_equals_the_reference(names, references, tmp_path):
     """The fused path sharded over 4 forced host devices (a subprocess: the device count is fixed
     when JAX starts; each device flies a quarter of the batch) gives the unsharded reference path's
-    rollout, model by model: by default the constant and the tables readings, with ``-m slow``
-    Dürr's reading too and every bundled model the kernel covers."""
+    rollout, model by model: by default the constant reading, with ``-m slow`` the tables' and
+    Dürr's readings too and every bundled model the kernel covers."""
     refs = {}
     for name in names:
         s, o = references(name)
