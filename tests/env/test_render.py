@@ -9,7 +9,7 @@ import pytest
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.gym import _Trails
 from ttsim_jax.env.render import RallyFrames, episode_frames, face_outline, progress_text, save_gif
-from ttsim_jax.env.return_ball import LEGAL, RUNNING, Rally
+from ttsim_jax.env.rally_rules import LEGAL, RUNNING, Rally
 
 FACE = np.array([0.0775, 0.0755])
 

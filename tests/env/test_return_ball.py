@@ -16,7 +16,8 @@ import ttsim_jax  # noqa: F401  (registers the environments)
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env import return_ball
 from ttsim_jax.env.config import load_task_config
-from ttsim_jax.env.return_ball import (LEGAL, MISS, NET, OUT, RUNNING, VOLLEY, Rally, _advance, jit_reset, jit_step)
+from ttsim_jax.env.rally_rules import LEGAL, MISS, NET, OUT, OUTCOME_NAMES, RUNNING, VOLLEY, Rally, advance
+from ttsim_jax.env.return_ball import jit_reset, jit_step
 from ttsim_jax.params import ConfigError
 from ttsim_jax.physics import events as ev
 
@@ -216,7 +217,7 @@ def _play(rows):
     p = Rally(bounced=jnp.zeros(1, bool), hit=jnp.zeros(1, bool), outcome=jnp.zeros(1, jnp.int32),
               landing=jnp.zeros((1, 2), jnp.float32))
     for kind, pos in _events(*rows):
-        p = _advance(p, kind, pos, jnp.array(True))
+        p = advance(p, kind, pos, jnp.array(True))
     return p
 
 
@@ -238,7 +239,7 @@ def test_rally_bookkeeping(rows, outcome):
     if outcome == LEGAL:
         np.testing.assert_allclose(np.asarray(p.landing[0]), [-0.9, 0.2])
     # nothing after the end changes it
-    later = _advance(p, jnp.array([ev.TABLE]), jnp.array([[-0.5, 0.0, 0.02]], jnp.float32), jnp.array(True))
+    later = advance(p, jnp.array([ev.TABLE]), jnp.array([[-0.5, 0.0, 0.02]], jnp.float32), jnp.array(True))
     if outcome != RUNNING:
         assert int(later.outcome[0]) == outcome
 
@@ -489,7 +490,7 @@ def test_the_shot_type_codes_name_the_tasks_types(vec, run):
     assert env.shot_type_names == tuple(load_task_config(TASK, OVERRIDES).shots.types)
     codes = np.concatenate([np.asarray(out[5]["shot_type"]) for _, out in run])
     assert codes.min() >= 0 and codes.max() < len(env.shot_type_names)
-    assert return_ball.OUTCOME_NAMES[LEGAL] == "legal" and return_ball.OUTCOME_NAMES[RUNNING] == "running"
+    assert OUTCOME_NAMES[LEGAL] == "legal" and OUTCOME_NAMES[RUNNING] == "running"
 
 
 def test_a_bank_too_large_to_draw_is_refused_before_it_is_drawn():

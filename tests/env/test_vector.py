@@ -13,7 +13,7 @@ from gymnasium.wrappers import vector as wrappers
 
 import ttsim_jax  # noqa: F401  (registers the environments)
 from ttsim_jax.env.gym import ActionError
-from ttsim_jax.env.return_ball import RUNNING
+from ttsim_jax.env.rally_rules import RUNNING
 
 N = 8
 TASK = "return_ball_accel"

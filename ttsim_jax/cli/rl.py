@@ -156,7 +156,7 @@ def cmd_play(args) -> int:
             f"{k} {v['legal_rate']:.3f} ({v['episodes']})" if v["legal_rate"] is not None else f"{k} - (0)"
             for k, v in s["by_type"].items()))
     if args.plot:
-        from ttsim_jax.env.return_ball import OUTCOME_NAMES
+        from ttsim_jax.env.rally_rules import OUTCOME_NAMES
         from ttsim_jax.plots import plot_trajectories
 
         ball = np.swapaxes(np.asarray(result["ball"]), 0, 1)

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 
 from ttsim_jax.env.racket import rotation
-from ttsim_jax.env.return_ball import OUTCOME_NAMES, RUNNING
+from ttsim_jax.env.rally_rules import OUTCOME_NAMES, RUNNING
 from ttsim_jax.physics.dimensions import TABLE_LENGTH, TABLE_WIDTH
 from ttsim_jax.plots import draw_table
 

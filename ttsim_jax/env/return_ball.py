@@ -3,7 +3,8 @@
 The opponent plays from the -x end (a ball from a bank of realistic shots, ``ttsim_jax.shots``);
 the agent's kinematic racket (:mod:`.racket`) defends the +x end. Each control step advances the
 kernel's resumable :func:`~ttsim_jax.kernel.rollout.rollout` by ``substeps`` physics steps with the
-racket schedule of that period, then reads the step's event log to follow the rally:
+racket schedule of that period, then reads the step's event log to follow the rally (the rules are
+:mod:`.rally_rules`'s):
 
 * the ball must bounce once on the agent's half (x > 0), then meet the racket (a contact before that
   bounce is a volley, a second bounce or a fall a miss);
@@ -43,16 +44,13 @@ from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.env.config import ShotsConfig, TaskConfig, load_task_config
+from ttsim_jax.env.rally_rules import LEGAL, MISS, NET, OUT, RUNNING, SHOT_FAULT, VOLLEY, Rally, advance
 from ttsim_jax.env.spaces import OBS_BOUND, observation_fields
 from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
 from ttsim_jax.params import ConfigError, Model, load_model
-from ttsim_jax.physics import events as ev
 from ttsim_jax.physics.numerics import safe_norm
 from ttsim_jax.state import Ball
 
-# How an episode ended (``info["outcome"]``); RUNNING while it goes on.
-RUNNING, LEGAL, NET, OUT, MISS, VOLLEY, SHOT_FAULT = range(7)
-OUTCOME_NAMES = ("running", "legal", "net", "out", "miss", "volley", "shot_fault")
 # The step info of an episode's first observation, where nothing has happened yet (``shot_type``
 # aside, which is the episode's own).
 RESET_INFO = {"outcome": RUNNING, "legal": False, "contact": False, "landing_error": -1.0}
@@ -69,21 +67,6 @@ RESET_FRACTION, RESET_MIN_ROWS = 16, 8
 CONTACT_FRACTION, CONTACT_MIN_ROWS = 128, 8
 # Cap of the ball-racket distance in the approach term [m].
 APPROACH_CAP = 3.0
-
-
-@struct.dataclass
-class Rally:
-    """Where a rally stands (fields (B,)).
-
-    Attributes:
-        bounced: the ball bounced on the agent's half. hit: the agent's racket met it (legally).
-        outcome: RUNNING, or how it ended. landing: (B, 2) where the return landed (legal returns).
-    """
-
-    bounced: jnp.ndarray
-    hit: jnp.ndarray
-    outcome: jnp.ndarray
-    landing: jnp.ndarray
 
 
 @struct.dataclass
@@ -454,7 +437,7 @@ class ReturnBall:
         progress = before
         log = out.events
         for j in range(MAX_EVENTS):
-            progress = _advance(progress, log.kind[:, j], log.pre.pos[:, j], j < log.count)
+            progress = advance(progress, log.kind[:, j], log.pre.pos[:, j], j < log.count)
         # a ball the kernel stopped with nothing to say (a full log) ends as what it would be
         stopped = ~rally.alive & (progress.outcome == RUNNING)
         progress = progress.replace(outcome=jnp.where(
@@ -540,22 +523,6 @@ def measure(key, ball: Ball, params: EnvParams) -> Ball:
     k_p, k_v = jax.random.split(key)
     return ball.replace(pos=ball.pos + params.noise[0] * jax.random.normal(k_p, ball.pos.shape, jnp.float32),
                         vel=ball.vel + params.noise[1] * jax.random.normal(k_v, ball.vel.shape, jnp.float32))
-
-
-def _advance(p: Rally, kind, pos, valid) -> Rally:
-    """The rally after one logged event (``kind`` (B,), position ``pos`` (B, 3)); ``valid`` masks unused slots."""
-    run = valid & (p.outcome == RUNNING)
-    own = pos[:, 0] > 0.0
-    table, racket, net = kind == ev.TABLE, kind == ev.RACKET, kind == ev.NET
-    dead = (kind == ev.FLOOR) | (kind == ev.OUT) | (kind == ev.REST) | (kind == ev.INVALID)
-    pre, post = run & ~p.hit, run & p.hit
-    outcome = jnp.select(
-        [pre & table & own & p.bounced, pre & racket & ~p.bounced, pre & dead & p.bounced, pre & dead & ~p.bounced,
-         post & table & ~own, post & net, post & ((table & own) | racket | dead)],
-        [MISS, VOLLEY, MISS, SHOT_FAULT, LEGAL, NET, OUT], p.outcome)
-    return Rally(bounced=p.bounced | (pre & table & own), hit=p.hit | (pre & racket & p.bounced),
-                 outcome=outcome.astype(jnp.int32),
-                 landing=jnp.where((post & table & ~own)[:, None], pos[:, :2], p.landing))
 
 
 def _key(key):

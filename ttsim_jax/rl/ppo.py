@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from ttsim_jax.env.return_ball import LEGAL, SHOT_FAULT, EnvParams, ReturnBall
+from ttsim_jax.env.rally_rules import LEGAL, SHOT_FAULT
+from ttsim_jax.env.return_ball import EnvParams, ReturnBall
 from ttsim_jax.rl.config import PPOConfig
 from ttsim_jax.rl.networks import ActorCritic, gaussian_entropy, gaussian_log_prob
 from ttsim_jax.rl.normalise import RunningStats
@@ -290,7 +291,7 @@ def summarise(result: dict, shot_types=None) -> dict:
     missed."""
     import numpy as np
 
-    from ttsim_jax.env.return_ball import OUTCOME_NAMES
+    from ttsim_jax.env.rally_rules import OUTCOME_NAMES
 
     outcome = np.asarray(result["outcome"])
     counted = outcome != SHOT_FAULT
