@@ -6,11 +6,11 @@ conti2026 without effects, float32, dt = 1 ms. Each stage adds one piece to the 
 - ``numba_lean``: the lean hand loop (``peers_numba``, ``lean=True``): RK4 with the C_D / C_M
   tables, the table as the plane z = r with a linear time of impact, nothing else.
 - ``numba_full``: the hand loop with the kernel's full geometry and events (``lean=False``).
-- ``xla_flight``: the package's own flight step (``kernel.step.flight``: RK4, the coefficient
+- ``xla_flight``: the package's own flight step (``kernel.ball_step.flight``: RK4, the coefficient
   models) as XLA compiles it, ``vmap`` over a block of 1,024 balls inside a ``lax.scan`` over
   steps, blocks one after the other (the kernel's layout); no contact at all, so the balls fall
   through the table: the arithmetic of flight alone.
-- ``xla_flags``: the same plus the cheap event tests of every step (``kernel.step.may_have_event``:
+- ``xla_flags``: the same plus the cheap event tests of every step (``kernel.ball_step.may_have_event``:
   table box swept, sustained contact, floor, net plane, leaving play, validity), counted so that
   they are not optimised away; still no contact handled.
 - ``kernel_nolog``: the rally kernel's reference path (``fused=False``) without an event log
@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax import Execution, init_state, load_model, rollout
-from ttsim_jax.kernel import step as kstep
+from ttsim_jax.kernel import ball_step as kstep
 from ttsim_jax.policies import tracking_rackets
 from ttsim_jax.shots import sample_shots
 from ttsim_jax.state import Ball

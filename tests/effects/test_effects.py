@@ -11,7 +11,7 @@ from ttsim_jax import effects as fx
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics import table as table_stage
-from ttsim_jax.kernel.step import ball_properties
+from ttsim_jax.kernel.ball_step import ball_properties
 
 PLAIN = load_model("conti2026")
 SIM = fx.names("simulator")

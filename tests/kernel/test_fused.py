@@ -13,7 +13,7 @@ from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, per
 from ttsim_jax import effects as fx
 from ttsim_jax.kernel import fused
 from ttsim_jax.kernel.plans import within_reach
-from ttsim_jax.kernel.step import flight, may_have_event
+from ttsim_jax.kernel.ball_step import flight, may_have_event
 from ttsim_jax.physics.events import INVALID, NET, RACKET, TABLE
 from ttsim_jax.policies import tracking_rackets, tracking_rackets_fn, tracking_rackets_reach
 from test_rollout import B, N, shots, two_rackets

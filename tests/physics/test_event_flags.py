@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax import load_model
-from ttsim_jax.kernel.step import is_valid
+from ttsim_jax.kernel.ball_step import is_valid
 from ttsim_jax.physics import events as ev
 
 

@@ -12,7 +12,7 @@ from ttsim_jax.reality.synthetic_contacts import racket_base_fn, true_residual
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.rotations import matrix_to_quat, quat_to_matrix
 from ttsim_jax.reality import synthetic_contact_dataset
-from ttsim_jax.kernel.step import ball_properties
+from ttsim_jax.kernel.ball_step import ball_properties
 
 
 @pytest.fixture(scope="module")

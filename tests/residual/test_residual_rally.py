@@ -14,7 +14,7 @@ from ttsim_jax.physics.network import ResidualConfig, residual_outputs
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.events import RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout
-from ttsim_jax.kernel.step import ball_properties
+from ttsim_jax.kernel.ball_step import ball_properties
 
 import padding as shared
 from padding import simulate_shared
@@ -196,8 +196,9 @@ def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
     """The contact buffer's rows in one step, ten table bounces first and two racket contacts
     last: the network evaluated on two rows gathered from the racket contacts gives what it gives
     on every row (sampled draws included), and nothing on the table rows."""
-    from ttsim_jax.kernel.rollout import _resolve_axes
-    from ttsim_jax.kernel.step import _events, flight
+    from ttsim_jax.kernel.axes import resolve_axes
+    from ttsim_jax.kernel.ball_step import flight
+    from ttsim_jax.kernel.step import _events
 
     _, _, model, _ = setup
     rk = jax.tree.map(lambda a: a[None], racket_at(0.0))  # one racket, normal -x, face centre (1.6, 0, 0.2)
@@ -206,15 +207,15 @@ def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
     vel = [[1.0, 0.0, -2.0]] * n_table + [[6.0, 0.0, 0.2], [5.0, 0.1, 0.0]]
     ball = Ball.create(pos, vel, [[0.0, 50.0, 0.0]] * len(pos))
     b = len(pos)
-    axes = _resolve_axes(model, None)
+    axes = resolve_axes(model, None)
     free = jax.vmap(flight, in_axes=(None, 0, None, None))(model.replace(residual=None), ball, 0.0, 1e-3)
     args = (model, axes, ball, jnp.ones(b, bool), free, rk, False, jnp.arange(b), jnp.arange(b) + 100, 0.0, 1e-3,
             jax.random.key(2), True)
     every = _events(*args)
     gathered = _events(*args, net_rows=2)
-    kind = np.asarray(every[1])  # (rows, events in the step)
+    kind = np.asarray(every.events.kind)  # (rows, events in the step)
     assert list(kind[:, 0]) == [TABLE] * n_table + [RACKET] * 2 and np.all(kind[:, 1:] == 0)
     for a, g in zip(jax.tree.leaves(every), jax.tree.leaves(gathered)):
         np.testing.assert_allclose(np.asarray(g), np.asarray(a), atol=1e-12)
-    sigma = np.asarray(every[7])[:, 0]
+    sigma = np.asarray(every.events.sigma)[:, 0]
     assert np.all(sigma[n_table:] != 0.0) and np.all(sigma[:n_table] == 0.0)

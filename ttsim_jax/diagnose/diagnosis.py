@@ -175,7 +175,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         ``verdict``, ``settings``, ``seconds``, ``timings`` ({stage: seconds}: where the time went,
         compilation included), and ``arrays`` (per-item errors for the figures).
     """
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
 
     tick = progress or (lambda what, n=1: None)
     t_start = time.perf_counter()

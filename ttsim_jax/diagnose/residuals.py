@@ -136,7 +136,7 @@ def missing_frames(fl) -> dict:
 def racket_state_error(model, c) -> dict:
     """Racket velocity bias and spread that would explain the racket-contact residuals (module
     docstring); ``c``: the racket :class:`~ttsim_jax.diagnose.phases.ContactItems`."""
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
     from ttsim_jax.physics.racket import base_response
 
     if c is None or len(c) < 3:

@@ -10,7 +10,7 @@ Each phase uses the cheapest function that contains the physics it checks:
   gradient of the minimised error (envelope theorem). A segment's measured spin is the mean of its
   samples' estimates, so when an effect changes spin in flight the initial spin is set so that the
   flight's mean spin matches it (one fixed-point step).
-* *table*: the kernel's contact response (:func:`ttsim_jax.kernel.step.respond`) applied to the
+* *table*: the kernel's contact response (:func:`ttsim_jax.kernel.ball_step.respond`) applied to the
   estimated pre-bounce state, minus the estimated post-bounce state. Where the pre-bounce spin is
   not measured (flown as 0) only the normal (z) velocity is compared: the tangential velocity
   after a bounce is driven by the incoming spin (about r |w| = 4 m/s of surface speed at 200
@@ -252,7 +252,7 @@ def _spin_rows(c: dict):
 def table_errors(model, specs, consts, u, c: dict):
     """(N, 6) table-contact errors (see the module docstring) of the contacts in ``c``
     (``pos``, ``x``, ``y_obs``, ``known``, ``known_in``, ``session`` and the spin times' arrays)."""
-    from ttsim_jax.kernel.step import respond
+    from ttsim_jax.kernel.ball_step import respond
     from ttsim_jax.physics.events import TABLE
     from ttsim_jax.state import Ball
 

@@ -10,7 +10,7 @@ and writes the figures (PNG), a Markdown report and every number.
    in % against the reference model (nakashima2011 when compared, else the first model), with
    paired bootstrap intervals.
 2. *table*: per table bounce, the model's table contact (the rally kernel's
-   :func:`~ttsim_jax.kernel.step.respond`) applied to the measured pre-bounce state, minus the
+   :func:`~ttsim_jax.kernel.ball_step.respond`) applied to the measured pre-bounce state, minus the
    measured post-bounce state, per component (v_x, v_y, v_z, w_x, w_y, w_z; spin components only
    where both segments have a measured spin). An unmeasured pre-bounce spin enters as the
    incoming segment's latent spin, fitted under each model (``spin="auto"``, the default; see
@@ -172,7 +172,7 @@ def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
 # ---------------------------------------------------------------------------------------------- table
 @jax.jit
 def _table_response(model, pos, vel, spin):
-    from ttsim_jax.kernel.step import respond
+    from ttsim_jax.kernel.ball_step import respond
     from ttsim_jax.physics.events import TABLE
     from ttsim_jax.state import Ball
 
@@ -430,7 +430,7 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
         (landing (N, 2) [m], NaN where the ball was not hit or did not reach the plane within the
         horizon; hit (N,) bool, whether the simulated ball met the racket).
     """
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
     from ttsim_jax.physics.events import RACKET, TABLE
     from ttsim_jax.state import Ball
 
@@ -481,7 +481,7 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
         spin came from and ``through_bounce`` (N,) whether a latent one was fitted across the
         bounce before (:func:`~ttsim_jax.evaluate.spins.incoming_spins`), ``skip_counts``, ``n_contacts``.
     """
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
 
     if len(ds.rackets["event_id"]) == 0:
         for _ in models:

@@ -312,7 +312,7 @@ class _Run:
     def table(self):
         from ttsim_jax.fit import table as table_fit
         from ttsim_jax.data.contact_states import ContactFit
-        from ttsim_jax.kernel.step import ball_properties
+        from ttsim_jax.kernel.ball_step import ball_properties
 
         s, ds = self.settings, self.ds
         bounces = table_fit.table_bounces(ds, self.model, fit=ContactFit(min_spin_conf=s.min_spin_conf),
@@ -354,7 +354,7 @@ class _Run:
 
     def racket(self):
         from ttsim_jax.fit import racket as racket_fit
-        from ttsim_jax.kernel.step import ball_properties
+        from ttsim_jax.kernel.ball_step import ball_properties
 
         arrays, kept = self._contacts()
         counts = _counts(arrays.n_contacts, int(kept.sum()), arrays.skipped, int((~kept).sum()))

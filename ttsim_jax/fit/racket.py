@@ -141,7 +141,7 @@ def fit_racket(x, y_obs, model="conti2026", spin_scale: float | None = None) -> 
         :class:`RacketFit`.
     """
     from ttsim_jax.fit.racket_arrays import model_and_name
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
 
     m, _ = model_and_name(model)
     radius, mass = ball_properties(m)

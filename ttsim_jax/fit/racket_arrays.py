@@ -148,7 +148,7 @@ def contact_arrays(ds, model="conti2026", n_inputs: int | None = None, fit: Cont
         :class:`ContactArrays` (float32 ``x``, ``y_base``, ``y_obs``; float64 diagnostics).
     """
     from ttsim_jax.data.batch import racket_contact_batch
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
 
     m, name = model_and_name(model)
     n_inputs = _default_inputs(m, name) if n_inputs is None else int(n_inputs)

@@ -151,7 +151,7 @@ def fit_configs(ds, model="conti2026", *, test_fraction: float = 0.2, seed: int 
     from ttsim_jax.fit.network_config import TrainConfig
     from ttsim_jax.fit.network_evaluation import predict as network_predict
     from ttsim_jax.fit.network_training import train_residual
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
     from ttsim_jax.physics.network import ResidualConfig
 
     m, _ = model_and_name(model)

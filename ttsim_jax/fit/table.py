@@ -394,7 +394,7 @@ def fit_table(vel_in, spin_in, vel_out, spin_out, model="conti2026", settings: L
     Returns:
         :class:`TableFit`.
     """
-    from ttsim_jax.kernel.step import ball_properties
+    from ttsim_jax.kernel.ball_step import ball_properties
 
     m, _ = model_and_name(model)
     radius = ball_properties(m)[0]

@@ -6,7 +6,7 @@ Triton) flies a block of balls through up to ``substeps`` RK4 steps with the sta
 registers; on a CPU the same body runs as plain XLA over the whole batch, where a sub-step
 compiles to one loop over the balls (:func:`_fly_moving`, which also gathers the few balls still
 moving in a rollout's last launches). It stops each ball before the first step in which
-anything *may* happen to it: a conservative version of :func:`~ttsim_jax.kernel.step.may_have_event`
+anything *may* happen to it: a conservative version of :func:`~ttsim_jax.kernel.ball_step.may_have_event`
 (the swept box of the step meeting the table or the box a racket sweeps over the rollout, the
 floor, the net plane, leaving play, a state near the invalid range), each with a margin
 (``SLACK``) so that rounding can only stop a ball earlier. The ordinary step
@@ -46,7 +46,8 @@ import jax.numpy as jnp
 from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KINDS, STATE_HOOKS, Layout, Reader,
                                            coefficient_fns, hooked_properties, in_flight, pack)
 from ttsim_jax.kernel.plans import face_boxes, within_reach
-from ttsim_jax.kernel.step import MAX_SPEED, MAX_SPIN, take_rows
+from ttsim_jax.kernel.ball_step import MAX_SPEED, MAX_SPIN
+from ttsim_jax.kernel.step import take_rows
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics import table as table_stage

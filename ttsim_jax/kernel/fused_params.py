@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from ttsim_jax.kernel.step import ball_properties
+from ttsim_jax.kernel.ball_step import ball_properties
 from ttsim_jax.physics import aero as aero_stage
 from ttsim_jax.physics import hooks
 

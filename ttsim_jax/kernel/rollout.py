@@ -20,12 +20,14 @@ import jax.numpy as jnp
 from flax import struct
 
 from ttsim_jax.kernel import fused as fused_path
+from ttsim_jax.kernel.axes import StaticAxes, check_per_ball, resolve_axes, split_per_ball
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.execution import Execution, with_options
-from ttsim_jax.kernel.fused_params import in_flight, leaf_axes
+from ttsim_jax.kernel.fused_params import in_flight
 from ttsim_jax.kernel.plans import RacketPolicy, check_reach, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
-from ttsim_jax.kernel.step import refused_starts, step
+from ttsim_jax.kernel.ball_step import refused_starts
+from ttsim_jax.kernel.step import step
 from ttsim_jax.params import Model
 from ttsim_jax.physics import events as ev
 from ttsim_jax.sizes import SizeError, budget_bytes
@@ -84,56 +86,6 @@ class Carry:
     step: Any
 
 
-def per_ball_axes(model: Model, *paths: str):
-    """The ``model_axes`` that give the leaves under ``paths`` a per-ball (B,) axis.
-
-    Arguments:
-        model: the model (only its structure is used).
-        *paths: dotted attribute paths, e.g. ``"table.e0"``, ``"aero.rho_air"``, ``"effects"``
-            (every effect parameter), ``"residual"`` (the whole network); none means every leaf
-            is shared.
-
-    Returns:
-        A pytree prefix of ``model`` with 0 under ``paths`` and None elsewhere, for
-        :func:`rollout`'s ``model_axes``.
-    """
-    axes = jax.tree.map(lambda _: None, model)
-    for path in paths:
-        names = path.split(".")
-
-        def setter(node, names):
-            if not names:
-                return 0
-            head, rest = names[0], names[1:]
-            if isinstance(node, tuple):
-                return tuple(setter(v, rest) if str(i) == head else v for i, v in enumerate(node))
-            if not hasattr(node, head):
-                raise ValueError(f"per_ball_axes: the model has no field {path!r}")
-            return node.replace(**{head: setter(getattr(node, head), rest)})
-
-        axes = setter(axes, names)
-    return axes
-
-
-def _resolve_axes(model: Model, model_axes):
-    if model_axes is None:
-        return jax.tree.map(lambda _: None, model)
-    if model_axes == 0 or model_axes is True:
-        return jax.tree.map(lambda _: 0, model)
-    return model_axes
-
-
-def _check_per_ball(model, axes, batch):
-    leaves, treedef = jax.tree_util.tree_flatten_with_path(model)
-    flat_axes = leaf_axes(model, axes)
-    # flattened along the model's own structure: a field that is None in the model (no leaf) must
-    # not shift the axes of the leaves after it
-    for (path, leaf), ax in zip(leaves, treedef.flatten_up_to(flat_axes)):
-        if ax == 0 and (jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != batch):
-            raise ValueError(f"model leaf {jax.tree_util.keystr(path)} is per ball but has shape "
-                             f"{jnp.shape(leaf)}; its leading axis must be the batch ({batch})")
-
-
 def chunk_length(n_steps: int) -> int:
     """Steps per rematerialised chunk: about sqrt(n_steps), the memory-optimal split.
 
@@ -145,23 +97,6 @@ def chunk_length(n_steps: int) -> int:
     return min(divisors, key=lambda d: abs(math.log(d / root)), default=root)
 
 
-class _Static:
-    """A pytree of per-ball axes (None / 0 leaves) as a hashable static argument of the jitted core."""
-
-    def __init__(self, tree):
-        leaves, self.treedef = jax.tree_util.tree_flatten(tree, is_leaf=lambda x: x is None)
-        self.leaves = tuple(leaves)
-
-    def __hash__(self):
-        return hash((self.treedef, self.leaves))
-
-    def __eq__(self, other):
-        return isinstance(other, _Static) and (self.treedef, self.leaves) == (other.treedef, other.leaves)
-
-    def tree(self):
-        return jax.tree_util.tree_unflatten(self.treedef, self.leaves)
-
-
 def default_block(batch: int, fused: bool = False) -> int:
     """Balls per block: none (0), everywhere. Blocks of 1,024 balls once kept a CPU step's working
     set in cache; since a step runs only the contact buffers that hold a ball and the flight step
@@ -170,20 +105,6 @@ def default_block(batch: int, fused: bool = False) -> int:
     and 0.71x at 65,536 without and with two tracking rackets over 100 steps); each block repeats a
     step's fixed costs. ``block_size`` still splits a batch (same results), e.g. to bound memory."""
     return 0
-
-
-def _split_per_ball(model, axes):
-    """(per-ball leaves, rebuild(per_ball_leaves) -> model): the model's leaves with a (B,) axis."""
-    leaves, treedef = jax.tree_util.tree_flatten(model)
-    flags = jax.tree.leaves(jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: ax == 0, sub), axes, model,
-                                         is_leaf=lambda x: x is None))
-    per_ball = [leaf for leaf, f in zip(leaves, flags) if f]
-
-    def rebuild(new):
-        it = iter(new)
-        return jax.tree_util.tree_unflatten(treedef, [next(it) if f else leaf for leaf, f in zip(leaves, flags)])
-
-    return per_ball, rebuild
 
 
 @partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
@@ -308,7 +229,7 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
             a = a.reshape(a.shape[:axis] + (n_blocks, block) + a.shape[axis + 1:])
             return jnp.moveaxis(a, axis, 0)
 
-        per_ball, rebuild = _split_per_ball(model, axes)
+        per_ball, rebuild = split_per_ball(model, axes)
         xs = dict(model=[blocks(a) for a in per_ball], ball=jax.tree.map(blocks, state.ball),
                   alive=blocks(state.alive, dead=False),
                   status=blocks(state.status), ball_id=blocks(state.ball_id),
@@ -433,7 +354,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         integrator: ``"rk4"``, ``"rk2"`` or ``"euler"``.
         model_axes: which model leaves carry a per-ball leading (B,) axis: None (all shared), 0 (all
             per ball, e.g. ``stack_models``), or a pytree prefix of the model with 0 / None
-            (:func:`per_ball_axes`). Only the leaves a study varies need to be per ball.
+            (:func:`~ttsim_jax.kernel.axes.per_ball_axes`). Only the leaves a study varies need to be per ball.
         max_events: slots of each ball's event log (0: no log).
         record_every: record the ball every that many steps (0: no recording); must divide n_steps.
         sample_residual: sample the residual network's correction from its predicted std; the draw
@@ -477,8 +398,8 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
             f"{gib(memory_budget_bytes)} ({source}); record less often (record_every), log fewer events "
             "(max_events), run fewer balls per call, or raise the budget (Execution(memory_budget_bytes=...), "
             "TTSIM_MEMORY_BUDGET)")
-    axes = _resolve_axes(model, model_axes)
-    _check_per_ball(model, axes, batch)
+    axes = resolve_axes(model, model_axes)
+    check_per_ball(model, axes, batch)
     schedule, policy, batched = None, None, False
     if isinstance(racket, RacketPolicy):
         policy = racket
@@ -502,7 +423,7 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     if buffering is None:
         buffering = default_buffering()
     key = jax.random.PRNGKey(0) if key is None else key
-    return _rollout(model, state, schedule, policy, dt, key, axes=_Static(axes), n_steps=n_steps, integrator=integrator,
+    return _rollout(model, state, schedule, policy, dt, key, axes=StaticAxes(axes), n_steps=n_steps, integrator=integrator,
                     record_every=record_every, max_events=max_events, capacity=int(capacity),
                     sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference,
                     block=block, buffering=buffering, fused=fused_path.SUBSTEPS if fused else 0,

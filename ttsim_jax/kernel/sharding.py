@@ -18,8 +18,8 @@ import functools
 import jax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from ttsim_jax.kernel.rollout import (RolloutOutput, _check_per_ball, _resolve_axes, _Static, default_capacity,
-                                      rollout)
+from ttsim_jax.kernel.axes import StaticAxes, check_per_ball, resolve_axes
+from ttsim_jax.kernel.rollout import RolloutOutput, default_capacity, rollout
 from ttsim_jax.kernel.execution import Execution, with_options
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
 from ttsim_jax.kernel.state import RallyState
@@ -87,15 +87,15 @@ def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, ra
     batch = state.batch
     if batch % n_dev:
         raise ValueError(f"the batch of {batch} balls does not divide over {n_dev} devices")
-    axes = _resolve_axes(model, model_axes)
-    _check_per_ball(model, axes, batch)
+    axes = resolve_axes(model, model_axes)
+    check_per_ball(model, axes, batch)
     per_ball_plan = False
     if racket is not None and not isinstance(racket, RacketPolicy):
         per_ball_plan = normalise_schedule(racket, n_steps, batch)[1]
     execution = execution.replace(contact_capacity=execution.contact_capacity or default_capacity(batch // n_dev))
     static_kw = (("integrator", integrator), ("max_events", max_events), ("record_every", record_every),
                  ("sample_residual", sample_residual), ("execution", execution))
-    fn, specs = _compiled(mesh, _Static(axes), n_steps, racket is not None, per_ball_plan, static_kw)
+    fn, specs = _compiled(mesh, StaticAxes(axes), n_steps, racket is not None, per_ball_plan, static_kw)
     model_specs, state_specs, plan_specs = specs(model, state, racket)
     place = lambda tree, sp: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, sp)  # noqa: E731
     key = jax.random.PRNGKey(0) if key is None else key

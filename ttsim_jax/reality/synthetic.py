@@ -17,7 +17,7 @@ import numpy as np
 
 from ttsim_jax.data.dataset import Dataset, Metadata
 from ttsim_jax.fit.racket_arrays import model_and_name
-from ttsim_jax.kernel.step import ball_properties
+from ttsim_jax.kernel.ball_step import ball_properties
 from ttsim_jax.physics import racket as racket_stage
 from ttsim_jax.physics.rotations import matrix_to_quat
 
