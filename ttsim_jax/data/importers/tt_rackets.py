@@ -78,7 +78,7 @@ def read_files(path) -> list[Path]:
 def _config_of(f: Path) -> str:
     name = f.stem
     if name not in CONFIGS:
-        raise DataError(f"not a tt_rackets file name: expected racket_01.csv ... racket_10.csv", file=f, value=f.name)
+        raise DataError("not a tt_rackets file name: expected racket_01.csv ... racket_10.csv", file=f, value=f.name)
     return name
 
 
