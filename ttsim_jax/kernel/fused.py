@@ -47,7 +47,7 @@ from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KIND
                                            coefficient_fns, hooked_properties, in_flight, pack)
 from ttsim_jax.kernel.plans import face_boxes, within_reach
 from ttsim_jax.kernel.ball_step import MAX_SPEED, MAX_SPIN
-from ttsim_jax.kernel.step import take_rows
+from ttsim_jax.kernel.step import StepState, take_rows
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics import hooks
 from ttsim_jax.physics import table as table_stage
@@ -526,8 +526,9 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
             else:
                 rackets = jax.tree.map(lambda a: a[row], schedule)
         keys = None if key is None else jax.vmap(lambda kk: jax.random.fold_in(key, kk))(kb)
-        ball, alive_new, status, log = stepper(model, axes, ball, alive & on & ok, status, ball_id, log, rackets, t, dt,
-                                               rackets_batched=rackets is not None, key=keys)
+        new = stepper(model, axes, StepState(ball, alive & on & ok, status, log), ball_id, rackets, t, dt,
+                      rackets_batched=rackets is not None, key=keys)
+        ball, alive_new, status, log = new.ball, new.alive, new.status, new.log
         broken = alive & on & ~ok
         alive = jnp.where(on, alive_new, alive) & ~broken
         status = jnp.where(broken, ev.INVALID, status)

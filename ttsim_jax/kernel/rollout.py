@@ -27,7 +27,7 @@ from ttsim_jax.kernel.fused_params import in_flight
 from ttsim_jax.kernel.plans import RacketPolicy, check_reach, normalise_schedule
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.ball_step import refused_starts
-from ttsim_jax.kernel.step import step
+from ttsim_jax.kernel.step import StepOptions, StepState, step
 from ttsim_jax.params import Model
 from ttsim_jax.physics import events as ev
 from ttsim_jax.sizes import SizeError, budget_bytes
@@ -134,8 +134,8 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
     same = (state.dt == dt) | (state.step == 0)
     t0 = jnp.where(same, state.t0, state.time)
     step0 = jnp.where(same, state.step, 0)
-    stepper = partial(step, integrator=integrator, capacity=capacity, sample=sample, reference=reference,
-                      buffering=buffering)
+    stepper = partial(step, options=StepOptions(integrator=integrator, capacity=capacity, sample=sample,
+                                                reference=reference, buffering=buffering))
     every = record_every or chunk_length(n_steps)
     n_chunks, tail = divmod(n_steps, every)
 
@@ -153,9 +153,9 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
                 batched = True
             sub = jax.random.fold_in(key, k) if sample else None
             def advance(moving):
-                nb, na, ns, nl = stepper(model, axes, ball, moving, status, ball_id, log, rackets, t, dt,
-                                         rackets_batched=batched, key=sub)
-                return nb, (jnp.where(moving, na, alive) if until else na), ns, nl
+                new = stepper(model, axes, StepState(ball, moving, status, log), ball_id, rackets, t, dt,
+                              rackets_batched=batched, key=sub)
+                return new.ball, (jnp.where(moving, new.alive, alive) if until else new.alive), new.status, new.log
 
             if not until:
                 ball, alive, status, log = advance(alive)

@@ -24,6 +24,7 @@ Per-ball parameters: ``model_axes`` is a pytree prefix of the model, like ``jax.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import NamedTuple
 
@@ -250,38 +251,71 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     return StepEvents(next=nxt, events=found, stopped=stopped)
 
 
-def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog | None, rackets: Racket | None,
-         t, dt, *, rackets_batched: bool = False, integrator: str = "rk4", capacity: int = 64, key=None,
-         sample: bool = False, reference: bool = False, buffering: str = "loop"):
+@struct.dataclass
+class StepState:
+    """What a step advances for a batch of B balls (``fn(model, state) -> state``).
+
+    Attributes:
+        ball: :class:`Ball` (B, 3); alive, status: (B,), as in
+            :class:`~ttsim_jax.kernel.state.RallyState`; log: the :class:`EventLog` the step's
+            events are appended to, or None to log nothing.
+    """
+
+    ball: Ball
+    alive: jnp.ndarray
+    status: jnp.ndarray
+    log: EventLog | None
+
+
+@dataclasses.dataclass(frozen=True)
+class StepOptions:
+    """The static options of :func:`step` (frozen: equal options are one compiled step).
+
+    Attributes:
+        integrator: flight integrator; capacity: contact buffer rows.
+        sample: sample the residual network's correction from its predicted std (needs a key).
+        reference: run the exact detection for every ball: the straightforward step the lean one is
+            tested against.
+        buffering: how the flagged balls reach the contact models (same results): ``"loop"`` runs
+            buffers of ``capacity`` rows one after the other, each only when it holds a ball (a
+            skipped branch is free on CPU); ``"single"`` runs one buffer at every step, and the
+            whole batch in a step with more flagged balls than ``capacity`` (on a GPU every branch
+            costs a device-to-host copy of its predicate, which made the loop ~1 ms a step; its
+            branches are that choice and the rare second event of a step, :func:`_events`, whose
+            stages it runs unrolled). With a residual network and rackets, ``"single"`` also
+            evaluates the network on ``capacity // NET_FRACTION`` rows only, those of the buffer
+            with a racket contact, and runs the whole batch in a step where more balls may meet a
+            racket (:func:`~ttsim_jax.kernel.ball_step.may_need_network`) than that.
+    """
+
+    integrator: str = "rk4"
+    capacity: int = 64
+    sample: bool = False
+    reference: bool = False
+    buffering: str = "loop"
+
+
+def step(model: Model, axes, state: StepState, ball_id, rackets: Racket | None, t, dt, *,
+         options: StepOptions = StepOptions(), rackets_batched: bool = False, key=None) -> StepState:
     """Advances a batch of balls by one step.
 
     Arguments:
         model: model parameters; axes: its per-ball axes (pytree prefix of 0 / None).
-        ball: :class:`Ball` (B, 3); alive, status, ball_id: (B,) see :class:`~ttsim_jax.kernel.state.RallyState`.
-        log: the :class:`EventLog` to append to, or None to log nothing.
+        state: :class:`StepState` of the B balls; ball_id: (B,) their ids (the residual's draws follow them).
         rackets: :class:`Racket` with (R, ...) fields shared by all balls, (B, R, ...) if
             ``rackets_batched``, or None.
         t, dt: time at the start of the step ((), or (B,) when the balls' clocks differ, as in the
             fused path) and step length [s].
-        integrator: flight integrator (static); capacity: contact buffer rows (static).
-        key, sample: the step's PRNG key ((B,) keys, one per ball, when the balls' clocks differ) and
-            whether to sample the residual from its predicted std.
-        reference: run the exact detection for every ball (static): the straightforward step the
-            lean one is tested against.
-        buffering: how the flagged balls reach the contact models (static; same results):
-            ``"loop"`` runs buffers of ``capacity`` rows one after the other, each only when it
-            holds a ball (a skipped branch is free on CPU); ``"single"`` runs one buffer at every
-            step, and the whole batch in a step with more flagged balls than ``capacity`` (on a GPU
-            every branch costs a device-to-host copy of its predicate, which made the loop ~1 ms a
-            step; its branches are that choice and the rare second event of a step, :func:`_events`,
-            whose stages it runs unrolled). With a residual network and rackets, ``"single"`` also
-            evaluates the network on ``capacity // NET_FRACTION`` rows only, those of the buffer
-            with a racket contact, and runs the whole batch in a step where more balls may meet a
-            racket (:func:`may_need_network`) than that.
+        options: :class:`StepOptions` (static).
+        key: the step's PRNG key ((B,) keys, one per ball, when the balls' clocks differ), read with
+            ``options.sample``.
 
     Returns:
-        (ball, alive, status, log) after the step.
+        The :class:`StepState` after the step.
     """
+    ball, alive, status, log = state.ball, state.alive, state.status, state.log
+    integrator, capacity, sample = options.integrator, options.capacity, options.sample
+    reference, buffering = options.reference, options.buffering
     b = alive.shape[0]
     phys, phys_axes = model.replace(residual=None), axes.replace(residual=None)
     r_ax = 0 if rackets_batched else None
@@ -325,8 +359,8 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
                 new_log = jax.lax.cond(jnp.any(kind[:, 1:] != ev.NONE), later,
                                        lambda lg: jax.tree.map(_in_place_identity, lg), new_log)
         stops = out.stopped != 0
-        return (jax.tree.map(put, base, out.next), put(alive, alive[safe] & ~stops),
-                put(status, jnp.where(stops, out.stopped, status[safe])), new_log)
+        return StepState(jax.tree.map(put, base, out.next), put(alive, alive[safe] & ~stops),
+                         put(status, jnp.where(stops, out.stopped, status[safe])), new_log)
 
     if reference:
         rows = jnp.arange(b)
@@ -376,4 +410,4 @@ def step(model: Model, axes, ball: Ball, alive, status, ball_id, log: EventLog |
         return write(rows, jax.tree.map(lambda a: a.reshape((n_buf * capacity,) + a.shape[2:]), out))
 
     return jax.lax.cond(jnp.any(flag), buffers,
-                        lambda: jax.tree.map(_in_place_identity, (base, alive, status, log)))
+                        lambda: jax.tree.map(_in_place_identity, StepState(base, alive, status, log)))
