@@ -75,14 +75,11 @@ class RallyResult:
 
 @struct.dataclass
 class Carry:
-    """What the scan over steps carries, for one set of balls (B,): the balls, whether each is in
-    play, its status (an event kind that ended it, 0 while in play), the event log (None without
-    one) and the rollout's step counter (() int)."""
+    """What the scan over steps carries, for one set of balls (B,): what a step advances (the balls,
+    whether each is in play, its status, the event log: a
+    :class:`~ttsim_jax.kernel.step.StepState`) and the rollout's step counter (() int)."""
 
-    ball: Ball
-    alive: Any
-    status: Any
-    log: Any
+    balls: StepState
     step: Any
 
 
@@ -144,7 +141,8 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         log = EventLog.empty(alive.shape[0], max_events, dtype) if max_events else None
 
         def body(carry: Carry, xs):
-            ball, alive, status, log, k = carry.ball, carry.alive, carry.status, carry.log, carry.step
+            balls, k = carry.balls, carry.step
+            ball, alive = balls.ball, balls.alive
             t = t0 + k.astype(dtype) * dt
             rackets, batched = xs, rackets_batched
             if policy is not None:
@@ -153,19 +151,18 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
                 batched = True
             sub = jax.random.fold_in(key, k) if sample else None
             def advance(moving):
-                new = stepper(model, axes, StepState(ball, moving, status, log), ball_id, rackets, t, dt,
+                new = stepper(model, axes, balls.replace(alive=moving), ball_id, rackets, t, dt,
                               rackets_batched=batched, key=sub)
-                return new.ball, (jnp.where(moving, new.alive, alive) if until else new.alive), new.status, new.log
+                return new.replace(alive=jnp.where(moving, new.alive, alive)) if until else new
 
             if not until:
-                ball, alive, status, log = advance(alive)
+                balls = advance(alive)
             else:
                 # balls whose log holds ``until`` events are frozen (out of play for the step, still
                 # alive); a step with none to advance is skipped whole
-                moving = alive & (log.count < until)
-                ball, alive, status, log = jax.lax.cond(jnp.any(moving), lambda: advance(moving),
-                                                        lambda: (ball, alive, status, log))
-            return Carry(ball, alive, status, log, k + 1), None
+                moving = alive & (balls.log.count < until)
+                balls = jax.lax.cond(jnp.any(moving), lambda: advance(moving), lambda: balls)
+            return Carry(balls, k + 1), None
 
         if remat:
             body = jax.checkpoint(body, prevent_cse=False)
@@ -175,13 +172,13 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
 
         def chunk(carry, xs_chunk):
             carry = run(carry, xs_chunk, every)
-            return carry, ((carry.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
+            return carry, ((carry.balls.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
 
         if remat:
             chunk = jax.checkpoint(chunk, prevent_cse=False)
         split = lambda a, lo, n, shape: None if a is None else jax.tree.map(  # noqa: E731
             lambda x: x[lo:lo + n].reshape(shape + x.shape[1:]), a)
-        carry = Carry(ball, alive, status, log, step0)
+        carry = Carry(StepState(ball, alive, status, log), step0)
         if fused:
             return run_fused(model, carry, ball_id, schedule)
         carry, rec = jax.lax.scan(chunk, carry, split(schedule, 0, n_chunks * every, (n_chunks, every)),
@@ -195,15 +192,16 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         length = record_every or n_steps
 
         def segment(carry: Carry, n):
-            ball, alive, status, log = fused_path.advance(model, axes, carry.ball, carry.alive, carry.status,
-                                                          ball_id, carry.log, carry.step, n, schedule, step0, t0,
+            now = carry.balls
+            ball, alive, status, log = fused_path.advance(model, axes, now.ball, now.alive, now.status,
+                                                          ball_id, now.log, carry.step, n, schedule, step0, t0,
                                                           dt, stepper, policy=policy, rackets_batched=rackets_batched,
                                                           substeps=fused, key=key if sample else None)
-            return Carry(ball, alive, status, log, carry.step + n)
+            return Carry(StepState(ball, alive, status, log), carry.step + n)
 
         def chunk(carry, _):
             carry = segment(carry, length)
-            return carry, ((carry.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
+            return carry, ((carry.balls.ball, t0 + carry.step.astype(dtype) * dt) if record_every else None)
 
         return jax.lax.scan(chunk, carry, None, length=n_steps // length)
 
@@ -243,13 +241,13 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         carry, rec = jax.lax.map(one, xs)
         unblock = lambda a, axis=0: jnp.moveaxis(a, 0, axis).reshape(  # noqa: E731
             a.shape[1:axis + 1] + (n_blocks * block,) + a.shape[axis + 2:])[(slice(None),) * axis + (slice(0, b),)]
-        carry = Carry(jax.tree.map(unblock, carry.ball), unblock(carry.alive), unblock(carry.status),
-                      None if carry.log is None else jax.tree.map(unblock, carry.log), carry.step[0])
+        carry = Carry(jax.tree.map(unblock, carry.balls), carry.step[0])
         if record_every:
             rec = (jax.tree.map(lambda a: unblock(a, 1), rec[0]), rec[1][0])
-    new_state = state.replace(ball=carry.ball, alive=carry.alive, status=carry.status, step=carry.step, t0=t0,
+    balls = carry.balls
+    new_state = state.replace(ball=balls.ball, alive=balls.alive, status=balls.status, step=carry.step, t0=t0,
                               dt=dt)
-    out = RolloutOutput(events=carry.log)
+    out = RolloutOutput(events=balls.log)
     if record_every:
         out = out.replace(trajectory=jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), rec[0]), times=rec[1])
     return new_state, out
