@@ -506,3 +506,15 @@ def test_a_bank_too_large_to_draw_is_refused_before_it_is_drawn():
         return_ball.ReturnBall(huge, 2).default_params()
     unaimed = load_task_config("return_ball", {"shots.bank": 10**8, "shots.aim": False})
     assert bank.bank_bytes(unaimed) < bank.bank_bytes(huge) / 100
+
+
+def test_the_unknown_rubber_task_is_the_default_task_with_a_rubber_the_tracker_does_not_plan_with():
+    # examples/ppo_gymnasium.py starts on this task; it must stay the default task but for the rubber
+    import dataclasses
+
+    base = load_task_config("return_ball")
+    rubber = load_task_config("return_ball_unknown_rubber")
+    assert rubber.racket_config == "racket_05" and rubber.intercept.racket_known is False
+    same = dataclasses.replace(rubber, racket_config="", source=base.source,
+                               intercept=dataclasses.replace(rubber.intercept, racket_known=True))
+    assert same == base

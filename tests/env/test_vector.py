@@ -124,8 +124,8 @@ def test_actions_are_checked_naming_the_space_and_the_environment():
     assert np.isfinite(obs).all()
 
 
-def test_cleanrl_style_example_trains_a_few_updates(example, capsys):
-    out = example("ppo_gymnasium").main(["--task", TASK, "--override", "shots.bank=64", "--override", "shots.aim=false",
+def test_cleanrl_style_example_trains_a_few_updates(example, capsys, tmp_path):
+    out = example("ppo_gymnasium").main(["--plot", str(tmp_path / "curve.png"), "--task", TASK, "--override", "shots.bank=64", "--override", "shots.aim=false",
                         "--num-envs", str(N), "--num-steps", "64", "--total-timesteps", str(2 * N * 64),
                         "--num-minibatches", "2", "--update-epochs", "1", "--eval-every", "0", "--eval-rounds", "1"])
     assert out["iterations"] == 2 and np.isfinite(out["loss"])
@@ -134,6 +134,7 @@ def test_cleanrl_style_example_trains_a_few_updates(example, capsys):
     assert 0.0 <= out["scripted_legal"] <= 1.0 and [s for s, _ in out["held_out_legal"]] == [2 * N * 64]
     text = capsys.readouterr().out
     assert "iteration 2/2" in text and "held-out legal (mean action)" in text and "nan" not in text
+    assert (tmp_path / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 ASYNC = """
