@@ -24,6 +24,7 @@ from gymnasium.wrappers import vector as wrappers
 import ttsim_jax  # noqa: F401  (registers ttsim/ReturnBall-v0)
 from ttsim_jax.rl.networks import ActorCritic, gaussian_log_prob
 from ttsim_jax.rl.ppo import gae, ppo_loss
+from ttsim_jax.rl.training import plot_curve
 
 
 def parse(argv=None):
@@ -51,8 +52,8 @@ def parse(argv=None):
     p.add_argument("--eval-rounds", type=int, default=2,
                    help="episodes per environment in an evaluation (held-out seeds, the same every time)")
     p.add_argument("--plot", default="", metavar="PNG",
-                   help="write the held-out curve (mean action's legal returns against env-steps, beside the "
-                   "scripted stroke's) to this PNG file")
+                   help="write the learning curve (held-out legal returns of the mean action beside the scripted "
+                   "stroke's, the sampled actions' and their return, against env-steps) to this PNG file")
     return p.parse_args(argv)
 
 
@@ -145,6 +146,8 @@ def main(argv=None) -> dict:
     obs, _ = envs.reset(seed=args.seed)
     restarting = np.zeros(n, bool)  # next-step autoreset: these environments' next step only restarts them
     returns, legal, start = [], [], time.perf_counter()
+    history = [{"env_steps": 0, "time_s": 0.0, "train_legal_rate": None, "train_return": None,
+                "eval_legal_rate": scripted}]  # the policy's curve starts from the scripted stroke's
     for iteration in range(1, iterations + 1):
         buffer = {k: [] for k in ("obs", "action", "log_prob", "value", "reward", "done", "mask")}
         for _ in range(t):
@@ -173,31 +176,22 @@ def main(argv=None) -> dict:
                 f"episodes {len(returns)}")
         if returns:  # the sampled actions' episodes ended so far (none yet: nothing to show, not NaN)
             line += f"  return {np.mean(returns[recent]):+.3f}  legal (sampled actions) {np.mean(legal[recent]):.2f}"
+        history.append({"env_steps": iteration * n * t, "time_s": time.perf_counter() - start,
+                        "train_legal_rate": np.mean(legal[recent]) if legal else None,
+                        "train_return": np.mean(returns[recent]) if returns else None})
         if iteration == iterations or (args.eval_every and iteration % args.eval_every == 0):
             curve.append((iteration * n * t, held_out(params)))
+            history[-1]["eval_legal_rate"] = curve[-1][1]
             line += f"  held-out legal (mean action) {curve[-1][1]:.3f} (scripted stroke {scripted:.3f})"
         print(line, flush=True)
     envs.close()
     eval_envs.close()
     if args.plot:
-        plot_curve(curve, scripted, args, args.plot)
+        plot_curve(history, args.plot, baseline=("scripted stroke (action 0), held out", scripted),
+                   title=f"{args.task}, {args.eval_rounds * n} held-out episodes, seed {args.seed}")
+        print(f"wrote {args.plot}", flush=True)
     return {"iterations": iterations, "episodes": len(returns), "returns": returns, "loss": float(loss),
             "scripted_legal": scripted, "held_out_legal": curve}
-
-
-def plot_curve(curve, scripted: float, args, path) -> None:
-    """The held-out legal-return rate of the mean action against env-steps, the scripted stroke's as a line."""
-    from ttsim_jax.plots import pyplot, save_figure
-
-    fig, ax = pyplot().subplots(figsize=(6, 3.6))
-    steps, legal = zip(*curve)
-    ax.plot((0,) + steps, (scripted,) + legal, "o-", label="policy's mean action")
-    ax.axhline(scripted, color="grey", ls="--", label="scripted stroke (action 0)")
-    ax.set(xlabel="env-steps", ylabel="legal returns (held-out)",
-           title=f"{args.task}: {args.eval_rounds * args.num_envs} held-out episodes, seed {args.seed}")
-    ax.legend(loc="lower right")
-    save_figure(fig, path)
-    print(f"wrote {path}", flush=True)
 
 
 def held_out_seed_of(args) -> int:

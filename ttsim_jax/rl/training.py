@@ -4,7 +4,6 @@ resume, and the learning curve (PNG)."""
 from __future__ import annotations
 
 import functools
-import io
 import json
 import time
 from pathlib import Path
@@ -92,20 +91,29 @@ def _chunk_record(metrics: dict, env_steps: int, elapsed: float) -> dict:
             "reward_mean": float(m["reward_mean"].mean())}
 
 
-def plot_curve(history: list, path) -> None:
-    """Writes the learning curve (legal-return rate and return against env steps) as a PNG, atomically."""
-    import matplotlib
+def plot_curve(history: list, path, *, baseline: tuple | None = None, title: str = "PPO on ReturnBall") -> None:
+    """Writes the learning curve (legal-return rate and return against env steps) as a PNG, atomically.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Arguments:
+        history: one dict per point, with ``env_steps``, ``time_s``, ``train_legal_rate`` and
+            ``train_return`` (None where no episode ended yet) and, where evaluated,
+            ``eval_legal_rate``.
+        path: the PNG file.
+        baseline: optional ``(label, legal-return rate)`` drawn as a dashed line (e.g. the scripted
+            stroke's).
+        title: the figure's title, before the training time.
+    """
+    from ttsim_jax.plots import pyplot, save_figure
 
     steps = np.array([h["env_steps"] for h in history], float)
     get = lambda k: np.array([np.nan if h.get(k) is None else h[k] for h in history], float)  # noqa: E731
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    fig, (ax1, ax2) = pyplot().subplots(2, 1, figsize=(8, 7), sharex=True)
     ax1.plot(steps, get("train_legal_rate"), label="training episodes (sampled actions)")
     ev = [h for h in history if "eval_legal_rate" in h]
     if ev:
         ax1.plot([h["env_steps"] for h in ev], [h["eval_legal_rate"] for h in ev], "o-", label="evaluation (mean action)")
+    if baseline is not None:
+        ax1.axhline(baseline[1], color="grey", ls="--", label=baseline[0])
     ax1.set(ylabel="legal-return rate", ylim=(0, 1))
     ax1.grid(alpha=0.3)
     ax1.legend()
@@ -113,12 +121,8 @@ def plot_curve(history: list, path) -> None:
     ax2.set(xlabel="environment steps", ylabel="return")
     ax2.grid(alpha=0.3)
     times = get("time_s")
-    ax1.set_title(f"PPO on ReturnBall ({times[-1]:.0f} s of training)" if len(times) else "PPO on ReturnBall")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    ax1.set_title(f"{title} ({times[-1]:.0f} s of training)" if len(times) else title)
+    save_figure(fig, path)
 
 
 def train(config: PPOConfig | str | Path | None = None, out="runs/ppo", resume: bool = False, progress=print,
