@@ -35,7 +35,7 @@ from ttsim_jax.policies import tracking_rackets  # noqa: E402
 
 
 def cases(b: int, rng) -> dict:
-    """name -> (model, model_axes, sample_residual, racket): the rollouts the comparison runs."""
+    """name -> (model, model_axes, whether the residual is sampled, racket): the rollouts the comparison runs."""
     base = load_model(peers.MODEL, dtype=jnp.float32)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     effects = (fx.make("spin_decay", dtype=jnp.float32).replace(rate=f32(rng.uniform(0.0, 0.3, b))),
@@ -57,8 +57,9 @@ def compare(name: str, model, axes, sample: bool, racket, balls, n: int, repeats
 
     def run(fused):
         def final(m, x):  # the event log is an output, as for a user who reads it (else XLA drops it)
-            state, out = rollout(m, init_state(x), n, peers.DT, racket, model_axes=axes, sample_residual=sample,
-                                 key=jax.random.PRNGKey(1), execution=Execution(fused=fused))
+            state, out = rollout(m, init_state(x), n, peers.DT, racket, model_axes=axes,
+                                 sample_key=jax.random.PRNGKey(1) if sample else None,
+                                 execution=Execution(fused=fused))
             return state.ball.pos, out.events
         return jax.jit(final)
 

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax import Ball, Execution, init_state, load_model, rollout
+from ttsim_jax import Execution, Record, init_state, load_model, rollout
 from ttsim_jax.kernel.eventlog import EventLog
 from ttsim_jax.kernel.rollout import _rollout
 from ttsim_jax.policies import tracking_rackets
@@ -58,7 +58,8 @@ def program_bytes(compiled) -> dict:
 def forward_bytes(model, batch, n_steps, dtype, fused=False):
     """The program of a forward rollout: the reference path (``fused=False``) or the fused one."""
     state = init_state(shots(batch, dtype))
-    lowered = jax.jit(lambda m, s: rollout(m, s, n_steps, 1e-3, max_events=8, execution=Execution(fused=fused))).lower(model, state)
+    lowered = jax.jit(lambda m, s: rollout(m, s, n_steps, 1e-3, record=Record(max_events=8),
+                                           execution=Execution(fused=fused))).lower(model, state)
     return program_bytes(lowered.compile())
 
 
@@ -66,7 +67,8 @@ def gradient_bytes(model, batch, n_steps, dtype, remat):
     balls = shots(batch, dtype)
 
     def landing_x(m):
-        s, out = rollout(m, init_state(balls), n_steps, 1e-3, max_events=2, execution=Execution(remat=remat))
+        s, out = rollout(m, init_state(balls), n_steps, 1e-3, record=Record(max_events=2),
+                         execution=Execution(remat=remat))
         return jnp.sum(jnp.where(out.events.count > 0, out.events.pre.pos[:, 0, 0], 0.0))
 
     lowered = jax.jit(jax.grad(landing_x)).lower(model)

@@ -59,7 +59,7 @@ REPO = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make ``benchmarks`` importable
     sys.path.insert(0, str(REPO))
 
-from ttsim_jax import Execution, init_state, load_model, rollout  # noqa: E402
+from ttsim_jax import Execution, Record, init_state, load_model, rollout  # noqa: E402
 from ttsim_jax.physics import aero as aero_stage  # noqa: E402
 from ttsim_jax.physics import events as ev  # noqa: E402
 from ttsim_jax.physics import racket as racket_stage  # noqa: E402
@@ -86,7 +86,8 @@ def kernel_rollout(model, balls: Ball, n_steps: int, dt: float, policy, fused: b
     Returns:
         (final positions (B, 3), first table bounce (B, 3), NaN where none) as JAX arrays.
     """
-    state, out = rollout(model, init_state(balls), n_steps, dt, policy, max_events=8, execution=Execution(fused=fused))
+    state, out = rollout(model, init_state(balls), n_steps, dt, policy, record=Record(max_events=8),
+                         execution=Execution(fused=fused))
     ev_log = out.events
     is_table = ev_log.kind == ev.TABLE
     first = jnp.argmax(is_table, axis=1)

@@ -27,7 +27,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import peers  # noqa: E402
 import peers_numba  # noqa: E402
-from ttsim_jax import init_state, load_model, rollout  # noqa: E402
+from ttsim_jax import Record, init_state, load_model, rollout  # noqa: E402
 from ttsim_jax.fit.network_config import load_residual_config  # noqa: E402
 from ttsim_jax.kernel import per_ball_axes  # noqa: E402
 from ttsim_jax.physics.network import init_model  # noqa: E402
@@ -56,7 +56,7 @@ def main() -> None:
     axes = per_ball_axes(model, *RANGES)
     policy = tracking_rackets()
     kernel = jax.jit(lambda m, x: rollout(m, init_state(x), n, peers.DT, policy, model_axes=axes,
-                                          max_events=8)[0].ball.pos)
+                                          record=Record(max_events=8))[0].ball.pos)
     params = peers_numba.pack_params(load_model(peers.MODEL, dtype=jnp.float32), policy.params)
 
     def lean(x):

@@ -15,7 +15,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax import init_state, load_model, rollout
+from ttsim_jax import Record, init_state, load_model, rollout
 from ttsim_jax.env.config import load_task_config
 from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.physics import events as ev
@@ -27,7 +27,7 @@ def main(task: str) -> None:
     c = load_task_config(task)
     model = load_model(c.model, dtype=jnp.float32)
     bank, _ = shot_bank(model, c)
-    _, out = rollout(model, init_state(bank), STEPS, DT, max_events=6, record_every=EVERY)
+    _, out = rollout(model, init_state(bank), STEPS, DT, record=Record(max_events=6, every=EVERY))
     kind, pos, when = np.asarray(out.events.kind), np.asarray(out.events.pre.pos), np.asarray(out.events.time)
     count = np.asarray(out.events.count)
     slots = np.arange(kind.shape[1])[None]

@@ -22,7 +22,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from ttsim_jax import load_model, simulate
+from ttsim_jax import Record, load_model, simulate
 from ttsim_jax.fit.network_config import load_residual_config
 from ttsim_jax.physics.network import init_model
 from ttsim_jax.policies import tracking_rackets
@@ -43,7 +43,7 @@ def run(variants, balls, n_steps, repeats, rackets):
     """Times each (tag, model) variant; repeats are interleaved so machine drift hits all alike."""
     def once(model):
         t0 = time.perf_counter()
-        jax.block_until_ready(simulate(model, balls, n_steps, racket=rackets, max_events=8).final.pos)
+        jax.block_until_ready(simulate(model, balls, n_steps, racket=rackets, record=Record(max_events=8)).final.pos)
         return time.perf_counter() - t0
 
     first = {tag: once(model) for tag, model in variants}

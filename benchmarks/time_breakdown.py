@@ -14,8 +14,8 @@ conti2026 without effects, float32, dt = 1 ms. Each stage adds one piece to the 
   table box swept, sustained contact, floor, net plane, leaving play, validity), counted so that
   they are not optimised away; still no contact handled.
 - ``kernel_nolog``: the rally kernel's reference path (``fused=False``) without an event log
-  (``max_events=0``): the flagged balls gathered into buffers, exact time of impact, contacts.
-- ``kernel``: the same with the event log (``max_events=8``).
+  (``Record(max_events=0)``): the flagged balls gathered into buffers, exact time of impact, contacts.
+- ``kernel``: the same with the event log (``Record(max_events=8)``).
 - ``kernel_fused``: the default path at this size (``fused="auto"``: the flight kernel's body as
   plain XLA over the batch on a CPU).
 
@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax import Execution, init_state, load_model, rollout
+from ttsim_jax import Execution, Record, init_state, load_model, rollout
 from ttsim_jax.kernel import ball_step as kstep
 from ttsim_jax.policies import tracking_rackets
 from ttsim_jax.shots import sample_shots
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
 
     def kernel(max_events, fused):
         def run():
-            state, out = rollout(model, init_state(balls), n, 1e-3, max_events=max_events,
+            state, out = rollout(model, init_state(balls), n, 1e-3, record=Record(max_events=max_events),
                                  execution=Execution(fused=fused))
             return state.ball.pos
         return run

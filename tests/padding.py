@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttsim_jax import Ball, Racket, simulate
+from ttsim_jax import Ball, Racket, Record, simulate
 
 B = 8  # balls
 N = 1600  # steps
@@ -48,4 +48,4 @@ def simulate_shared(model, balls: Ball, dt: float = 1e-3, racket: Racket | None 
         ``simulate``'s result for the padded batch.
     """
     racket = resting_racket() if racket is None else racket
-    return simulate(model, pad_balls(balls, B), N, dt, racket=racket, record_every=RECORD, **kwargs)
+    return simulate(model, pad_balls(balls, B), N, dt, racket=racket, record=Record(every=RECORD), **kwargs)

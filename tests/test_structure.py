@@ -157,6 +157,27 @@ def test_no_module_over_600_lines():
     assert not long, ", ".join(f"{name} ({n} lines)" for n, name in long)
 
 
+def parameter_counts(tree: ast.AST):
+    """(name, line, count) of every function in ``tree``; ``*args`` and ``**kwargs`` count one each."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            a = node.args
+            yield node.name, node.lineno, (len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs)
+                                           + (a.vararg is not None) + (a.kwarg is not None))
+
+
+def test_no_kernel_function_takes_more_than_10_parameters():
+    """The kernel's stages pass named states and option values (``StepState``, ``Record``,
+    ``Execution``, the fused path's ``Drive``), not loose arguments; ``rollout`` and ``simulate``
+    take at most 10."""
+    wide = sorted(f"{name}.{fn} (line {line}: {n})" for name, p in MODS.items() if name.startswith("ttsim_jax.kernel.")
+                  for fn, line, n in parameter_counts(ast.parse(p.read_text())) if n > 10)
+    assert any(name.startswith("ttsim_jax.kernel.") for name in MODS)
+    assert not wide, ", ".join(wide)
+    counted = {fn: n for fn, _, n in parameter_counts(ast.parse("def f(a, b=1, *c, d, **e): pass"))}
+    assert counted == {"f": 5}
+
+
 def test_every_package_has_a_layer_and_no_arrow_runs_up():
     unplaced = sorted({package_of(m) for m in MODS} - set(LAYER) - {"<root>"})
     assert not unplaced, f"packages without a layer in LAYERS: {unplaced}"

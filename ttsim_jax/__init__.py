@@ -15,8 +15,8 @@ __version__ = "0.1.0"
 _NAMES = {
     **dict.fromkeys(["ConfigError", "UserError"], "ttsim_jax.errors"),
     **dict.fromkeys(["Model", "load_model", "stack_models"], "ttsim_jax.params"),
-    **dict.fromkeys(["EventLog", "Execution", "RacketPolicy", "RallyResult", "RallyState", "RolloutOutput", "init_state",
-                     "per_ball_axes", "rollout", "simulate"], "ttsim_jax.kernel"),
+    **dict.fromkeys(["EventLog", "Execution", "RacketPolicy", "RallyResult", "RallyState", "Record", "RolloutOutput",
+                     "init_state", "per_ball_axes", "rollout", "simulate"], "ttsim_jax.kernel"),
     **dict.fromkeys(["Ball", "Racket"], "ttsim_jax.state"),
     "enable_compilation_cache": "ttsim_jax.files.cache",
 }

@@ -1,12 +1,11 @@
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import ttsim_jax
-from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import Ball, Racket, Record, load_model, simulate
 from ttsim_jax.cli import main
 from ttsim_jax.cli import simulate as simulate_command
 
@@ -16,8 +15,8 @@ from padding import simulate_shared
 def test_simulate_rejects_bad_arguments_with_clear_messages():
     m = load_model("nakashima2011")
     b = Ball.create([[0.0, 0.0, 0.5]], [[1.0, 0.0, 0.0]])
-    with pytest.raises(ValueError, match="record_every=3 must divide n_steps=10"):
-        simulate(m, b, 10, record_every=3)
+    with pytest.raises(ValueError, match=r"Record\(every=3\) must divide n_steps=10"):
+        simulate(m, b, 10, record=Record(every=3))
     with pytest.raises(ValueError, match="n_steps must be positive"):
         simulate(m, b, 0)
     with pytest.raises(ValueError, match=r"ball fields must be \(B, 3\)"):
@@ -115,7 +114,7 @@ def test_argument_errors_come_before_jax_is_imported():
 
 
 def test_simulate_times_its_throughput_with_the_program_it_compiled(tmp_path, capsys, monkeypatch):
-    """The throughput re-timing call passes the same arguments as the first (record_every
+    """The throughput re-timing call passes the same arguments as the first (its ``Record``
     included), so it runs the compiled program instead of compiling a second one."""
     calls = []
     real = ttsim_jax.simulate
@@ -127,5 +126,5 @@ def test_simulate_times_its_throughput_with_the_program_it_compiled(tmp_path, ca
     monkeypatch.setattr(ttsim_jax, "simulate", spy)
     assert main(["simulate", "--shots", "8", "--no-aim", "--duration", "0.5", "--plot", str(tmp_path / "s.png")]) == 0
     assert len(calls) == 2 and calls[0] == calls[1], calls
-    assert calls[0][1]["record_every"] > 0
+    assert calls[0][1]["record"].every > 0
     assert "ball-steps/s" in capsys.readouterr().out

@@ -15,7 +15,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import ttsim_jax  # noqa: F401  (registers the environments)
-from ttsim_jax import Ball, init_state, load_model, rollout
+from ttsim_jax import Ball, Record, init_state, load_model, rollout
 from ttsim_jax.env import intercept
 from ttsim_jax.env import racket as racket_kin
 from ttsim_jax.env.config import load_task_config
@@ -91,7 +91,7 @@ def test_predictor_agrees_with_the_kernels_drag_free_flight(plane):
                                            jnp.array([True, True]))
     dt, n = 1e-3, 500
     _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=np.zeros_like(pos))), n, dt,
-                     max_events=2, record_every=1)
+                     record=Record(max_events=2, every=1))
     traj = np.swapaxes(np.asarray(out.trajectory.pos), 0, 1)  # (n, B, 3)
     times = np.asarray(out.times)
     for b in range(2):
@@ -120,7 +120,7 @@ def test_model_bounce_predicts_the_kernels_spinning_bounce(plane):
     point, _, t, valid = map(np.asarray, intercept.predict(spun, *args))
     plain, _, _, _ = map(np.asarray, intercept.predict(plane, *args))
     dt, n = 1e-3, 600
-    _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=spin)), n, dt, max_events=2, record_every=1)
+    _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=spin)), n, dt, record=Record(max_events=2, every=1))
     traj = np.swapaxes(np.asarray(out.trajectory.pos), 0, 1)
     times = np.asarray(out.times)
     assert (np.asarray(out.events.kind)[:, 0] == ev.TABLE).all()  # each bounces once before the plane
@@ -157,7 +157,7 @@ def test_air_prediction_meets_the_kernels_flight_with_drag_and_magnus(plane):
     point, _, t, valid = map(np.asarray, intercept.predict(aired, *args))
     still, _, _, _ = map(np.asarray, intercept.predict(aired.replace(air=None), *args))
     dt, n = 1e-3, 700
-    _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=spin)), n, dt, max_events=2, record_every=1)
+    _, out = rollout(model, init_state(Ball(pos=pos, vel=vel, spin=spin)), n, dt, record=Record(max_events=2, every=1))
     traj = np.swapaxes(np.asarray(out.trajectory.pos), 0, 1)
     times = np.asarray(out.times)
     kinds = np.asarray(out.events.kind)
@@ -224,7 +224,7 @@ def test_return_arc_with_drag_lands_on_the_target_through_the_kernels_flight(par
         v0 = np.asarray(intercept.arc_velocity(jnp.asarray(land - pos, jnp.float32), jnp.asarray(tau, jnp.float32),
                                                params.gravity, drag), float)
         _, out = rollout(model, init_state(Ball(pos=pos, vel=v0, spin=np.zeros_like(pos))), 500, 1e-3,
-                         max_events=2, record_every=1)
+                         record=Record(max_events=2, every=1))
         kind, where, when = (np.asarray(a) for a in (out.events.kind, out.events.pre.pos, out.events.time))
         assert (kind[:, 0] == ev.TABLE).all()  # over the net, onto the table
         landings.append((where[:, 0, :2], when[:, 0]))
@@ -292,7 +292,7 @@ def test_return_planned_with_its_spin_lands_on_the_target_through_the_kernel(par
         v_out, w_out = (np.stack([np.asarray(o[i]) for o in outs]) for i in (0, 1))
         assert (np.linalg.norm(w_out, axis=-1) > 50.0).all()  # the return spins
         _, out = rollout(model, init_state(Ball(pos=np.asarray(point, float), vel=v_out, spin=w_out)), 500, 1e-3,
-                         max_events=2, record_every=1)
+                         record=Record(max_events=2, every=1))
         kind, where = np.asarray(out.events.kind), np.asarray(out.events.pre.pos)
         assert (kind[:, 0] == ev.TABLE).all()
         errors.append(np.linalg.norm(where[:, 0, :2] - np.asarray(target), axis=-1))

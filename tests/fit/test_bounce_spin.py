@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, load_model, simulate
+from ttsim_jax import Ball, Record, load_model, simulate
 from ttsim_jax.fit.bounce_spin import fit_bounce_spin
 from ttsim_jax.physics.events import TABLE
 
@@ -25,7 +25,7 @@ def bounces():
     pos = np.stack([np.full(n, -1.4), rng.uniform(-0.3, 0.3, n), rng.uniform(0.3, 0.45, n)], 1)
     vel = np.stack([rng.uniform(5.0, 8.0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.3, 1.5, n)], 1)
     spin = np.stack([rng.uniform(-50, 50, n), size, rng.uniform(-80, 80, n)], 1)
-    out = simulate(model, Ball.create(pos=pos, vel=vel, spin=spin), n_steps=900, dt=1e-3, record_every=1)
+    out = simulate(model, Ball.create(pos=pos, vel=vel, spin=spin), n_steps=900, dt=1e-3, record=Record(every=1))
     kind, t_ev = np.asarray(out.events.kind), np.asarray(out.events.time)
     traj, times = np.asarray(out.trajectory.pos), np.asarray(out.times)
     post_spin = np.asarray(out.events.post.spin)

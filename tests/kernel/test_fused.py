@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Execution, RacketPolicy, init_state, load_model, per_ball_axes, rollout
+from ttsim_jax import Ball, Execution, RacketPolicy, Record, init_state, load_model, per_ball_axes, rollout
 from ttsim_jax import effects as fx
 from ttsim_jax.kernel import fused
 from ttsim_jax.kernel.plans import within_reach
@@ -154,13 +154,13 @@ def test_fused_equals_reference_with_the_sampled_residual(model):
                                                  y_scale=jnp.full(6, 0.3, jnp.float32)))
     state, sched = init_state(shots(B, seed=4)), two_rackets(N)
     key = jax.random.key(7)
-    ref = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=key)
-    fus = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=key, execution=Execution(fused=True))
+    ref = rollout(withnet, state, N, 1e-3, sched, sample_key=key)
+    fus = rollout(withnet, state, N, 1e-3, sched, sample_key=key, execution=Execution(fused=True))
     _assert_same_rollout(ref, fus, atol=1e-9)
     np.testing.assert_allclose(np.asarray(fus[1].events.sigma), np.asarray(ref[1].events.sigma), atol=1e-9)
     hits = np.asarray(ref[1].events.kind) == RACKET
     assert hits.sum() > 10
-    other = rollout(withnet, state, N, 1e-3, sched, sample_residual=True, key=jax.random.key(8),
+    other = rollout(withnet, state, N, 1e-3, sched, sample_key=jax.random.key(8),
                     execution=Execution(fused=True))
     # each ball's first racket contact (the same state before it with either key) drew anew
     first = hits & (np.cumsum(hits, axis=1) == 1)
@@ -388,8 +388,8 @@ def test_fused_equals_reference_in_float32_with_recording():
     sched = jax.tree.map(lambda a: a.astype(jnp.float32), two_rackets(N))
     balls = jax.tree.map(lambda a: a.astype(jnp.float32), shots(4 * B, seed=7))
     state = init_state(balls)
-    ref = rollout(model, state, N, 1e-3, sched, record_every=100)
-    fus = rollout(model, state, N, 1e-3, sched, record_every=100, execution=Execution(fused=True))
+    ref = rollout(model, state, N, 1e-3, sched, record=Record(every=100))
+    fus = rollout(model, state, N, 1e-3, sched, record=Record(every=100), execution=Execution(fused=True))
     # 1e-4: float32 rounding grown over 400 steps and a few contacts (measured: 6e-5 on spins of
     # hundreds of rad/s, about 1e-7 relative; event times within 5e-8 s)
     _assert_same_rollout(ref, fus, atol=1e-4)
@@ -405,7 +405,7 @@ def test_gradient_through_the_fused_path_is_the_reference_gradient(model):
 
     def landing(v0, fused_path):
         state = init_state(balls.replace(vel=balls.vel.at[:, 0].set(v0)))
-        s, _ = rollout(model, state, 120, 1e-3, execution=Execution(fused=fused_path), max_events=0)
+        s, _ = rollout(model, state, 120, 1e-3, execution=Execution(fused=fused_path), record=Record(max_events=0))
         return jnp.sum(s.ball.pos[:, 0])
 
     v0 = balls.vel[:, 0]
@@ -435,7 +435,7 @@ def test_auto_takes_the_fused_path_where_it_was_measured_to_pay(model, monkeypat
         assert R.fused_pays(1) == (jax.default_backend() == "gpu")
         assert not R.fused_pays(1 << 20, per_ball=True) and not R.fused_pays(1 << 20, rackets_batched=True)
     taken = []
-    monkeypatch.setattr(R, "_rollout", lambda *a, fused, **kw: taken.append(fused))
+    monkeypatch.setattr(R, "_rollout", lambda *a, plan: taken.append(plan.fused))
     runs = ((n - 1, t, "auto", False), (n, t, "auto", False), (n, t - 1, "auto", False), (n, 10, True, False),
             (n, t, False, False))
     runs += ((n, t, "auto", True), (n, t, True, True))  # per-ball rackets: covered, slower

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from ttsim_jax import Ball, Racket, load_model, simulate
+from ttsim_jax import Ball, Racket, Record, load_model, simulate
 from ttsim_jax.physics import table as tbl
 from ttsim_jax.physics.events import INVALID, NET, RACKET, TABLE
 
@@ -111,7 +111,8 @@ def table_gap(model, pos):
 def test_no_nan_no_penetration_no_energy_created(dtype, examples, dt):
     model = MODELS[dtype]
     balls, racket, sched = build(examples, dtype)
-    r = simulate(model, balls, STEPS, dt, racket=sched, record_every=1, max_events=16)
+    r = simulate(model, balls, STEPS, dt, racket=sched,
+                     record=Record(every=1, max_events=16))
     for leaf in jax.tree.leaves((r.final, r.trajectory, r.events.pre, r.events.post, r.events.time)):
         assert np.all(np.isfinite(np.asarray(leaf)))
 
@@ -205,7 +206,8 @@ def test_net_cord_balls_bounce_on_time_and_every_crossing_is_logged(dtype):
         racket = jax.tree.map(lambda a: jnp.asarray(a, dtype), racket)
         sched = jax.tree.map(lambda a: jnp.broadcast_to(a[:, None, None], (B, STEPS, 1) + a.shape[1:]), racket)
         balls = Ball.create(pos, vel, spin, dtype=dtype)
-        r = simulate(model, balls, STEPS, dt, racket=sched, record_every=1, max_events=16)
+        r = simulate(model, balls, STEPS, dt, racket=sched,
+                     record=Record(every=1, max_events=16))
         status = np.asarray(r.status)
         assert not np.any(status == INVALID), seed
         traj = np.asarray(r.trajectory.pos, np.float64)
@@ -285,8 +287,8 @@ def test_rotating_racket_rim_never_sweeps_through_a_ball(dtype):
         dt = (1e-3, 2e-3, 0.5e-3)[seed % 3]
         pos, vel, spin, poses = rotating_rackets(100 + seed, dt)
         sched = Racket(**{k: jnp.asarray(v[:, :STEPS, None], dtype) for k, v in poses.items()})
-        r = simulate(model, Ball.create(pos, vel, spin, dtype=dtype), STEPS, dt, racket=sched, record_every=1,
-                     max_events=16)
+        r = simulate(model, Ball.create(pos, vel, spin, dtype=dtype), STEPS, dt, racket=sched,
+                     record=Record(every=1, max_events=16))
         path = np.concatenate([pos[:, None], np.asarray(r.trajectory.pos, np.float64)], axis=1)
         local = face_local(poses["rot"], poses["pos"], path)
         face = poses["face"][:, 0]

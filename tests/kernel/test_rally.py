@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Execution, Racket, RacketPolicy, init_state, load_model, rollout, simulate, stack_models
+from ttsim_jax import (Ball, Execution, Racket, RacketPolicy, Record, init_state, load_model, rollout, simulate,
+                       stack_models)
 from ttsim_jax.physics.events import FLOOR, NET, RACKET, TABLE
 from ttsim_jax.kernel.rollout import _rollout, memory_bytes
 
@@ -69,7 +70,7 @@ def test_batched_parameters_domain_randomisation():
     models = [base.replace(table=base.table.replace(e0=base.table.e0 * s)) for s in scales]
     balls = jax.tree.map(lambda a: jnp.repeat(a[:1], B, 0), serve_batch(1))
     sched = racket_schedule(N)
-    r = simulate_shared(stack_models(models), balls, racket=sched, model_batched=True)
+    r = simulate_shared(stack_models(models), balls, racket=sched, model_axes=0)
     for i, mi in enumerate(models):
         one = simulate_shared(mi, balls, racket=sched)  # the shared shape: every row is ball 0
         np.testing.assert_allclose(np.asarray(one.final.pos[0]), np.asarray(r.final.pos[i]), atol=1e-12)
@@ -108,7 +109,7 @@ def first_bounce(m, dt, integrator="rk4"):
     b = pad(Ball.create([[-1.5, -0.2, 0.3]], [[9.0, 0.8, 1.2]], [[50.0, 250.0, -60.0]], dtype=m.ball.mass.dtype))
     state = init_state(b)
     for _ in range(int(np.ceil(0.3 / (N * dt)))):  # the bounce comes at about 0.2 s
-        state, out = rollout(m, state, N, dt, racket_schedule(N), integrator=integrator, record_every=RECORD)
+        state, out = rollout(m, state, N, dt, racket_schedule(N), integrator=integrator, record=Record(every=RECORD))
         kinds = np.asarray(out.events.kind[0]).tolist()
         if TABLE in kinds:
             k = kinds.index(TABLE)
@@ -171,9 +172,9 @@ def test_recording_above_memory_budget_is_refused_with_size():
     m = load_model("conti2026")
     b = serve_batch(2)
     with pytest.raises(ValueError, match=r"needs .* GiB.*budget"):
-        simulate(m, b, 1000, record_every=1, execution=Execution(memory_budget_bytes=1000))
+        simulate(m, b, 1000, record=Record(every=1), execution=Execution(memory_budget_bytes=1000))
     # the shapes of what the rollout returns (traced, not compiled)
-    r = jax.eval_shape(lambda b: simulate(m, b, 1000, record_every=100), b)
+    r = jax.eval_shape(lambda b: simulate(m, b, 1000, record=Record(every=100)), b)
     assert r.trajectory.pos.shape == (2, 10, 3)
     # the estimate is the size of what the rollout returns
     need = memory_bytes(2, 1000, 100, 8, r.final.pos.dtype)
@@ -183,7 +184,7 @@ def test_recording_above_memory_budget_is_refused_with_size():
     assert need["recording"] == size(r.trajectory)
     # an event log too large for the budget is refused too, before anything compiles
     with pytest.raises(ValueError, match=r"event log 0\.\d\d GiB.*budget"):
-        simulate(m, b, 1000, max_events=10**6, execution=Execution(memory_budget_bytes=2**20))
+        simulate(m, b, 1000, record=Record(max_events=10**6), execution=Execution(memory_budget_bytes=2**20))
 
 
 def test_the_kernels_default_budget_is_the_packages(monkeypatch):
@@ -193,9 +194,10 @@ def test_the_kernels_default_budget_is_the_packages(monkeypatch):
     b = serve_batch(2)
     monkeypatch.setenv("TTSIM_MEMORY_BUDGET", "1M")
     with pytest.raises(ValueError, match=r"budget of 0\.00 GiB \(set by --memory-budget or TTSIM_MEMORY_BUDGET\)"):
-        simulate(m, b, 1000, max_events=10**6)
+        simulate(m, b, 1000, record=Record(max_events=10**6))
     monkeypatch.setenv("TTSIM_MEMORY_BUDGET", "64G")
-    assert jax.eval_shape(lambda b: simulate(m, b, 1000, max_events=10**6), b).events.pre.pos.shape[1] == 10**6
+    shapes = jax.eval_shape(lambda b: simulate(m, b, 1000, record=Record(max_events=10**6)), b)
+    assert shapes.events.pre.pos.shape[1] == 10**6
 
 
 def test_floor_stops_the_ball():

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, Execution, Racket, init_state, load_model, per_ball_axes, rollout, simulate
+from ttsim_jax import Ball, Execution, Racket, Record, init_state, load_model, per_ball_axes, rollout, simulate
 from ttsim_jax.effects import make
 from ttsim_jax.kernel.rollout import _rollout
 from ttsim_jax.physics.events import NONE, RACKET, TABLE
@@ -65,7 +65,7 @@ def per_ball_rollout(model, batched, balls, block_size=0):
     """``batched`` (``model`` with (B,) values of PER_BALL) and a racket schedule per ball."""
     sched = jax.tree.map(lambda a: jnp.broadcast_to(a[None], (B,) + a.shape), two_rackets(N))
     return rollout(batched, init_state(balls), N, 1e-3, sched, model_axes=per_ball_axes(model, *PER_BALL),
-                   execution=Execution(block_size=block_size), record_every=100)
+                   execution=Execution(block_size=block_size), record=Record(every=100))
 
 
 # three parameter sets, ball i gets set i % 3; balls 0-2 are one shot (so it ends in three places)
@@ -119,22 +119,29 @@ def test_lean_step_equals_reference_step(model, whole):
     np.testing.assert_allclose(np.asarray(s.ball.as_array()), np.asarray(ref_state.ball.as_array()), atol=1e-10)
 
 
-def test_execution_options_by_value_and_the_old_keywords_still_work(model, whole):
-    """``Execution`` is compared and hashed by value (equal options share the compiled program);
-    the options given directly, as before, give the same rollout with a DeprecationWarning; a
-    misspelt one is a TypeError, an unknown value a ValueError naming it."""
+def test_execution_and_record_options_are_values_and_the_loose_keywords_are_gone(model, whole):
+    """``Execution`` and ``Record`` are compared and hashed by value (equal options share the
+    compiled program: an equal ``Record`` built anew compiles nothing); the keywords they replaced
+    (``reference=``, ``record_every=``, ``sample_residual=``) are a TypeError naming them; an
+    unknown value is a ValueError naming it."""
     assert Execution(reference=True) == Execution(reference=True)
     assert hash(Execution(fused=False, block_size=0)) == hash(Execution(fused=False, block_size=0))
     assert Execution() != Execution(remat=False)
-    with pytest.warns(DeprecationWarning, match=r"execution=Execution\(reference=...\)"):
-        old_state, old = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), reference=True)
-    new_state, new = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), execution=Execution(reference=True))
-    np.testing.assert_array_equal(np.asarray(old.events.kind), np.asarray(new.events.kind))
-    np.testing.assert_array_equal(np.asarray(old_state.ball.pos), np.asarray(new_state.ball.pos))
-    with pytest.raises(TypeError, match="refrence"):
-        rollout(model, init_state(shots()), N, 1e-3, refrence=True)
+    assert Record(every=5, max_events=3) == Record(every=5, max_events=3) != Record(every=5)
+    assert hash(Record(until_events=1)) == hash(Record(until_events=1))
+    rollout(model, init_state(shots()), N, 1e-3, two_rackets(N))
+    size = _rollout._cache_size()
+    rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), record=Record(every=0, max_events=8))
+    assert _rollout._cache_size() == size
+    for old in (dict(reference=True), dict(record_every=10), dict(sample_residual=True), dict(refrence=True)):
+        with pytest.raises(TypeError, match=next(iter(old))):
+            rollout(model, init_state(shots()), N, 1e-3, **old)
     with pytest.raises(ValueError, match="contact_capacity"):
         Execution(contact_capacity=0)
+    with pytest.raises(ValueError, match=r"Record\(every=...\) must be an int >= 0, got -1"):
+        Record(every=-1)
+    with pytest.raises(TypeError, match="record must be a ttsim_jax.Record"):
+        rollout(model, init_state(shots()), N, 1e-3, record=dict(every=10))
 
 
 def test_single_buffer_equals_loop_of_buffers(model, whole):
@@ -156,7 +163,7 @@ def test_until_events_freezes_each_ball_at_its_event(model, whole):
     """A ball stops advancing after the step of its first event (``until_events=1``): its log holds
     the events of that step (a second one within the same step, such as a net crossing just before
     a bounce) as the full rollout logs them and nothing after; balls without an event run as before."""
-    s1, o1 = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), until_events=1)
+    s1, o1 = rollout(model, init_state(shots()), N, 1e-3, two_rackets(N), record=Record(until_events=1))
     s, o = whole
     count, full = np.asarray(o1.events.count), np.asarray(o.events.count)
     assert (full >= 2).sum() > B // 4  # most balls would have gone on to a second event
@@ -177,7 +184,7 @@ def test_until_events_freezes_each_ball_at_its_event(model, whole):
     gap = np.linalg.norm(np.asarray(s1.ball.pos)[hit] - np.asarray(o.events.post.pos[:, 0])[hit], axis=-1)
     assert gap.max() < 0.03 and not np.allclose(np.asarray(s1.ball.pos)[hit], np.asarray(s.ball.pos)[hit])
     with pytest.raises(ValueError, match="until_events"):
-        rollout(model, init_state(shots()), N, 1e-3, max_events=2, until_events=3)
+        rollout(model, init_state(shots()), N, 1e-3, record=Record(max_events=2, until_events=3))
 
 
 @pytest.mark.slow  # 33 s of compilation; test_lean_step_equals_reference_step checks the same on 64 shots
@@ -232,7 +239,7 @@ def test_time_is_a_step_count_and_does_not_drift():
     m = load_model("conti2026", dtype=jnp.float32)
     s = init_state(pad_balls(Ball.create([[0.5, 0.0, 3.0]], [[0.0, 0.0, 0.0]], dtype=jnp.float32), shared.B))
     for _ in range(3):  # the suite's shared shape (padding.py), resumed
-        s, _ = rollout(m, s, shared.N, 1e-3, shared.resting_racket(), record_every=shared.RECORD)
+        s, _ = rollout(m, s, shared.N, 1e-3, shared.resting_racket(), record=Record(every=shared.RECORD))
     assert int(s.step) == 3 * shared.N
     assert float(s.time) == pytest.approx(3 * shared.N * 1e-3, abs=1e-6)
     # a float32 clock adding dt each step would be off by ~1.2e-4 s here

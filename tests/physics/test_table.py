@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttsim_jax import Ball, load_model, simulate
+from ttsim_jax import Ball, Record, load_model, simulate
 from ttsim_jax.physics import table as tbl
 from ttsim_jax.physics.contact import surface_velocity
 
@@ -142,7 +142,7 @@ def test_ball_missing_the_table_is_not_bounced():
 def test_ball_at_rest_on_table_ends_as_rest_and_is_finite():
     m = load_model("conti2026")
     b = Ball.create([[0.3, 0.1, R], [0.3, 0.1, 0.3]], [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    r = simulate(m, b, 20000, max_events=300)
+    r = simulate(m, b, 20000, record=Record(max_events=300))
     assert np.all(np.isfinite(np.asarray(r.final.as_array())))
     np.testing.assert_allclose(np.asarray(r.final.pos[:, 2]), R, atol=1e-4)
     assert np.asarray(r.status).tolist() == [7, 7]  # rest

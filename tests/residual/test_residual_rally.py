@@ -120,8 +120,8 @@ def test_swapping_residual_parameters_does_not_recompile(setup):
 def test_sampling_changes_post_states_unless_sigma_is_zero(setup):
     _, net, model, result = setup
     key = jax.random.key(11)
-    sampled = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key)
-    other = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=jax.random.key(12))
+    sampled = simulate(model, balls(), N_STEPS, racket=schedule(), sample_key=key)
+    other = simulate(model, balls(), N_STEPS, racket=schedule(), sample_key=jax.random.key(12))
     hits = racket_events(result)
     assert [e for e in racket_events(sampled)] == hits
     for b, k in hits:
@@ -130,7 +130,7 @@ def test_sampling_changes_post_states_unless_sigma_is_zero(setup):
         assert not np.allclose(np.asarray(sampled.events.post.vel[b, k]), np.asarray(other.events.post.vel[b, k]))
     # sigma -> 0: the sampled contact equals the deterministic one
     sharp = model.replace(residual=net.replace(sigma_scale=jnp.zeros(6, jnp.float32)))
-    quiet = simulate(sharp, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key)
+    quiet = simulate(sharp, balls(), N_STEPS, racket=schedule(), sample_key=key)
     for b, k in hits:
         np.testing.assert_allclose(np.asarray(quiet.events.post.vel[b, k]), np.asarray(result.events.post.vel[b, k]),
                                    atol=1e-12)
@@ -145,16 +145,15 @@ def test_sampled_correction_depends_on_the_ball_not_on_its_buffer_slot(setup):
     in another order."""
     _, _, model, _ = setup
     key = jax.random.key(5)
-    one = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key, execution=Execution(contact_capacity=1))
-    default = simulate(model, balls(), N_STEPS, racket=schedule(), sample_residual=True, key=key)
+    one = simulate(model, balls(), N_STEPS, racket=schedule(), sample_key=key, execution=Execution(contact_capacity=1))
+    default = simulate(model, balls(), N_STEPS, racket=schedule(), sample_key=key)
     np.testing.assert_array_equal(np.asarray(one.events.kind), np.asarray(default.events.kind))
     np.testing.assert_allclose(np.asarray(one.events.post.spin), np.asarray(default.events.post.spin), atol=1e-9)
     np.testing.assert_allclose(np.asarray(one.final.pos), np.asarray(default.final.pos), atol=1e-12)
     # reversed order, same ids: the same draws per ball
     order = np.arange(4)[::-1]
     rev = jax.tree.map(lambda a: a[order], balls())
-    state, out = rollout(model, init_state(rev, ball_id=order), N_STEPS, 1e-3, schedule(), sample_residual=True,
-                         key=key)
+    state, out = rollout(model, init_state(rev, ball_id=order), N_STEPS, 1e-3, schedule(), sample_key=key)
     np.testing.assert_allclose(np.asarray(out.events.post.spin)[order], np.asarray(default.events.post.spin),
                                atol=1e-9)
 
@@ -176,9 +175,11 @@ def test_single_buffering_runs_the_network_on_the_racket_rows_only(setup):
     same = four.replace(pos=four.pos.at[:, 1].add(1e-4 * copy))
     assert 64 // kstep.NET_FRACTION < 32  # the copies of a shot do not fit the network's rows at once
     for shots, spread_out in ((spread, True), (same, False)):
-        kw = dict(sample_residual=True, key=key)
-        s0, o0 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), execution=Execution(contact_capacity=64, buffering="loop"), **kw)
-        s1, o1 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(), execution=Execution(contact_capacity=64, buffering="single"), **kw)
+        kw = dict(sample_key=key)
+        s0, o0 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(),
+                         execution=Execution(contact_capacity=64, buffering="loop"), **kw)
+        s1, o1 = rollout(model, init_state(shots), N_STEPS, 1e-3, schedule(),
+                         execution=Execution(contact_capacity=64, buffering="single"), **kw)
         kind = np.asarray(o0.events.kind)
         step = np.floor(np.asarray(o0.events.time)[kind == RACKET] / 1e-3 + 1e-9).astype(int)
         assert len(step) > 40  # many racket contacts, with their network corrections
@@ -198,7 +199,7 @@ def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
     on every row (sampled draws included), and nothing on the table rows."""
     from ttsim_jax.kernel.axes import resolve_axes
     from ttsim_jax.kernel.ball_step import flight
-    from ttsim_jax.kernel.step import _events
+    from ttsim_jax.kernel.step import _events, _StepInputs
 
     _, _, model, _ = setup
     rk = jax.tree.map(lambda a: a[None], racket_at(0.0))  # one racket, normal -x, face centre (1.6, 0, 0.2)
@@ -209,10 +210,9 @@ def test_network_rows_are_gathered_from_anywhere_in_the_buffer(setup):
     b = len(pos)
     axes = resolve_axes(model, None)
     free = jax.vmap(flight, in_axes=(None, 0, None, None))(model.replace(residual=None), ball, 0.0, 1e-3)
-    args = (model, axes, ball, jnp.ones(b, bool), free, rk, False, jnp.arange(b), jnp.arange(b) + 100, 0.0, 1e-3,
-            jax.random.key(2), True)
-    every = _events(*args)
-    gathered = _events(*args, net_rows=2)
+    inputs = _StepInputs(ball, jnp.ones(b, bool), free, rk, jnp.arange(b) + 100, 0.0, 1e-3, jax.random.key(2))
+    every = _events(model, axes, inputs, jnp.arange(b), sample=True)
+    gathered = _events(model, axes, inputs, jnp.arange(b), sample=True, net_rows=2)
     kind = np.asarray(every.events.kind)  # (rows, events in the step)
     assert list(kind[:, 0]) == [TABLE] * n_table + [RACKET] * 2 and np.all(kind[:, 1:] == 0)
     for a, g in zip(jax.tree.leaves(every), jax.tree.leaves(gathered)):

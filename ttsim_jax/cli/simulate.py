@@ -74,7 +74,7 @@ def cmd_simulate(args) -> int:
     import jax
     from tqdm import tqdm
 
-    from ttsim_jax import load_model, simulate
+    from ttsim_jax import Record, load_model, simulate
     from ttsim_jax.evaluate.summary import summary_table
     from ttsim_jax.shots import SHOT_TYPES, sample_shots
     from ttsim_jax.state import Ball
@@ -118,8 +118,8 @@ def cmd_simulate(args) -> int:
     for k, sl in enumerate(tqdm(chunks, desc="simulating", unit="chunk", disable=len(chunks) < 2)):
         chunk = Ball(*(np.asarray(a)[sl] for a in (balls.pos, balls.vel, balls.spin)))
         t1 = time.perf_counter()
-        r = simulate(model, chunk, n_steps, args.dt, integrator=args.integrator, record_every=record_every,
-                     max_events=SIMULATE_EVENTS)
+        r = simulate(model, chunk, n_steps, args.dt, integrator=args.integrator,
+                     record=Record(every=record_every, max_events=SIMULATE_EVENTS))
         jax.block_until_ready(r.final.pos)
         dt_call = time.perf_counter() - t1
         if k == 0:
@@ -137,7 +137,7 @@ def cmd_simulate(args) -> int:
     else:  # one call: time it again with the same arguments (the same compiled program) for an honest throughput
         t1 = time.perf_counter()
         jax.block_until_ready(simulate(model, chunk, n_steps, args.dt, integrator=args.integrator,
-                                       record_every=record_every, max_events=SIMULATE_EVENTS).final.pos)
+                                       record=Record(every=record_every, max_events=SIMULATE_EVENTS)).final.pos)
         steady, steady_balls = time.perf_counter() - t1, args.shots
     print(f"aiming {t_aim:.1f} s; simulation {t_sim:.2f} s (first call {t_first:.2f} s, includes compilation); "
           f"throughput {steady_balls * n_steps / steady:,.0f} ball-steps/s (compiled)")

@@ -46,7 +46,7 @@ from ttsim_jax.env.bank import shot_bank
 from ttsim_jax.env.config import ShotsConfig, TaskConfig, load_task_config
 from ttsim_jax.env.rally_rules import LEGAL, MISS, NET, OUT, RUNNING, SHOT_FAULT, VOLLEY, Rally, advance
 from ttsim_jax.env.spaces import OBS_BOUND, observation_fields
-from ttsim_jax.kernel import Execution, RallyState, init_state, per_ball_axes, rollout
+from ttsim_jax.kernel import Execution, RallyState, Record, init_state, per_ball_axes, rollout
 from ttsim_jax.params import ConfigError, Model, load_model
 from ttsim_jax.physics.numerics import safe_norm
 from ttsim_jax.state import Ball
@@ -429,8 +429,8 @@ class ReturnBall:
         # the clock restarts each control step: the kernel's time stays small and exact
         rally = state.rally.replace(step=jnp.zeros_like(state.rally.step), t0=jnp.zeros_like(state.rally.t0))
         rally, out = rollout(model, rally, self.substeps, self.config.control.physics_dt, schedule,
-                             model_axes=axes, max_events=MAX_EVENTS, key=k_phys,
-                             sample_residual=self.config.residual.sample,
+                             model_axes=axes, record=Record(max_events=MAX_EVENTS),
+                             sample_key=k_phys if self.config.residual.sample else None,
                              execution=Execution(remat=False, block_size=self.block_size, reference=self.reference,
                                                  contact_capacity=self.contact_capacity))
         before = state.progress

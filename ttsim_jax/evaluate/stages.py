@@ -409,10 +409,10 @@ def _landing_rollout(model, ball, schedule, dt, n_steps: int) -> dict:
     """The rollouts of :func:`simulate_landing` from ``ball``: their event logs and trajectories. A
     program kept on disk (:func:`~ttsim_jax.files.programs.stored_jit`): tracing the rally kernel
     with its racket takes seconds, once per process otherwise."""
-    from ttsim_jax import Execution, init_state, rollout
+    from ttsim_jax import Execution, Record, init_state, rollout
 
     state = init_state(ball, jnp.zeros((), ball.pos.dtype))
-    _, out = rollout(model, state, n_steps, dt, schedule, max_events=4, record_every=1,
+    _, out = rollout(model, state, n_steps, dt, schedule, record=Record(max_events=4, every=1),
                      execution=Execution(remat=False))
     return dict(kind=out.events.kind, time=out.events.time, pre_pos=out.events.pre.pos, trajectory=out.trajectory.pos,
                 times=out.times)

@@ -9,11 +9,6 @@ diffrax groups a solver's step-size controller and its options.
 from __future__ import annotations
 
 import dataclasses
-import warnings
-
-#: The options :class:`Execution` holds, once passed to ``rollout`` / ``simulate`` directly.
-OPTION_NAMES = ("contact_capacity", "remat", "reference", "block_size", "buffering", "fused", "memory_budget_bytes")
-
 
 @dataclasses.dataclass(frozen=True)
 class Execution:
@@ -68,19 +63,3 @@ class Execution:
     def replace(self, **changes) -> Execution:
         """A copy with ``changes``."""
         return dataclasses.replace(self, **changes)
-
-
-def with_options(execution: Execution | None, options: dict, caller: str) -> Execution:
-    """``execution`` with the options given to ``caller`` directly (the form before :class:`Execution`,
-    kept for one release with a DeprecationWarning); an unknown keyword is a TypeError, as it was."""
-    execution = Execution() if execution is None else execution
-    unknown = sorted(set(options) - set(OPTION_NAMES))
-    if unknown:
-        raise TypeError(f"{caller}() got an unexpected keyword argument {unknown[0]!r}")
-    if options:
-        warnings.warn(f"{caller}({', '.join(f'{k}=...' for k in options)}): pass "
-                      f"execution=Execution({', '.join(f'{k}=...' for k in options)}) instead "
-                      "(ttsim_jax.Execution); the direct keywords go in the next release",
-                      DeprecationWarning, stacklevel=3)
-        execution = execution.replace(**options)
-    return execution

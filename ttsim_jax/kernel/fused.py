@@ -39,9 +39,12 @@ reference path (with its rematerialisation).
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from ttsim_jax.kernel.fused_params import (DRAG_KINDS, FLIGHT_HOOKS, MAGNUS_KINDS, STATE_HOOKS, Layout, Reader,
                                            coefficient_fns, hooked_properties, in_flight, pack)
@@ -452,9 +455,46 @@ def _own_rows(schedule, kb, end, step0, substeps: int):
     return schedule.pos[row, col], schedule.vel[row, col], schedule.face[row, col], steps < end
 
 
-def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, schedule, step0, t0, dt, stepper, *,
-            policy=None, rackets_batched: bool = False, substeps: int = SUBSTEPS, block: int = BLOCK,
-            interpret: bool | None = None, key=None):
+@struct.dataclass
+class Drive:
+    """What moves the balls of a fused advance beside the model: the rackets and the clock.
+
+    Attributes:
+        schedule: the rackets' (T, R, ...) schedule from step ``step0`` on ((T, B, R, ...) with
+            ``rackets_batched``: one per ball, each ball's kernel stop tested against its own
+            rackets' boxes), or None.
+        policy: a :class:`~ttsim_jax.kernel.plans.RacketPolicy` with a ``reach`` (in place of a
+            schedule), or None: the kernel stops a ball before its path meets a box of the reach;
+            the ordinary step evaluates the policy for each ball at its own time, and a ball whose
+            rackets lie outside the reach there ends ``INVALID``.
+        t0, dt, step0: the clock: the time of step k is t0 + k dt, the schedule's first row is step ``step0``.
+        key: the rollout's PRNG key when the residual is sampled, else None: a ball's step k draws
+            with ``fold_in(key, k)``, the key the reference path's step k has, so its draws are
+            the same whatever the other balls do.
+        rackets_batched: (static) the schedule holds one set of rackets per ball.
+    """
+
+    schedule: Any = None
+    policy: Any = None
+    t0: Any = 0.0
+    dt: Any = 1e-3
+    step0: Any = 0
+    key: Any = None
+    rackets_batched: bool = struct.field(pytree_node=False, default=False)
+
+
+@dataclasses.dataclass(frozen=True)
+class Launch:
+    """How the kernel is launched (same results): ``substeps`` steps flown per launch at most,
+    ``block`` balls per program, ``interpret`` (None: on a CPU) Pallas's interpreter."""
+
+    substeps: int = SUBSTEPS
+    block: int = BLOCK
+    interpret: bool | None = None
+
+
+def advance(model, axes, state: StepState, ball_id, k, length: int, drive: Drive, stepper, *,
+            launch: Launch = Launch()) -> StepState:
     """Advances every ball from step ``k`` to ``k + length`` on the fused path.
 
     Each ball keeps its own step count: the kernel (:func:`fly`) flies it up to its next possible
@@ -462,23 +502,18 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
     until every ball has arrived.
 
     Arguments:
-        model, axes: the model and its per-ball axes; ball, alive, status, ball_id, log: the
-            batch as in :func:`~ttsim_jax.kernel.step.step`; k: () step count of every ball;
-            length: steps to take (static); schedule: the rackets' (T, R, ...) schedule from step
-            ``step0`` on ((T, B, R, ...) with ``rackets_batched``: one per ball, each ball's
-            kernel stop tested against its own rackets' boxes), or None; t0, dt: the clock (time of
-            step k is t0 + k dt); stepper: ``step`` with its static options bound;
-        policy: a :class:`~ttsim_jax.kernel.plans.RacketPolicy` with a ``reach`` (in place of a
-            schedule), or None: the kernel stops a ball before its path meets a box of the reach;
-            the ordinary step evaluates the policy for each ball at its own time, and a ball whose
-            rackets lie outside the reach there ends ``INVALID``;
-        key: the rollout's PRNG key when the residual is sampled, else None: a ball's step k draws
-            with ``fold_in(key, k)``, the key the reference path's step k has, so its draws are
-            the same whatever the other balls do.
+        model, axes: the model and its per-ball axes; state, ball_id: the batch as in
+            :func:`~ttsim_jax.kernel.step.step`; k: () step count of every ball;
+            length: steps to take (static); drive: the rackets and the clock (:class:`Drive`);
+            stepper: ``step`` with its static options bound; launch: :class:`Launch`.
 
     Returns:
-        (ball, alive, status, log) at step ``k + length``.
+        The :class:`~ttsim_jax.kernel.step.StepState` at step ``k + length``.
     """
+    ball, alive, status, log = state.ball, state.alive, state.status, state.log
+    schedule, policy, rackets_batched, key = drive.schedule, drive.policy, drive.rackets_batched, drive.key
+    t0, dt, step0 = drive.t0, drive.dt, drive.step0
+    substeps, block, interpret = launch.substeps, launch.block, launch.interpret
     dtype = ball.pos.dtype
     end = k + length
     phys_axes = axes.replace(residual=None)
@@ -536,4 +571,4 @@ def advance(model, axes, ball, alive, status, ball_id, log, k, length: int, sche
 
     kb = jnp.where(alive, k, end)
     carry = jax.lax.while_loop(lambda c: jnp.any(c[4] < end), body, (ball, alive, status, log, kb))
-    return carry[:4]
+    return StepState(*carry[:4])

@@ -11,6 +11,7 @@ state about 2 sqrt(N) times instead of N times with every intermediate of every 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from functools import partial
 from typing import Any
@@ -22,9 +23,10 @@ from flax import struct
 from ttsim_jax.kernel import fused as fused_path
 from ttsim_jax.kernel.axes import StaticAxes, check_per_ball, resolve_axes, split_per_ball
 from ttsim_jax.kernel.eventlog import EventLog
-from ttsim_jax.kernel.execution import Execution, with_options
+from ttsim_jax.kernel.execution import Execution
 from ttsim_jax.kernel.fused_params import in_flight
 from ttsim_jax.kernel.plans import RacketPolicy, check_reach, normalise_schedule
+from ttsim_jax.kernel.record import Record
 from ttsim_jax.kernel.state import RallyState, init_state
 from ttsim_jax.kernel.ball_step import refused_starts
 from ttsim_jax.kernel.step import StepOptions, StepState, step
@@ -40,9 +42,9 @@ class RolloutOutput:
 
     Attributes:
         events: :class:`~ttsim_jax.kernel.eventlog.EventLog` of this rollout's events ((B, K) slots),
-            None when ``max_events`` is 0.
+            None when ``Record.max_events`` is 0.
         trajectory: :class:`~ttsim_jax.state.Ball` with (B, N, 3) fields, the state every
-            ``record_every`` steps (None when not recorded).
+            ``Record.every`` steps (None when not recorded).
         times: (N,) times of the recorded states (None when not recorded).
     """
 
@@ -104,26 +106,44 @@ def default_block(batch: int, fused: bool = False) -> int:
     return 0
 
 
-@partial(jax.jit, static_argnames=("axes", "n_steps", "integrator", "record_every", "max_events", "capacity",
-                                   "sample", "rackets_batched", "remat", "reference", "block",
-                                   "buffering", "fused", "until"))
-def _rollout(model, state: RallyState, schedule, policy, dt, key, *, fused, **static):
-    """The jitted rollout; on the fused path (``fused`` > 0, its sub-steps per launch) a
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """Everything static about a rollout, resolved once by :func:`rollout` from its arguments and
+    its :class:`Execution` (the path among them): the jitted rollout's one static argument.
+
+    ``fused``: the fused path's sub-steps per launch, 0 for the reference path."""
+
+    axes: StaticAxes
+    n_steps: int
+    record: Record
+    step: StepOptions
+    rackets_batched: bool
+    remat: bool
+    block: int
+    fused: int
+
+
+@partial(jax.jit, static_argnames=("plan",))
+def _rollout(model, state: RallyState, schedule, policy, dt, key, *, plan: _Plan):
+    """The jitted rollout; on the fused path (``plan.fused`` > 0, its sub-steps per launch) a
     ``custom_jvp`` whose derivative is the reference path's, so reverse mode never meets the kernel."""
-    if not fused:
-        return _run(model, state, schedule, policy, dt, key, fused=0, **static)
+    if not plan.fused:
+        return _run(model, state, schedule, policy, dt, key, plan)
 
-    def path(substeps):
-        return lambda m, s, sc, pol, d, k: _run(m, s, sc, pol, d, k, fused=substeps, **static)
+    def path(p):
+        return lambda m, s, sc, pol, d, k: _run(m, s, sc, pol, d, k, p)
 
-    run = jax.custom_jvp(path(fused))
-    run.defjvp(lambda primals, tangents: jax.jvp(path(0), primals, tangents))
+    run = jax.custom_jvp(path(plan))
+    run.defjvp(lambda primals, tangents: jax.jvp(path(dataclasses.replace(plan, fused=0)), primals, tangents))
     return run(model, state, schedule, policy, dt, key)
 
 
-def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, integrator, record_every,
-         max_events, capacity, sample, rackets_batched, remat, reference, block, buffering, fused, until):
-    axes = axes.tree()
+def _run(model, state: RallyState, schedule, policy, dt, key, plan: _Plan):
+    n_steps, record, rackets_batched, remat, block = (plan.n_steps, plan.record, plan.rackets_batched, plan.remat,
+                                                      plan.block)
+    record_every, max_events, until, fused, sample = (record.every, record.max_events, record.until_events, plan.fused,
+                                                      plan.step.sample)
+    axes = plan.axes.tree()
     b = state.batch
     dtype = state.ball.pos.dtype
     dt = jnp.asarray(dt, dtype)
@@ -131,8 +151,7 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
     same = (state.dt == dt) | (state.step == 0)
     t0 = jnp.where(same, state.t0, state.time)
     step0 = jnp.where(same, state.step, 0)
-    stepper = partial(step, options=StepOptions(integrator=integrator, capacity=capacity, sample=sample,
-                                                reference=reference, buffering=buffering))
+    stepper = partial(step, options=plan.step)
     every = record_every or chunk_length(n_steps)
     n_chunks, tail = divmod(n_steps, every)
 
@@ -192,12 +211,11 @@ def _run(model, state: RallyState, schedule, policy, dt, key, *, axes, n_steps, 
         length = record_every or n_steps
 
         def segment(carry: Carry, n):
-            now = carry.balls
-            ball, alive, status, log = fused_path.advance(model, axes, now.ball, now.alive, now.status,
-                                                          ball_id, now.log, carry.step, n, schedule, step0, t0,
-                                                          dt, stepper, policy=policy, rackets_batched=rackets_batched,
-                                                          substeps=fused, key=key if sample else None)
-            return Carry(StepState(ball, alive, status, log), carry.step + n)
+            drive = fused_path.Drive(schedule=schedule, policy=policy, t0=t0, dt=dt, step0=step0,
+                                     key=key if sample else None, rackets_batched=rackets_batched)
+            balls = fused_path.advance(model, axes, carry.balls, ball_id, carry.step, n, drive, stepper,
+                                       launch=fused_path.Launch(substeps=fused))
+            return Carry(balls, carry.step + n)
 
         def chunk(carry, _):
             carry = segment(carry, length)
@@ -335,9 +353,8 @@ def default_capacity(batch: int) -> int:
 
 
 def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *,
-            integrator: str = "rk4", model_axes=None, max_events: int = 8, record_every: int = 0,
-            sample_residual: bool = False, key=None, until_events: int = 0, execution: Execution | None = None,
-            **options) -> tuple[RallyState, RolloutOutput]:
+            integrator: str = "rk4", model_axes=None, record: Record = Record(), sample_key=None,
+            execution: Execution = Execution()) -> tuple[RallyState, RolloutOutput]:
     """Advances a rally by ``n_steps`` steps of ``dt``; pure and jittable, resumable from its state.
 
     Arguments:
@@ -353,49 +370,40 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
         model_axes: which model leaves carry a per-ball leading (B,) axis: None (all shared), 0 (all
             per ball, e.g. ``stack_models``), or a pytree prefix of the model with 0 / None
             (:func:`~ttsim_jax.kernel.axes.per_ball_axes`). Only the leaves a study varies need to be per ball.
-        max_events: slots of each ball's event log (0: no log).
-        record_every: record the ball every that many steps (0: no recording); must divide n_steps.
-        sample_residual: sample the residual network's correction from its predicted std; the draw
-            depends on ``key``, the step and the ball's id only.
-        key: PRNG key for sampling (default ``PRNGKey(0)``).
-        until_events: each ball stops advancing once this rollout's event log has counted that many
-            of its events (after the step that reached it, whose further events, such as a bounce
-            just after a net crossing, are logged too; its state is frozen there, still ``alive``; a
-            later rollout, with a fresh log, moves it on), and a step where no ball advances is
-            skipped whole: a branch per step, which pays where most of a batch finishes early (a
-            shot's flight to its landing, through a horizon long enough for the slowest; forward or
-            reverse mode) and costs a device-to-host copy per step on a GPU. 0 (default): balls run to the end. At most
-            ``max_events``; not on the fused path.
+        record: what is recorded (:class:`~ttsim_jax.kernel.record.Record`: the trajectory every
+            that many steps, the event log's slots, a stop after a number of events); default
+            ``Record()``: an event log of 8 slots, no trajectory.
+        sample_key: a PRNG key: the residual network's correction is sampled from its predicted
+            std, each draw depending on the key, the step and the ball's id only; None (default):
+            its mean correction.
         execution: how it runs, same results (:class:`~ttsim_jax.kernel.execution.Execution`: event
-            buffer, rematerialisation, blocks, buffering, the fused path, the memory budget); default
-            ``Execution()``. Its fields given here directly (``fused=False``) still work for one
-            release, with a DeprecationWarning.
+            buffer, rematerialisation, blocks, buffering, the fused path, the memory budget).
 
     Returns:
         (state, :class:`RolloutOutput`).
     """
-    execution = with_options(execution, options, "rollout")
-    contact_capacity, remat, reference = execution.contact_capacity, execution.remat, execution.reference
-    block_size, buffering, fused = execution.block_size, execution.buffering, execution.fused
+    if not isinstance(record, Record):
+        raise TypeError(f"record must be a ttsim_jax.Record, got {type(record).__name__}")
+    if not isinstance(execution, Execution):
+        raise TypeError(f"execution must be a ttsim_jax.Execution, got {type(execution).__name__}")
     ball = state.ball
     if ball.pos.ndim != 2 or ball.pos.shape[-1] != 3:
         raise ValueError(f"state.ball fields must be (B, 3); got pos {ball.pos.shape}")
     batch = ball.pos.shape[0]
     if not isinstance(n_steps, int) or n_steps <= 0:
         raise ValueError(f"n_steps must be positive (an int), got {n_steps!r}")
-    if record_every and n_steps % record_every:
-        raise ValueError(f"record_every={record_every} must divide n_steps={n_steps}")
-    need = memory_bytes(batch, n_steps, record_every, max_events, ball.pos.dtype)
+    record.check(n_steps)
+    need = memory_bytes(batch, n_steps, record.every, record.max_events, ball.pos.dtype)
     memory_budget_bytes, source = budget_bytes(execution.memory_budget_bytes)
     if need["total"] > memory_budget_bytes:
         gib = lambda n: f"{n / 2**30:.2f} GiB"  # noqa: E731
         raise SizeError(
-            f"a rollout of {batch} balls for {n_steps} steps (record_every={record_every}, "
-            f"max_events={max_events}) needs {gib(need['total'])} (state {gib(need['state'])}, event log "
+            f"a rollout of {batch} balls for {n_steps} steps (Record(every={record.every}, "
+            f"max_events={record.max_events})) needs {gib(need['total'])} (state {gib(need['state'])}, event log "
             f"{gib(need['event_log'])}, recording {gib(need['recording'])}), above the memory budget of "
-            f"{gib(memory_budget_bytes)} ({source}); record less often (record_every), log fewer events "
-            "(max_events), run fewer balls per call, or raise the budget (Execution(memory_budget_bytes=...), "
-            "TTSIM_MEMORY_BUDGET)")
+            f"{gib(memory_budget_bytes)} ({source}); record less often (Record(every=...)), log fewer events "
+            "(Record(max_events=...)), run fewer balls per call, or raise the budget "
+            "(Execution(memory_budget_bytes=...), TTSIM_MEMORY_BUDGET)")
     axes = resolve_axes(model, model_axes)
     check_per_ball(model, axes, batch)
     schedule, policy, batched = None, None, False
@@ -405,57 +413,48 @@ def rollout(model: Model, state: RallyState, n_steps: int, dt: float = 1e-3, rac
     elif racket is not None:
         schedule, batched = normalise_schedule(racket, n_steps, batch)
         schedule = jax.tree.map(lambda a: jnp.asarray(a, ball.pos.dtype), schedule)
-    if not isinstance(until_events, int) or not 0 <= until_events <= max_events:
-        raise ValueError(f"until_events must be an int in [0, max_events={max_events}], got {until_events!r}")
+    fused = execution.fused
     if fused:
         why = fused_path.unsupported(model, axes, integrator=integrator, policy=policy, rackets_batched=batched)
-        if why is None and until_events:
+        if why is None and record.until_events:
             why = "until_events"
         if why is not None and fused is True:
             raise ValueError(f"fused=True: the fused path does not cover {why}; use fused=False or 'auto'")
         air = in_flight(model, ("air_velocity",))
         pays = fused_pays(batch, batched, air, policy is not None, n_steps, fused_path.per_ball_physics(axes))
-        fused = why is None and not reference and (fused is True or pays)
-    block = default_block(batch, fused) if block_size is None else int(block_size)
-    capacity = contact_capacity or default_capacity(min(batch, block) if block else batch)
-    if buffering is None:
-        buffering = default_buffering()
-    key = jax.random.PRNGKey(0) if key is None else key
-    return _rollout(model, state, schedule, policy, dt, key, axes=StaticAxes(axes), n_steps=n_steps, integrator=integrator,
-                    record_every=record_every, max_events=max_events, capacity=int(capacity),
-                    sample=sample_residual, rackets_batched=batched, remat=remat, reference=reference,
-                    block=block, buffering=buffering, fused=fused_path.SUBSTEPS if fused else 0,
-                    until=until_events)
+        fused = why is None and not execution.reference and (fused is True or pays)
+    block = default_block(batch, fused) if execution.block_size is None else int(execution.block_size)
+    capacity = execution.contact_capacity or default_capacity(min(batch, block) if block else batch)
+    buffering = default_buffering() if execution.buffering is None else execution.buffering
+    sample = sample_key is not None
+    options = StepOptions(integrator=integrator, capacity=int(capacity), sample=sample,
+                          reference=execution.reference, buffering=buffering)
+    plan = _Plan(axes=StaticAxes(axes), n_steps=n_steps, record=record, step=options, rackets_batched=batched,
+                 remat=execution.remat, block=block, fused=fused_path.SUBSTEPS if fused else 0)
+    key = sample_key if sample else jax.random.PRNGKey(0)
+    return _rollout(model, state, schedule, policy, dt, key, plan=plan)
 
 
 def simulate(model: Model, ball: Ball, n_steps: int, dt: float = 1e-3, racket=None, *, integrator: str = "rk4",
-             record_every: int = 0, max_events: int = 8, sample_residual: bool = False, key=None, t0: float = 0.0,
-             model_batched: bool = False, model_axes=None, execution: Execution | None = None,
-             **options) -> RallyResult:
-    """Simulates a batch of balls from the start for ``n_steps`` steps: :func:`init_state` then
-    :func:`rollout`.
+             model_axes=None, record: Record = Record(), sample_key=None,
+             execution: Execution = Execution()) -> RallyResult:
+    """Simulates a batch of balls from the start (time 0) for ``n_steps`` steps: :func:`init_state`
+    then :func:`rollout` (start at another time with ``rollout(model, init_state(ball, t0), ...)``).
 
     Arguments:
         model: a :class:`~ttsim_jax.params.Model`.
         ball: :class:`Ball` with (B, 3) fields (or (3,) for one ball; outputs keep B = 1), cast to
             the model's float dtype.
-        n_steps, dt, racket, integrator, record_every, max_events, sample_residual, key,
-        model_axes, execution: as for :func:`rollout` (and, as there, execution options given
-        directly, for one release).
-        t0: start time [s].
-        model_batched: shorthand for ``model_axes=0`` (every leaf per ball, e.g. ``stack_models``).
+        n_steps, dt, racket, integrator, model_axes, record, sample_key, execution: as for
+            :func:`rollout`.
 
     Returns:
         A :class:`RallyResult` (its ``state`` resumes the rally).
     """
-    execution = with_options(execution, options, "simulate")
     ball = jax.tree.map(lambda a: jnp.asarray(a, model.ball.radius.dtype), ball)
     if ball.pos.ndim == 1:
         ball = jax.tree.map(lambda a: a[None], ball)
-    state = init_state(ball, t0)
-    state, out = rollout(model, state, n_steps, dt, racket, integrator=integrator,
-                         model_axes=0 if model_batched else model_axes, max_events=max_events,
-                         record_every=record_every, sample_residual=sample_residual, key=key,
-                         execution=execution)
+    state, out = rollout(model, init_state(ball), n_steps, dt, racket, integrator=integrator, model_axes=model_axes,
+                         record=record, sample_key=sample_key, execution=execution)
     return RallyResult(final=state.ball, alive=state.alive, status=state.status, events=out.events,
                        trajectory=out.trajectory, times=out.times, state=state)

@@ -20,8 +20,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from ttsim_jax.kernel.axes import StaticAxes, check_per_ball, resolve_axes
 from ttsim_jax.kernel.rollout import RolloutOutput, default_capacity, rollout
-from ttsim_jax.kernel.execution import Execution, with_options
+from ttsim_jax.kernel.execution import Execution
 from ttsim_jax.kernel.plans import RacketPolicy, normalise_schedule
+from ttsim_jax.kernel.record import Record
 from ttsim_jax.kernel.state import RallyState
 
 AXIS = "balls"
@@ -44,9 +45,10 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
     """The jitted shard_map of a rollout, cached on everything static so repeated calls reuse it."""
     kw = dict(static_kw)
     axes_tree = axes.tree()
+    record = kw["record"]
 
     def local_rollout(model, state, plan, dt, key):
-        return rollout(model, state, n_steps, dt, plan, model_axes=axes_tree, key=key, **kw)
+        return rollout(model, state, n_steps, dt, plan, model_axes=axes_tree, sample_key=key, **kw)
 
     def specs(model, state, plan):
         model_specs = jax.tree.map(lambda ax, sub: jax.tree.map(lambda _: P() if ax is None else P(AXIS), sub),
@@ -57,8 +59,8 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
     def run(model, state, plan, dt, key):
         model_specs, state_specs, plan_specs = specs(model, state, plan)
         out_specs = (state_specs, RolloutOutput(
-            events=None if not kw["max_events"] else P(AXIS), trajectory=None if not kw["record_every"] else P(AXIS),
-            times=None if not kw["record_every"] else P()))
+            events=None if not record.max_events else P(AXIS), trajectory=None if not record.every else P(AXIS),
+            times=None if not record.every else P()))
         fn = jax.shard_map(local_rollout, mesh=mesh, in_specs=(model_specs, state_specs, plan_specs, P(), P()),
                            out_specs=out_specs, check_vma=False)
         return fn(model, state, plan, dt, key)
@@ -67,21 +69,22 @@ def _compiled(mesh, axes, n_steps, has_plan, plan_per_ball, static_kw):
 
 
 def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, racket=None, *, mesh: Mesh | None = None,
-                    model_axes=None, integrator: str = "rk4", max_events: int = 8, record_every: int = 0,
-                    sample_residual: bool = False, key=None, execution: Execution | None = None, **options):
+                    model_axes=None, sample_key=None, execution: Execution = Execution(), **options):
     """:func:`~ttsim_jax.kernel.rollout.rollout` with the ball axis split over the devices of ``mesh``.
 
     Arguments:
-        model, state, n_steps, dt, racket, model_axes, integrator, max_events, record_every,
-        sample_residual, key, execution: as for ``rollout`` (its ``contact_capacity`` counts rows
-            per device; default: the default for the local batch).
+        model, state, n_steps, dt, racket, model_axes, sample_key, execution: as for ``rollout``
+            (its ``contact_capacity`` counts rows per device; default: the default for the local batch).
         mesh: a 1-D mesh with axis ``"balls"`` (default :func:`ball_mesh`); the batch must divide
             evenly over it.
+        options: ``rollout``'s other keyword arguments (``integrator``, ``record``).
 
     Returns:
         (state, outputs) as ``rollout``, sharded along the ball axis.
     """
-    execution = with_options(execution, options, "sharded_rollout")
+    unknown = sorted(set(options) - {"integrator", "record"})
+    if unknown:
+        raise TypeError(f"sharded_rollout() got an unexpected keyword argument {unknown[0]!r}")
     mesh = ball_mesh() if mesh is None else mesh
     n_dev = mesh.shape[AXIS]
     batch = state.batch
@@ -93,11 +96,11 @@ def sharded_rollout(model, state: RallyState, n_steps: int, dt: float = 1e-3, ra
     if racket is not None and not isinstance(racket, RacketPolicy):
         per_ball_plan = normalise_schedule(racket, n_steps, batch)[1]
     execution = execution.replace(contact_capacity=execution.contact_capacity or default_capacity(batch // n_dev))
-    static_kw = (("integrator", integrator), ("max_events", max_events), ("record_every", record_every),
-                 ("sample_residual", sample_residual), ("execution", execution))
+    static_kw = (("integrator", options.get("integrator", "rk4")), ("record", options.get("record", Record())),
+                 ("execution", execution))
     fn, specs = _compiled(mesh, StaticAxes(axes), n_steps, racket is not None, per_ball_plan, static_kw)
     model_specs, state_specs, plan_specs = specs(model, state, racket)
     place = lambda tree, sp: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, sp)  # noqa: E731
-    key = jax.random.PRNGKey(0) if key is None else key
     return fn(place(model, model_specs), place(state, state_specs),
-              None if racket is None else place(racket, plan_specs), jax.numpy.asarray(dt, state.ball.pos.dtype), key)
+              None if racket is None else place(racket, plan_specs), jax.numpy.asarray(dt, state.ball.pos.dtype),
+              sample_key)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -110,8 +110,24 @@ def _residual_rows(residual, res_axes, x, eps):
     return jax.vmap(one, in_axes=(res_axes, 0, None if eps is None else 0))(residual, x, eps)
 
 
-def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_batched, rows, ball_id, t, dt,
-            key, sample, net_rows=None, unrolled=False):
+@struct.dataclass
+class _StepInputs:
+    """What a step's event stage reads of the whole batch: the balls at the step's start (``ball``,
+    ``alive``) and after its free flight (``free``), the rackets ((R, ...), or (B, R, ...) with
+    ``rackets_batched``), the balls' ids, the step's time and length and its PRNG key."""
+
+    ball: Ball
+    alive: Any
+    free: Ball
+    rackets: Any
+    ball_id: Any
+    t: Any
+    dt: Any
+    key: Any
+    rackets_batched: bool = struct.field(pytree_node=False, default=False)
+
+
+def _events(model: Model, axes, inputs: _StepInputs, rows, *, sample: bool, net_rows=None, unrolled=False):
     """Exact detection, contact responses and bookkeeping for the balls ``rows`` (C,) of the batch.
 
     Each row's step is handled in up to ``EVENTS_PER_STEP`` stages: a stage finds the earliest event
@@ -130,6 +146,9 @@ def _events(model: Model, axes, ball: Ball, alive, free: Ball, rackets, rackets_
     Returns:
         :class:`StepEvents` of the C rows.
     """
+    ball, alive, free, rackets, rackets_batched = (inputs.ball, inputs.alive, inputs.free, inputs.rackets,
+                                                   inputs.rackets_batched)
+    ball_id, t, dt, key = inputs.ball_id, inputs.t, inputs.dt, inputs.key
     b = alive.shape[0]
     safe = jnp.minimum(rows, b - 1)
     take = lambda a: a[safe]  # noqa: E731
@@ -329,11 +348,11 @@ def step(model: Model, axes, state: StepState, ball_id, rackets: Racket | None, 
     flag, near = alive & flag, alive & near
     base = jax.tree.map(lambda f, o: jnp.where(alive[:, None], f, o), free, ball)
     capacity = min(capacity, b)
+    inputs = _StepInputs(ball, alive, free, rackets, ball_id, t, dt, key, rackets_batched=rackets_batched)
 
     def events(rows):
         with jax.named_scope("events"):
-            return _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key,
-                           sample, unrolled=buffering == "single")
+            return _events(model, axes, inputs, rows, sample=sample, unrolled=buffering == "single")
 
     def write(rows, out: StepEvents):
         """The events ``out`` of the balls ``rows`` written into the batch (rows >= B are dropped)."""
@@ -372,8 +391,7 @@ def step(model: Model, axes, state: StepState, ball_id, rackets: Racket | None, 
         def one_buffer():
             rows = jnp.nonzero(flag, size=capacity, fill_value=b)[0]
             with jax.named_scope("events"):
-                found = _events(model, axes, ball, alive, free, rackets, rackets_batched, rows, ball_id, t, dt, key,
-                                sample, net_rows, unrolled=True)
+                found = _events(model, axes, inputs, rows, sample=sample, net_rows=net_rows, unrolled=True)
             return write(rows, found)
 
         if capacity >= b:

@@ -21,7 +21,7 @@ How a game is made:
   (most hits near the centre, some in every band 0-5, 5-8 and beyond 8 cm). The *true* contact
   (truth model, with its effects) then decides what the ball really does.
 * Flights are simulated with :func:`ttsim_jax.kernel.simulate` (dt = 1 ms, RK4), every game in its
-  own lane of one batch (each lane with its game's truth model: ``model_batched``), in chunks of
+  own lane of one batch (each lane with its game's truth model: ``model_axes=0``), in chunks of
   ``chunk_steps`` steps recorded at every step (so that contacts can be placed on the 1 ms grid,
   between the 200 Hz frames); the host reads the event log and trajectory of each chunk, decides
   hits and ends of rallies, and restarts each lane from its new state. A ball is hit after it

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax import effects as fx
-from ttsim_jax.kernel import simulate
+from ttsim_jax.kernel import Record, simulate
 from ttsim_jax.params import load_model, stack_models
 from ttsim_jax.physics import events as ev
 from ttsim_jax.physics.dimensions import TABLE_HALF_LENGTH
@@ -227,7 +227,7 @@ class Game:
             models = lane_models(self.truth_models, jnp.asarray(idx), jnp.asarray(origin, self.dtype))
             ball = Ball(*(jnp.asarray(np.stack([getattr(ln, f) if ln.session else np.array([0, 0, 1.0]) for ln in lanes])
                                       .astype(self.np_dtype)) for f in ("pos", "vel", "spin")))
-            res = simulate(models, ball, C, dt, record_every=1, max_events=6, model_batched=True)
+            res = simulate(models, ball, C, dt, record=Record(every=1, max_events=6), model_axes=0)
             self.steps_simulated += C * sum(ln.session is not None for ln in lanes)
             self.chunks += 1
             traj = np.concatenate([np.asarray(res.trajectory.pos), np.asarray(res.trajectory.vel),

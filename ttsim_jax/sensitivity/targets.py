@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ttsim_jax.kernel.execution import Execution
+from ttsim_jax.kernel.record import Record
 from ttsim_jax.kernel.rollout import rollout
 from ttsim_jax.kernel.state import init_state
 from ttsim_jax.physics import events as ev
@@ -133,7 +134,7 @@ def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int, buff
 
     One rollout records the ball at every step (the net crossing is read from it); in reverse mode
     the kernel then rematerialises each step once (its chunks are single steps). Each ball stops at
-    its second event (``rollout(until_events=2)``: the landing, for a shot that lands), and steps
+    its second event (``rollout(record=Record(until_events=2))``: the landing, for a shot that lands), and steps
     where every ball has stopped are skipped: a batch of shots that land early costs little more
     than its flights to the landing, whatever the horizon.
 
@@ -156,8 +157,8 @@ def program_outcome(model, ball: Ball, racket: Racket, dt, *, n_steps: int, buff
     dtype = ball.pos.dtype
     total = WINDOW + n_steps
     schedule = racket_schedule(racket, total, dt)
-    _, out = rollout(model, init_state(ball), total, dt, schedule, model_axes=0, max_events=2, record_every=1,
-                     until_events=2, execution=Execution(buffering=buffering))
+    _, out = rollout(model, init_state(ball), total, dt, schedule, model_axes=0,
+                     record=Record(every=1, max_events=2, until_events=2), execution=Execution(buffering=buffering))
     log = out.events
     sequence = log.kind[:, :2]
     valid = (sequence[:, 0] == ev.RACKET) & (sequence[:, 1] == ev.TABLE)
