@@ -33,8 +33,8 @@ the flat table's box). The coefficient tables are passed to the kernel as one sm
 scalars and interpolated with the same ramps as ``aero._piecewise`` (arithmetic, no gather).
 
 Reverse mode never sees the kernel: the fused rollout is a ``jax.custom_jvp`` whose derivative is
-the reference path's, so ``jax.grad`` through ``rollout(..., fused=True)`` differentiates the
-reference path (with its rematerialisation).
+the reference path's, so ``jax.grad`` through ``rollout(..., execution=Execution(fused=True))``
+differentiates the reference path (with its rematerialisation).
 """
 
 from __future__ import annotations
