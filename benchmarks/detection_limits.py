@@ -62,20 +62,20 @@ def diagnosed(ds, name: str, max_segments):
     from ttsim_jax.diagnose.diagnosis import Settings, diagnose
 
     out = diagnose(ds, load_model("conti2026", dtype=jnp.float32), Settings.quick(effects=(name,), max_segments=max_segments))
-    c = next(c for c in out["candidates"] if c["name"] == name)
+    c = next(c for c in out.candidates if c["name"] == name)
     return out, c
 
 
 def one_seed(name: str, seed: int, n_games: int, max_segments) -> dict:
     ds, _ = games(name, 0.0, seed, n_games)
     out, _ = diagnosed(ds, name, max_segments)
-    per = out["limits"]["candidates"].get(name, {})
+    per = out.limits["candidates"].get(name, {})
     shown = {p: e for p, e in per.items() if e["size"] is not None}
     if not shown:
         return dict(seed=seed, limit=None, phase=None)
     phase, lim = min(shown.items(), key=lambda kv: kv[1]["size"])
     row = dict(seed=seed, phase=phase, limit=lim["size"], limit_params=lim["params"], share_pct=lim["share_pct"],
-               limit_reduction_pct=lim["reduction_pct"], segments=out["counts"])
+               limit_reduction_pct=lim["reduction_pct"], segments=out.counts)
     for factor in (0.5, 1.5):
         ds, values = games(name, factor * lim["size"], seed, n_games)
         res, c = diagnosed(ds, name, max_segments)

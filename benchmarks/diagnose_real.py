@@ -36,20 +36,20 @@ SOURCES = {"spindoe": "spindoe", "tt3d": "tt3d", "mpi": "mpi_ball_prediction"}
 BASELINES = ("nakashima2011", "durr2026")
 
 
-def summary(out: dict, counts: dict, wall: float, cpu: float) -> dict:
+def summary(out, counts: dict, wall: float, cpu: float) -> dict:
     """The numbers of one diagnosis that the summary keeps (JSON-able)."""
     where = {p: dict(n=w["n"], groups=w["groups"], mean=w["mean"], ci95=w["ci95"], flagged=w["flagged"])
-             for p, w in out["where"].items()}
+             for p, w in out.where.items()}
     cands = [dict(name=c["name"], significant=c["significant"],
                   heldout={p: dict(pct=h["pct"], ci95=h["ci95"], before_rms=h["before_rms"], after_rms=h["after_rms"],
                                    n=h["n"]) for p, h in c["heldout"].items()},
-                  **({"adds": c["adds"]} if "adds" in c else {})) for c in out["candidates"]]
-    return dict(dataset=counts, items=out["counts"], no_data=out["no_data"], pooled_sessions=out["pooled_sessions"],
-                where=where, dependence={p: d[:4] for p, d in out["dependence"].items()}, candidates=cands,
-                record={k: v for k, v in out["record"].items()
+                  **({"adds": c["adds"]} if "adds" in c else {})) for c in out.candidates]
+    return dict(dataset=counts, items=out.counts, no_data=out.no_data, pooled_sessions=out.pooled_sessions,
+                where=where, dependence={p: d[:4] for p, d in out.dependence.items()}, candidates=cands,
+                record={k: v for k, v in out.record.items()
                         if k in ("position_noise", "missing_frames", "spin_noise", "spin_check")},
-                spin_sources=out.get("spin_sources", {}),
-                verdict=out["verdict"]["text"], seconds=wall, cpu_seconds=cpu)
+                spin_sources=out.spin_sources or {},
+                verdict=out.verdict.text, seconds=wall, cpu_seconds=cpu)
 
 
 def main(argv=None) -> int:

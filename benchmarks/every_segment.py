@@ -83,18 +83,18 @@ def one(ds, model, max_segments, name, truth) -> dict:
     out = diagnose(ds, model, Settings(landing=False, max_segments=max_segments), keep=keep)
     seconds = time.perf_counter() - t0
     oracle = oracle_scores(keep["problem"], model, (name,), truth)["flight"]
-    ranked = [c["name"] for c in out["candidates"]]
-    cand = next(c for c in out["candidates"] if c["name"] == name)
+    ranked = [c["name"] for c in out.candidates]
+    cand = next(c for c in out.candidates if c["name"] == name)
     flight = cand["heldout"]["flight"]
-    limit = out["limits"]["candidates"].get(name, {}).get("flight")
-    return dict(max_segments=max_segments, counts=out["counts"], seconds=seconds, load=os.getloadavg(),
+    limit = out.limits["candidates"].get(name, {}).get("flight")
+    return dict(max_segments=max_segments, counts=out.counts, seconds=seconds, load=os.getloadavg(),
                 oracle_pct=oracle["pct"], oracle_ci95=oracle["ci95"],
                 oracle_significant=significant("flight", oracle),
                 candidate=dict(name=name, pct=flight["pct"], ci95=flight["ci95"], significant=bool(cand["significant"]),
                                rank=ranked.index(name) + 1, params=cand.get("params")),
-                accepted=out["verdict"]["effects"], level=out["verdict"]["level"], gaps=out["verdict"].get("gaps"),
+                accepted=out.verdict.effects, level=out.verdict.level, gaps=out.verdict.gaps,
                 limit=None if limit is None else dict(limit, text=describe(name, limit)),
-                verdict=out["verdict"]["text"])
+                verdict=out.verdict.text)
 
 
 def main(argv=None):

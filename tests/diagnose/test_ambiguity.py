@@ -44,13 +44,13 @@ def test_the_verdict_names_indistinguishable_candidates_and_a_better_model_free_
            "bound": {"table": {"heldout": dict(pct=35.0, ci95=[28.0, 41.0], significant=True),
                                "terms": [{"name": "tangential velocity x per slip x", "share": 0.8}]}}}
     v = verdict(out, [worn])
-    assert v["level"] == "partly explained"
-    assert "worn_ball and buckling are indistinguishable on these data" in v["text"]
-    assert "bounces over a wide range would tell them apart" in v["text"]
+    assert v.level == "partly explained"
+    assert "worn_ball and buckling are indistinguishable on these data" in v.text
+    assert "bounces over a wide range would tell them apart" in v.text
     assert ("In the table phase the catalogue closes less than a model-free correction does (10.0 % against 35.0 %"
-            in v["text"]) and "tangential velocity x per slip x (80 %)" in v["text"]
+            in v.text) and "tangential velocity x per slip x (80 %)" in v.text
     out["bound"]["table"]["heldout"]["ci95"] = [5.0, 41.0]  # not clearly better: no word, no downgrade
-    assert "model-free" not in verdict(out, [worn])["text"]
+    assert "model-free" not in verdict(out, [worn]).text
 
 
 def contacts(n=400, seed=2):
@@ -94,10 +94,10 @@ def test_the_verdict_does_not_call_a_gap_explained_by_a_fit_that_shows_only_a_si
     floor = dict(floor=0.27, floor_ci95=[0.26, 0.28], error=0.3, error_ci95=[0.29, 0.31], removable=0.13)
     out = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": floor},
            "before_after": {"table": {"heldout": dict(pct=10.0, ci95=[8.0, 12.0], before_rms=0.3, after_rms=0.27)}}}
-    assert verdict(out, [buckling])["level"] == "explained"
+    assert verdict(out, [buckling]).level == "explained"
     out["reads_as"] = {"buckling": [dict(reading="uniform_restitution", text="a restitution change at every impact speed",
                                          cosine=0.97, separate="contacts over a wide range of impact speeds")]}
     v = verdict(out, [buckling])
-    assert v["level"] == "partly explained" and v["text"].startswith("Partly explained by: buckling")
+    assert v.level == "partly explained" and v.text.startswith("Partly explained by: buckling")
     assert ("What buckling changes on these data is a restitution change at every impact speed (cosine 0.97): the "
-            "data show that change, not what names buckling") in v["text"]
+            "data show that change, not what names buckling") in v.text

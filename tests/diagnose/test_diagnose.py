@@ -36,24 +36,24 @@ def withheld():
     model = load_model("conti2026", dtype=jnp.float32)
     keep = {}
     out = diagnose(ds, model, Settings.quick(effects=CANDIDATES), keep=keep)
-    return dict(out, problem=keep["problem"], model=model)
+    return dict(diagnosis=out, problem=keep["problem"], model=model)
 
 
 def test_withheld_effect_ranks_first_and_is_significant(withheld):
-    cands = withheld["candidates"]
+    cands = withheld["diagnosis"].candidates
     assert cands[0]["name"] == "buckling", [(c["name"], c["best_reduction_pct"]) for c in cands]
     assert cands[0]["significant"]
-    v = withheld["verdict"]
-    assert v["level"] != "unexplained" and v["effects"][0] == "buckling"
+    v = withheld["diagnosis"].verdict
+    assert v.level != "unexplained" and v.effects[0] == "buckling"
     # the table's gap (noise-free data: all of its error is removable) is closed; the text says how much
-    assert v["shares"]["table"]["share"] >= 0.7 and "of the table gap" in v["text"]
+    assert v.shares["table"]["share"] >= 0.7 and "of the table gap" in v.text
     # the table phase is where it acts and where it is found
     h = cands[0]["heldout"]["table"]
     assert h["ci95"][0] > 10.0, h
 
 
 def test_withheld_effect_parameters_are_recovered_roughly(withheld):
-    p = withheld["candidates"][0]["params"]["buckling"]
+    p = withheld["diagnosis"].candidates[0]["params"]["buckling"]
     # the restitution loss at a 6 m/s impact, from the fitted and the true parameters
     def loss(q):
         r = max(6.0 - q["table_onset"], 0.0) / q["table_width"]
@@ -71,7 +71,7 @@ def test_oracle_shrink_of_the_selfcheck(withheld):
     truth = json.loads((BUCKLING / "truth.json").read_text())
     oracle = oracle_scores(withheld["problem"], withheld["model"], "buckling", truth)
     assert oracle["table"]["pct"] > 80.0, oracle
-    found = withheld["candidates"][0]["heldout"]["table"]["pct"]
+    found = withheld["diagnosis"].candidates[0]["heldout"]["table"]["pct"]
     assert found > 0.8 * oracle["table"]["pct"]
 
 
@@ -189,7 +189,7 @@ def test_forward_selection_reports_interchangeable_effects(withheld, monkeypatch
     assert not adds["ball_variation"]["accepted"] and adds["ball_variation"]["interchangeable_with"] == ["air_flow"]
     out = dict(where={}, dependence={}, candidates=[dict(_candidate_json(wind, 1)),
                                                     dict(_candidate_json(ball, 2), adds=adds["ball_variation"])])
-    text = verdict(out, accepted, [ball])["text"]
+    text = verdict(out, accepted, [ball]).text
     assert "air_flow and ball_variation are interchangeable" in text, text
 
 

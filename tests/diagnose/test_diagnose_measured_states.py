@@ -26,10 +26,10 @@ def test_racket_phase_from_measured_states():
     assert len(rk.event_id) == 400
     assert np.isnan(rk.since).all() and (rk.spin_dt == 0).all()  # no segments around a rig's contact
     out = diagnose(ds, model)
-    assert set(out["no_data"]) >= {"flight", "table"}
-    assert isinstance(out["floor"]["racket"], str)  # no floor: no positions
-    text = out["verdict"]["text"]
+    assert set(out.no_data) >= {"flight", "table"}
+    assert isinstance(out.floor["racket"], str)  # no floor: no positions
+    text = out.verdict.text
     assert "racket" in text and "0 m/s" not in text
-    assert out["verdict"]["level"] != "explained"
+    assert out.verdict.level != "explained"
     text = markdown(out, "rig", "conti2026")
     assert "nan" not in text.lower().replace("nakashima", "")  # nothing unknown is printed as a number

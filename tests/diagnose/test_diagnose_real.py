@@ -39,23 +39,44 @@ def run(tmp_path_factory):
     out = diagnose(ds, model, Settings.quick(effects=("table_tilt",), steps=5, landing=True), keep=keep)
     folder = tmp_path_factory.mktemp("report")
     write_report(out, folder, data="tt3d", model="conti2026")
-    return dict(out, problem=keep["problem"]), folder
+    return out, keep["problem"], folder
 
 
 def test_phases_without_data_are_no_data(run):
-    out, folder = run
-    assert set(out["where"]) == {"flight", "table"}
-    assert set(out["no_data"]) == {"racket", "landing"}
-    assert "racket states" in out["no_data"]["racket"] and "racket" in out["no_data"]["landing"]
+    out, _, folder = run
+    assert set(out.where) == {"flight", "table"}
+    assert set(out.no_data) == {"racket", "landing"}
+    assert "racket states" in out.no_data["racket"] and "racket" in out.no_data["landing"]
     report = (folder / "report.md").read_text()
     assert "| racket | 0 | 0 | no data | - |" in report and "| landing | 0 | 0 | no data | - |" in report
     assert "nan" not in report.lower()
 
 
+def test_the_diagnosis_is_typed_and_its_json_is_the_file(run):
+    """``diagnose`` returns a ``Diagnosis`` whose verdict is a ``Verdict``; ``to_json()`` is what
+    ``diagnosis.json`` holds (the verdict as a dict, the sections that do not apply left out), and
+    the report renders the same from either."""
+    from ttsim_jax.diagnose import Diagnosis, Verdict
+    from ttsim_jax.diagnose.diagnosis import jsonable
+    from ttsim_jax.diagnose.report import markdown
+
+    out, _, folder = run
+    assert isinstance(out, Diagnosis) and isinstance(out.verdict, Verdict)
+    assert out.verdict.explained == (out.verdict.level == "explained")
+    body = jsonable(out.to_json())
+    stored = json.loads((folder / "diagnosis.json").read_text())
+    assert body == stored
+    assert stored["verdict"]["text"] == out.verdict.text and stored["verdict"]["level"] == out.verdict.level
+    assert "arrays" not in stored and "histories" not in stored and "loss_history" in stored
+    assert out.spin_correction is None and "spin_correction" not in stored  # no measured spin to correct
+    assert markdown(out, "tt3d", "conti2026") == markdown(stored, "tt3d", "conti2026")
+    assert markdown(out, "tt3d", "conti2026") == (folder / "report.md").read_text()
+
+
 def test_no_nan_in_the_json(run):
-    out, folder = run
+    out, _, folder = run
     d = json.loads((folder / "diagnosis.json").read_text(), parse_constant=_reject)
-    assert d["no_data"] == out["no_data"]
+    assert d["no_data"] == out.no_data
     for p in ("flight", "table"):
         assert math.isfinite(d["where"][p]["mean"]) and d["where"][p]["n"] > 0
     # one throw per session: the per-session effects would be fitted with one shared set
@@ -63,9 +84,9 @@ def test_no_nan_in_the_json(run):
 
 
 def test_bounces_without_spin_compare_the_normal_velocity_only(run):
-    out, _ = run
-    n = out["counts"]["table"]
-    e = np.asarray(out["problem"].base["table"])[:n]
+    out, problem, _ = run
+    n = out.counts["table"]
+    e = np.asarray(problem.base["table"])[:n]
     assert n >= FILES // 2
     assert np.all(e[:, :2] == 0.0) and np.all(e[:, 3:] == 0.0)
     assert np.all(np.abs(e[:, 2]) > 0.0)

@@ -48,10 +48,10 @@ def reads_high(model):
 
 
 def test_a_record_without_spin_flies_latent_spin_and_still_finds_the_cause(unmeasured):
-    src = unmeasured["spin_sources"]
-    assert src["measured"] == 0 and src["latent"] >= 0.9 * unmeasured["counts"]["flight"], src
-    assert unmeasured["candidates"][0]["name"] == "buckling" and unmeasured["candidates"][0]["significant"]
-    assert "skipped" in unmeasured["record"]["spin_check"]  # nothing measured to check
+    src = unmeasured.spin_sources
+    assert src["measured"] == 0 and src["latent"] >= 0.9 * unmeasured.counts["flight"], src
+    assert unmeasured.candidates[0]["name"] == "buckling" and unmeasured.candidates[0]["significant"]
+    assert "skipped" in unmeasured.record["spin_check"]  # nothing measured to check
     text = markdown(unmeasured)
     assert f"latent {src['latent']}" in text and "read as spin" in text
 
@@ -61,23 +61,23 @@ def test_latent_spin_flies_closer_than_spin_zero(model, unmeasured):
     """The same record flown at spin 0 (``--spin zero``): its flights miss by more."""
     zero = diagnose(with_spin(load(BUCKLING), 0.0, conf=0.0), model,
                     Settings.quick(effects=("spin_decay",), spin="zero"))
-    assert zero["spin_sources"] == {"measured": 0, "latent": 0, "zero": zero["counts"]["flight"]}
-    assert unmeasured["where"]["flight"]["mean"] < 0.5 * zero["where"]["flight"]["mean"]
+    assert zero.spin_sources == {"measured": 0, "latent": 0, "zero": zero.counts["flight"]}
+    assert unmeasured.where["flight"]["mean"] < 0.5 * zero.where["flight"]["mean"]
 
 
 def test_a_spin_reading_high_is_named_corrected_and_the_cause_still_found(reads_high):
     """The spin check reads the record's spin 25 % high; its correction (the spin times 0.8) is the
     first candidate, on the record: accepted (the flights fly closer), every later stage works on
     the corrected record, and buckling is found as on the record with its true spin."""
-    sc = reads_high["record"]["spin_check"]
+    sc = reads_high.record["spin_check"]
     assert abs(sc["reads"] - 1.25) < 0.05, sc["summary"]
     assert any(f.startswith("spin reads") and f.endswith("high") for f in sc["findings"]), sc["findings"]
-    corr = reads_high["spin_correction"]
+    corr = reads_high.spin_correction
     assert corr["accepted"] and corr["applied"] == [f"size multiplied by {sc['scale']:.2f}"]
     assert corr["heldout"]["ci95"][0] > 50.0 and corr["heldout"]["after_rms"] < 0.5 * corr["heldout"]["before_rms"]
-    v = reads_high["verdict"]
-    assert v["effects"][:2] == ["spin_record", "buckling"], v["effects"]
-    assert "corrected as the spin check reads it" in v["text"] and "spin check" in v["text"]
+    v = reads_high.verdict
+    assert v.effects[:2] == ["spin_record", "buckling"], v.effects
+    assert "corrected as the spin check reads it" in v.text and "spin check" in v.text
     text = markdown(reads_high)
     assert "spin_check: " in text and "- spin correction: " in text
 
@@ -96,6 +96,6 @@ def test_data_info_spin_check_runs_the_same_check(capsys):
 def test_without_the_correction_the_check_is_reported_and_nothing_is_explained_with_it(model):
     out = diagnose(with_spin(load(BUCKLING), 1.25), model,
                    Settings.quick(effects=CANDIDATES, spin_check=True, spin_correct=False))
-    assert "spin_correction" not in out and out["record"]["spin_check"]["findings"]
-    v = out["verdict"]
-    assert v["level"] != "explained" and "spin_record" not in v["effects"] and "correct the record's spin" in v["text"]
+    assert out.spin_correction is None and out.record["spin_check"]["findings"]
+    v = out.verdict
+    assert v.level != "explained" and "spin_record" not in v.effects and "correct the record's spin" in v.text

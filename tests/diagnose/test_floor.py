@@ -8,7 +8,7 @@
   function the generator applies to what it writes) diagnosed with durr2026, the true model: its
   actual per-phase RMS error on the noisy record is the true floor, and the estimated floor is
   within 15 % of it (flight, table; the 15 racket contacts, one of which dominates, within 40 %);
-* the diagnosis carries it (``out["floor"]``) and the report prints it, with no NaN anywhere.
+* the diagnosis carries it (``out.floor``) and the report prints it, with no NaN anywhere.
 """
 
 import json
@@ -128,8 +128,8 @@ def test_floor_in_the_diagnosis_and_report(tmp_path):
 
     model = load_model("durr2026", dtype=jnp.float32)
     out = diagnose(_noisy(0), model, Settings.quick(effects=("table_tilt",), steps=5))
-    assert set(out["floor"]) == {"flight", "table", "racket"}
-    for f in out["floor"].values():
+    assert set(out.floor) == {"flight", "table", "racket"}
+    for f in out.floor.values():
         assert set(f) >= {"error", "error_ci95", "floor", "floor_ci95", "removable", "removable_ci95", "sigma_m", "n"}
     write_report(out, tmp_path)
     text = (tmp_path / "diagnosis.json").read_text()
@@ -137,9 +137,9 @@ def test_floor_in_the_diagnosis_and_report(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "Noise floor" in report and "| flight | " in report and "nan" not in report.lower()
     # the detection limit of the one candidate, in its own parameter, in the report and the JSON
-    lim = out["limits"]["candidates"]["table_tilt"]["table"]
+    lim = out.limits["candidates"]["table_tilt"]["table"]
     assert lim["size"] is None or (lim["size"] > 0 and len(lim["params"]["slope"]) == 2)
     assert "Detection limits" in report and "| table_tilt | table |" in report
     # a phase without a floor is a reason, never a number
-    lines = floor_lines(dict(jsonable(out["floor"]), racket="no data: no racket states"))
+    lines = floor_lines(dict(jsonable(out.floor), racket="no data: no racket states"))
     assert any("racket: no floor: no data" in line for line in lines)

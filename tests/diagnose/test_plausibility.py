@@ -29,12 +29,12 @@ def test_verdict_rejects_an_implausible_fit_and_says_why():
     tilt = cand("table_tilt", 8.2, {"table_tilt": {"slope": [0.0164, 0.0], "offset": 0.0}})
     out = {"where": {}, "dependence": {}, "candidates": []}
     v = verdict(out, [], [], [tilt])
-    assert not v["explained"] and v["implausible"] == ["table_tilt"]
-    assert v["text"].startswith("Unexplained: no candidate effect with plausible parameters")
-    assert "table_tilt (table: held-out RMS error 8.2 % lower" in v["text"] and "slope[0] = 0.0164" in v["text"]
+    assert not v.explained and v.implausible == ["table_tilt"]
+    assert v.text.startswith("Unexplained: no candidate effect with plausible parameters")
+    assert "table_tilt (table: held-out RMS error 8.2 % lower" in v.text and "slope[0] = 0.0164" in v.text
     decay = cand("spin_decay", 5.0, {"spin_decay": {"rate": 0.2, "quadratic": 0.0}})
     v = verdict(out, [decay], [], [tilt])
-    assert v["explained"] and v["effects"] == ["spin_decay"] and "Not accepted as causes" in v["text"]
+    assert v.explained and v.effects == ["spin_decay"] and "Not accepted as causes" in v.text
 
 
 def test_the_selfcheck_withholds_only_plausible_effects():
@@ -72,34 +72,34 @@ def test_explained_only_when_most_of_the_removable_gap_is_closed():
     g = gap_shares(out)["table"]
     assert abs(g["share"] - (0.25 - 0.32**2) / 0.16) < 1e-9 and g["ci95"][0] < g["share"] < g["ci95"][1]
     v = verdict(out, [worn])
-    assert v["level"] == "explained" and v["explained"] and v["text"].startswith("Explained by: worn_ball")
-    assert "closes 92 % (95 % interval" in v["text"] and "is left" not in v["text"]
+    assert v.level == "explained" and v.explained and v.text.startswith("Explained by: worn_ball")
+    assert "closes 92 % (95 % interval" in v.text and "is left" not in v.text
     # the same fall over a floor of 0.1: removable^2 = 0.24: closes 61.5 %, the rest is left
     out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.1)})
     v = verdict(out, [worn])
-    assert v["level"] == "partly explained" and not v["explained"]
-    assert v["text"].startswith("Partly explained by: worn_ball") and "closes 62 %" in v["text"] and "38 % is left" in v["text"]
+    assert v.level == "partly explained" and not v.explained
+    assert v.text.startswith("Partly explained by: worn_ball") and "closes 62 %" in v.text and "38 % is left" in v.text
 
 
 def test_a_gap_no_accepted_effect_acts_in_is_named():
     worn = cand("worn_ball", 40.0, {"worn_ball": {"loss": 0.02}})
     out = diagnosed(0.5, 0.32, 36.0, [30.0, 40.0], {"table": floor(0.5, 0.3), "flight": floor(0.005, 0.002)})
     v = verdict(out, [worn])
-    assert v["level"] == "partly explained" and v["open"] == ["flight"]
-    assert "Not addressed by any accepted effect: the flight gap (error 5 mm, noise floor 2 mm)" in v["text"]
+    assert v.level == "partly explained" and v.open == ["flight"]
+    assert "Not addressed by any accepted effect: the flight gap (error 5 mm, noise floor 2 mm)" in v.text
     # a flight error at its floor (within the intervals) or above it by less than the resolution is no gap
     out["floor"]["flight"] = floor(0.00201, 0.002, lo=0.0019, hi=0.0021)
-    assert verdict(out, [worn])["level"] == "explained"
+    assert verdict(out, [worn]).level == "explained"
     out["floor"]["flight"] = floor(0.00203, 0.002, lo=0.00202, hi=0.00204)
-    assert verdict(out, [worn])["open"] == []
+    assert verdict(out, [worn]).open == []
 
 
 def test_unexplained_locates_gaps_above_the_floor_and_calls_the_rest_noise():
     out = {"where": {}, "dependence": {}, "candidates": [], "floor": {"table": floor(0.6, 0.3)}}
     v = verdict(out, [])
-    assert v["level"] == "unexplained" and "The gap lies in: table: error 0.6 m/s, 2.0 x its noise floor 0.3 m/s" in v["text"]
+    assert v.level == "unexplained" and "The gap lies in: table: error 0.6 m/s, 2.0 x its noise floor 0.3 m/s" in v.text
     out["floor"]["table"] = floor(0.301, 0.3, lo=0.28, hi=0.32)
-    assert verdict(out, [])["text"].endswith("what remains looks like noise.")
+    assert verdict(out, []).text.endswith("what remains looks like noise.")
 
 
 def test_a_phase_at_its_floor_asks_no_share():
@@ -111,9 +111,9 @@ def test_a_phase_at_its_floor_asks_no_share():
                             "table": {"heldout": dict(pct=1.0, ci95=[-2.0, 4.0], before_rms=0.304, after_rms=0.301)}}}
     v = verdict(out, [buck])
     # racket: (0.36 - 0.1764) / 0.27 = 68 % of its gap: short of 70 %; the table's 0.06 m/s above its floor is no gap
-    assert v["level"] == "partly explained" and "of the racket gap" in v["text"] and "32 % is left" in v["text"]
+    assert v.level == "partly explained" and "of the racket gap" in v.text and "32 % is left" in v.text
     out["before_after"]["racket"]["heldout"].update(pct=35.0, after_rms=0.39)
-    assert verdict(out, [buck])["level"] == "explained"
+    assert verdict(out, [buck]).level == "explained"
 
 
 def test_a_phase_within_the_floors_own_accuracy_is_no_gap():
@@ -130,14 +130,14 @@ def test_a_phase_within_the_floors_own_accuracy_is_no_gap():
            "before_after": {"flight": {"heldout": dict(pct=50.0, ci95=[45.0, 55.0], before_rms=0.004, after_rms=0.002)}}}
     assert open_gaps(out) == ["flight"]
     v = verdict(out, [wind])
-    assert v["level"] == "explained" and v["open"] == [] and "table gap" not in v["text"]
+    assert v.level == "explained" and v.open == [] and "table gap" not in v.text
     control = {"phases": ["table"], "where": {}, "dependence": {}, "candidates": [], "floor": {"table": tight}}
     v = verdict(control, [])
-    assert v["level"] == "no gap" and v["gaps"] == [] and v["text"].startswith("No gap: no phase's error stands above")
-    assert v["text"].endswith("what remains looks like noise.")
+    assert v.level == "no gap" and v.gaps == [] and v.text.startswith("No gap: no phase's error stands above")
+    assert v.text.endswith("what remains looks like noise.")
     # a phase whose floor is not known could hold a gap: then it is no more than "unexplained"
     v = verdict(dict(control, phases=["table", "racket"]), [])
-    assert v["level"] == "unexplained" and v["text"].endswith("what remains looks like noise.")
+    assert v.level == "unexplained" and v.text.endswith("what remains looks like noise.")
     far = dict(tight, error=0.297 * 1.15, error_ci95=[0.297 * 1.13, 0.297 * 1.17])
     assert open_gaps({"floor": {"table": far}}) == ["table"]
     assert 1.13 > 1.0 + FLOOR_SYSTEMATIC["table"] > 1.04
@@ -149,6 +149,6 @@ def test_unexplained_says_what_the_data_could_have_shown():
         "buckling": {"table": dict(size=None, params={}, share_pct=None, reduction_pct=None)}}}
     out = {"where": {}, "dependence": {}, "candidates": [], "floor": {}, "limits": limits}
     v = verdict(out, [])
-    assert v["level"] == "unexplained"
-    assert "These data would have shown, at least: air_flow: wind 0.04 m/s (flight: 3.1 % of its error); none of these is there." in v["text"]
-    assert "could not have shown buckling" in v["text"]
+    assert v.level == "unexplained"
+    assert "These data would have shown, at least: air_flow: wind 0.04 m/s (flight: 3.1 % of its error); none of these is there." in v.text
+    assert "could not have shown buckling" in v.text

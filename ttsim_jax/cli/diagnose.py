@@ -176,7 +176,7 @@ def cmd_diagnose(args) -> int:
         except NoData as e:
             raise UsageError(f"{args.data}: {e}") from None
     paths = write_report(out, args.out, data=str(args.data), model=str(args.model))
-    print(out["verdict"]["text"])
+    print(out.verdict.text)
     print(f"written to {args.out}: " + ", ".join(p.name for p in paths.values()))
     return 0
 

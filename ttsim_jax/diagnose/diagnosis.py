@@ -38,6 +38,7 @@ from ttsim_jax.diagnose.defaults import LEARNING_RATE, MAX_SEGMENTS, QUICK, STEP
 from ttsim_jax.diagnose.floor import floors
 from ttsim_jax.diagnose.limits import limits
 from ttsim_jax.diagnose.phases import collect
+from ttsim_jax.diagnose.result import Diagnosis
 from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS,  # noqa: F401 (public here too)
                                         gap_shares, implausible, interchangeable, open_gaps, verdict)
 from ttsim_jax.errors import UserError
@@ -153,7 +154,7 @@ def _with_effects(model, cand) -> object:
 
 
 def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str, int], None] | None = None,
-             keep: dict | None = None) -> dict:
+             keep: dict | None = None) -> Diagnosis:
     """The diagnosis of ``model`` on ``ds`` (see the module docstring).
 
     Arguments:
@@ -165,15 +166,8 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
             (``"problem"``), for scoring other models on the same split.
 
     Returns:
-        dict (JSON-able but for ``arrays``): ``phases``, ``skipped``, ``left_out`` ({phase: {reason:
-        count}} of items left out, e.g. flight segments no free flight can give), ``where``, ``no_data`` ({phase:
-        reason} of the phases without items: reported as "no data", never as a number),
-        ``pooled_sessions`` (per-session effects fitted with one shared set), ``dependence``,
-        ``record``, ``limits`` (:func:`ttsim_jax.diagnose.limits.limits`), ``floor`` (per phase the noise floor and the removable gap, or why there is
-        none: :func:`ttsim_jax.diagnose.floor.floors`), ``candidates`` (ranked), ``combined``,
-        ``before_after``, ``landing``,
-        ``verdict``, ``settings``, ``seconds``, ``timings`` ({stage: seconds}: where the time went,
-        compilation included), and ``arrays`` (per-item errors for the figures).
+        A :class:`~ttsim_jax.diagnose.result.Diagnosis` (its ``to_json()`` is the report's
+        ``diagnosis.json``).
     """
     from ttsim_jax.kernel.ball_step import ball_properties
 
@@ -306,15 +300,11 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         lap("landing rollouts")
     out["no_data"] = no_data(out["skipped"], settings.landing)
     tick("verdict", 1)
-    out["verdict"] = verdict(out, accepted, [c for c in significant if c not in accepted],
-                             [c for c in ranked if c.spec.name in out["implausible"]])
-    out["pooled_sessions"] = pb.pooled
+    judged = verdict(out, accepted, [c for c in significant if c not in accepted],
+                     [c for c in ranked if c.spec.name in out["implausible"]])
     lap("verdict")
-    out["seconds"] = time.perf_counter() - t_start
-    out["timings"] = timings
-    out["arrays"] = arrays
-    out["histories"] = {c.spec.name: c.history for c in ranked}
-    return out
+    return Diagnosis(verdict=judged, pooled_sessions=pb.pooled, seconds=time.perf_counter() - t_start, timings=timings,
+                     arrays=arrays, histories={c.spec.name: c.history for c in ranked}, **out)
 
 
 def refuse_non_finite(pb, ph) -> None:

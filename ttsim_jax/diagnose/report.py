@@ -16,6 +16,7 @@ import numpy as np
 
 from ttsim_jax.diagnose.diagnosis import jsonable
 from ttsim_jax.diagnose.phases import REGIMES
+from ttsim_jax.diagnose.result import Diagnosis
 from ttsim_jax.diagnose.spin_record import text as correction_text
 from ttsim_jax.diagnose.where import FLAG_RATIO, SHOWN, UNITS
 from ttsim_jax.files.atomic import atomic_write
@@ -247,8 +248,10 @@ def limit_lines(limits: dict) -> list:
     return lines
 
 
-def markdown(out: dict, data: str = "", model: str = "") -> str:
-    """The report's Markdown."""
+def markdown(out: Diagnosis | dict, data: str = "", model: str = "") -> str:
+    """The report's Markdown, from a :class:`~ttsim_jax.diagnose.result.Diagnosis` or its JSON (a
+    stored ``diagnosis.json``)."""
+    out = out.to_json() if isinstance(out, Diagnosis) else out
     v = out["verdict"]
     lines = [f"# Sim-to-real gap diagnosis{f' of {model}' if model else ''}{f' on {data}' if data else ''}", "",
              f"**Verdict.** {v['text']}", ""]
@@ -360,17 +363,17 @@ def markdown(out: dict, data: str = "", model: str = "") -> str:
     return "\n".join(lines)
 
 
-def write_report(out: dict, out_dir, data: str = "", model: str = "") -> dict:
-    """Writes ``report.md``, ``diagnosis.json`` and the figures to ``out_dir``; returns {name: path}."""
+def write_report(out: Diagnosis, out_dir, data: str = "", model: str = "") -> dict:
+    """Writes ``report.md``, ``diagnosis.json`` (``out.to_json()``) and the figures to ``out_dir``;
+    returns {name: path}."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    paths = {"where": plot_where(out["where"], d / FIGURES["where"]),
-             "effects": plot_effects(out["candidates"], d / FIGURES["effects"]),
-             "before_after": plot_before_after(out["arrays"], d / FIGURES["before_after"])}
-    body = {k: v for k, v in out.items() if k not in ("arrays", "histories")}
-    body["loss_history"] = {k: np.asarray(v).tolist() for k, v in out.get("histories", {}).items()}
+    paths = {"where": plot_where(out.where, d / FIGURES["where"]),
+             "effects": plot_effects(out.candidates, d / FIGURES["effects"]),
+             "before_after": plot_before_after(out.arrays, d / FIGURES["before_after"])}
+    body = out.to_json()
     js = d / "diagnosis.json"
     atomic_write(js, json.dumps(jsonable(body), indent=1).encode(), "the diagnosis")
     md = d / "report.md"
-    atomic_write(md, markdown(out, data, model).encode(), "the report")
+    atomic_write(md, markdown(body, data, model).encode(), "the report")
     return dict(paths, json=js, report=md)

@@ -400,7 +400,7 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
     # verdict and the located phase alone
     simulated = [n for n in names if fx.effect_class(n).WHERE == "simulator"]
     oracle = oracle_scores(keep["problem"], model, simulated, gen.truth) if simulated else {}
-    row.update(bound_score(names, out.get("bound"), oracle))
+    row.update(bound_score(names, out.bound, oracle))
     unresolved = {n: UNRESOLVED[n] for n in simulated if n in UNRESOLVED}
     if kind in OUTSIDE_KINDS and unresolved and oracle:
         # the oracle without the parts that vary faster than the segments sample them
@@ -408,16 +408,16 @@ def run_case(kind: str, names, seed: int, settings, games: int = GAMES["quick"],
         p = row["bound_phase"]
         if p in steady and steady[p]["pct"] > 0:
             row.update(oracle_steady_pct=float(steady[p]["pct"]), bound_share_steady=row["bound_pct"] / steady[p]["pct"])
-    row["bound_significant"] = [p for p, b in (out.get("bound") or {}).items()
+    row["bound_significant"] = [p for p, b in (out.bound or {}).items()
                                 if isinstance(b, dict) and b.get("heldout", {}).get("significant")]
     # the true effects' detection limits on these data (those among the candidates), beside the oracle
-    row["limits"] = {n: out["limits"]["candidates"][n] for n in names if n in out.get("limits", {}).get("candidates", {})}
-    row["spin_findings"] = list(out.get("record", {}).get("spin_check", {}).get("findings", []))
-    row["spin_sources"] = out.get("spin_sources", {})
-    row.update(score(kind, names, out["candidates"], out["where"], oracle, out["verdict"]), counts=out["counts"],
-               verdict=out["verdict"]["text"], floor={p: f for p, f in out.get("floor", {}).items() if isinstance(f, dict)},
-               seconds=out["seconds"], truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
-               candidates=candidate_digest(out["candidates"]))
+    row["limits"] = {n: out.limits["candidates"][n] for n in names if n in out.limits.get("candidates", {})}
+    row["spin_findings"] = list(out.record.get("spin_check", {}).get("findings", []))
+    row["spin_sources"] = out.spin_sources or {}
+    row.update(score(kind, names, out.candidates, out.where, oracle, out.verdict.to_json()), counts=out.counts,
+               verdict=out.verdict.text, floor={p: f for p, f in out.floor.items() if isinstance(f, dict)},
+               seconds=out.seconds, truth={n: gen.truth["effects"].get(n, {}).get("params", params[n]) for n in names},
+               candidates=candidate_digest(out.candidates))
     return row
 
 

@@ -8,6 +8,7 @@ parameters no lab meets (:func:`implausible`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from ttsim_jax.diagnose.candidates import MIN_GAIN
@@ -227,7 +228,45 @@ def limits_text(out: dict, left_out=()) -> str:
     return text
 
 
-def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> dict:
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """The diagnosis's verdict (:func:`verdict`).
+
+    Attributes:
+        level: ``"explained"``, ``"partly explained"``, ``"unexplained"`` or ``"no gap"``.
+        text: one paragraph, as the report and ``ttsim diagnose`` print it.
+        effects: the accepted effects by rank (the record's spin first where it was corrected);
+            redundant: those significant alone that add nothing on top of them; implausible: those
+            significant alone whose fit needs implausible parameters.
+        shares: per phase, the share of the removable gap the accepted effects close
+            (:func:`gap_shares`); gaps: the phases with a gap above the noise floor
+            (:func:`open_gaps`); open: those no accepted effect acts in; where: the located
+            regimes, one line each.
+    """
+
+    level: str
+    text: str
+    effects: list
+    redundant: list
+    implausible: list
+    shares: dict
+    gaps: list
+    open: list
+    where: list
+
+    @property
+    def explained(self) -> bool:
+        """Whether the accepted effects explain the gap."""
+        return self.level == "explained"
+
+    def to_json(self) -> dict:
+        """The verdict as the JSON report holds it."""
+        return dict(effects=list(self.effects), redundant=list(self.redundant), implausible=list(self.implausible),
+                    shares=self.shares, gaps=list(self.gaps), open=list(self.open), where=list(self.where),
+                    level=self.level, explained=self.explained, text=self.text)
+
+
+def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> Verdict:
     """The verdict: how much of the gap the accepted effects explain, and what is left.
 
     * *explained*: the accepted effects (:func:`~ttsim_jax.diagnose.diagnosis.select`) close at least :data:`EXPLAINED_SHARE` of
@@ -253,10 +292,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
             parameters (never accepted).
 
     Returns:
-        {"level", "explained" (level == "explained"), "effects" [names by rank], "redundant",
-        "implausible", "shares" (:func:`gap_shares`), "gaps" (phases with a gap above the noise
-        floor, :func:`open_gaps`), "open" (those no accepted effect acts in), "text" (one
-        paragraph), "where" [lines]}.
+        A :class:`Verdict`.
     """
     where = _where_text(out)
 
@@ -330,8 +366,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
                      "; ".join(part(c) for c in redundant) + ".")
         if spin_corrected(out):
             names["effects"] = [NAME_SPIN] + names["effects"]
-        return dict(names, level=level, explained=level == "explained",
-                    text=text + rest + rejected + beyond_catalogue + _spin_text(out))
+        return Verdict(**names, level=level, text=text + rest + rejected + beyond_catalogue + _spin_text(out))
     if spin_corrected(out):
         # the record's spin was the one thing found: explained where nothing is left above a floor
         bound_phases, bound_text = _bound_text(out)
@@ -339,7 +374,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         text = (("Explained by: " if level == "explained" else "Partly explained by: ") + "the record's measured spin."
                 + _spin_text(out) + rest + (" What is left lies in: " + "; ".join(where) + "." if where else "")
                 + bound_text + rejected + limits_text(out, [c.spec.name for c in beyond]))
-        return dict(names, effects=[NAME_SPIN], level=level, explained=level == "explained", text=text)
+        return Verdict(**dict(names, effects=[NAME_SPIN]), level=level, text=text)
     lead = ("no candidate effect with plausible parameters reduces a held-out error significantly." if beyond else
             "no candidate effect reduces a held-out error significantly.")
     rejected += _alike(out, [c.spec.name for c in beyond])
@@ -356,7 +391,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         # nothing to explain: every phase at its noise floor, nothing significant, nothing located
         text = ("No gap: no phase's error stands above its noise floor, and " + lead + " " + located +
                 limits_text(out, []))
-        return dict(names, level="no gap", explained=False, text=text)
+        return Verdict(**names, level="no gap", text=text)
     text = ("Unexplained: " + lead + rejected + rest + " " + located + bound_text + _spin_text(out) +
             limits_text(out, [c.spec.name for c in beyond]))
-    return dict(names, level="unexplained", explained=False, text=text)
+    return Verdict(**names, level="unexplained", text=text)
