@@ -29,3 +29,23 @@ def test_record_effects_are_not_fitted(name):
     assert fx.effect_class(name).WHERE == "record"
     with pytest.raises(fx.EffectError, match="acts on the record"):
         C.spec(name)
+
+
+def test_the_fitted_parameters_are_declared_with_the_effect():
+    """An effect's parameters say how the diagnosis fits them (``Param.fit_scale``, ``fit_start``):
+    a declared step of 0 is fitted held at its start (a second descent frees it in the same
+    program), an undeclared parameter whose typical value is its neutral one is not fitted, and the
+    bumps' centres start at their typical places."""
+    from ttsim_jax.effects.base import Param
+
+    flow, flow_c = C.spec("air_flow")
+    assert flow.free == ("wind", "gust_amp", "gust_freq", "gust_phase")  # time_origin: not fitted
+    assert flow_c["scale"]["wind"] == 0.2 and flow_c["scale"]["gust_freq"] == 0.0
+    bumps, bumps_c = C.spec("table_unevenness")
+    assert bumps.free == ("center", "amplitude", "width") and bumps_c["scale"]["center"] == 0.3
+    typical = fx.effect_class("table_unevenness").PARAMS["center"].typical
+    assert bumps_c["start"]["center"].tolist() == [list(c) for c in typical]
+    buckling, buckling_c = C.spec("buckling")
+    assert buckling_c["scale"]["table_onset"] == 1.0 and buckling_c["start"]["table_onset"] == 5.0
+    with pytest.raises(ValueError, match="fit_start"):
+        Param("1", 0.0, 1.0, "x", plausible=(0.0, 2.0), fit_start="middle")

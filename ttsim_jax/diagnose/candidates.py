@@ -46,7 +46,7 @@ from a grid (:mod:`ttsim_jax.diagnose.onsets`).
 
 A user adds a candidate by registering an effect (:func:`ttsim_jax.effects.register`); which of
 its parameters are fitted is inferred (those whose typical value differs from the neutral one, at
-the scale of that difference) unless :data:`FREE` says otherwise.
+the scale of that difference) unless the effect's parameters declare otherwise (``fit_scale``).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ from ttsim_jax.diagnose import bumps, gusts, onsets, stages
 from ttsim_jax.diagnose.bootstrap import group_weights, rms_reduction
 from ttsim_jax.diagnose.defaults import MIN_REDUCTION
 from ttsim_jax.diagnose.phases import Phases, pad_rows
-from ttsim_jax.diagnose.specs import (FREE, HOOK_PHASES, PHASES, START_TYPICAL, Spec,  # noqa: F401 (public here too)
+from ttsim_jax.diagnose.specs import (HOOK_PHASES, PHASES, Spec,  # noqa: F401 (public here too)
                                       phases_of, spec)
 from ttsim_jax.files.programs import stored_jit
 

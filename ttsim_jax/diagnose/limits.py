@@ -36,7 +36,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttsim_jax.diagnose import candidates, stages
-from ttsim_jax.diagnose.specs import START_TYPICAL
 
 #: Largest size tried, in typical sizes of the effect: beyond it the data could not show it.
 MAX_SIZE = 100.0
@@ -52,7 +51,7 @@ def direction(sp, const) -> dict:
     out = {}
     for k in sp.free:
         p = sp.cls.PARAMS[k]
-        if float(const["scale"][k]) <= 0.0 or k in START_TYPICAL.get(sp.name, ()):
+        if float(const["scale"][k]) <= 0.0 or p.fit_start == "typical":
             continue
         step = np.broadcast_to(np.asarray(p.typical, np.float64) - np.asarray(p.neutral, np.float64), p.shape)
         if np.any(step != 0.0):

@@ -3,9 +3,13 @@ its fitted parameters and their scales (:func:`spec`).
 
 Its free parameters are written ``start + scale * u`` with ``u`` starting at 0 (the effect neutral,
 or at the typical values of its fixed shape parameters, e.g. the bump centres of
-``table_unevenness``), so a descent's step size means the same for every parameter. Which parameters
-are fitted is inferred (those whose typical value differs from the neutral one, at the scale of
-that difference) unless :data:`FREE` says otherwise.
+``table_unevenness``), so a descent's step size means the same for every parameter. The effect
+declares both with its parameters (:class:`~ttsim_jax.effects.base.Param`'s ``fit_scale`` and
+``fit_start``); by default a parameter is fitted where its typical value differs from its neutral
+one, at the scale of that difference, from neutral. What a second descent frees (the ``SCALES`` of
+:mod:`~ttsim_jax.diagnose.gusts`, :mod:`~ttsim_jax.diagnose.bumps` and
+:mod:`~ttsim_jax.diagnose.onsets`) is free from the first descent on at step 0 (held where it
+starts), so both descents run one compiled program.
 
 The fit itself, its scores and the ranking are :mod:`ttsim_jax.diagnose.candidates`.
 """
@@ -31,25 +35,6 @@ HOOK_PHASES = {
     "table_friction": ("table",),
     "racket_coefficients": ("racket",),
 }
-#: Fitted parameters and their scales where the default rule (typical != neutral) is not right:
-#: the gusts' frequencies are not found by descent, so the first descent fits the steady wind
-#: and the gusts follow in a second (:data:`~ttsim_jax.diagnose.candidates.REFINE`); the onsets of
-#: buckling are fitted too; the bumps keep their typical centres and widths; the air density at
-#: twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m). What a
-#: second descent frees (the ``SCALES`` of :mod:`~ttsim_jax.diagnose.gusts`,
-#: :mod:`~ttsim_jax.diagnose.bumps` and :mod:`~ttsim_jax.diagnose.onsets`) is free from the first
-#: descent on at step 0 (held where it starts), so both descents run one compiled program.
-FREE = {
-    "air_density": {"d_rho": 0.1},
-    "air_flow": {"wind": 0.2, "gust_amp": 0.0, "gust_phase": 0.0, "gust_freq": 0.0},
-    "buckling": {"table_depth": 0.06, "racket_depth": 0.1, "table_onset": 1.0, "racket_onset": 3.0,
-                 "table_width": 0.0, "racket_width": 0.0},
-    "table_unevenness": {"amplitude": 0.0015, "center": 0.3, "width": 0.0},
-}
-#: Parameters that start at their typical value (the others at neutral).
-START_TYPICAL = {"table_unevenness": ("center", "width")}
-
-
 @dataclasses.dataclass(frozen=True)
 class Spec:
     """A candidate effect as the fit sees it (hashable: a static argument of the jitted fit).
@@ -83,16 +68,16 @@ def spec(name: str, pooled: bool = False) -> tuple[Spec, dict]:
     cls = fx.effect_class(name)
     if cls.WHERE != "simulator":
         raise fx.EffectError(f"effect {name!r} acts on the record, not in the simulator: it is not fitted as physics")
-    free = FREE.get(name)
-    if free is None:
-        free = {}
-        for k, p in cls.PARAMS.items():
-            d = np.abs(np.broadcast_to(np.asarray(p.typical, np.float64) - np.asarray(p.neutral, np.float64), p.shape))
-            if d.size and d.max() > 0:
-                free[k] = float(d.max())
-    typical = START_TYPICAL.get(name, ())
-    start = {k: np.broadcast_to(np.asarray(p.typical if k in typical else p.neutral, np.float64), p.shape).copy()
-             for k, p in cls.PARAMS.items()}
+    free = {}
+    for k, p in cls.PARAMS.items():
+        if p.fit_scale is not None:
+            free[k] = float(p.fit_scale)
+            continue
+        d = np.abs(np.broadcast_to(np.asarray(p.typical, np.float64) - np.asarray(p.neutral, np.float64), p.shape))
+        if d.size and d.max() > 0:
+            free[k] = float(d.max())
+    start = {k: np.broadcast_to(np.asarray(p.typical if p.fit_start == "typical" else p.neutral, np.float64),
+                                p.shape).copy() for k, p in cls.PARAMS.items()}
     scale = {k: np.float64(free.get(k, 0.0)) for k in cls.PARAMS}
     return Spec(name, cls, free_order(cls, free), cls.SCOPE == "session" and not pooled), dict(start=start, scale=scale)
 

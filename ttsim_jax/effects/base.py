@@ -64,6 +64,12 @@ class Param:
         shape: array shape of the parameter (``()`` for a scalar).
         plausible: (low, high) bounds (each broadcast to ``shape``; +-inf for none) of the values a
             lab can meet; required (:func:`register` refuses a parameter without one).
+        fit_scale: the step of the diagnosis's descent in this parameter (it fits ``start +
+            fit_scale * u``; :mod:`ttsim_jax.diagnose.specs`); None (default): the largest
+            |typical - neutral|, and a parameter whose typical value is its neutral one is not
+            fitted; 0: among the fitted ones at step 0, held where it starts, for a later descent
+            to free without compiling its fit again.
+        fit_start: where that descent starts: ``"neutral"`` (default) or ``"typical"``.
     """
 
     unit: str
@@ -72,6 +78,12 @@ class Param:
     doc: str
     shape: tuple = ()
     plausible: Any = None
+    fit_scale: float | None = None
+    fit_start: str = "neutral"
+
+    def __post_init__(self):
+        if self.fit_start not in ("neutral", "typical"):
+            raise ValueError(f"Param(fit_start=...) must be 'neutral' or 'typical', got {self.fit_start!r}")
 
 
 class EffectError(UserError, ValueError):

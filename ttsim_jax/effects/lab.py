@@ -42,8 +42,9 @@ class AirDensity(Effect):
     DESCRIPTION = ("air density off the model's (temperature, altitude, humidity): drag, Magnus and buoyancy "
                    "times (1 + d_rho)")
     SCOPE = "session"
+    # fitted at twice its typical step, so that a descent reaches a hall at altitude (-0.25 at 2,500 m)
     PARAMS = {"d_rho": Param("1", 0.0, -0.05, "relative change of the air density (altitude 0-2,500 m, 10-35 C)",
-                             plausible=(-0.30, 0.05))}
+                             plausible=(-0.30, 0.05), fit_scale=0.1)}
 
     @classmethod
     def _draw(cls, rng):

@@ -66,12 +66,17 @@ class AirFlow(Effect):
     NAME = "air_flow"
     DESCRIPTION = "air flow from ventilation: steady wind plus time-varying gusts (world-frame air velocity)"
     SCOPE = "session"
+    # the gusts' frequencies are not found by descent: the diagnosis's first descent fits the steady
+    # wind, the gusts follow in a second (ttsim_jax.diagnose.gusts)
     PARAMS = {
         "wind": Param("m/s", 0.0, (0.2, 0.0, 0.0), "steady air velocity, world frame", (3,), plausible=((-0.5, -0.5, -0.05), (0.5, 0.5, 0.05))),
         "gust_amp": Param("m/s", 0.0, ((0.1, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, 0.0, 0.03)),
-                          "amplitude vector of each gust component", (3, 3), plausible=((-0.3, -0.3, -0.1), (0.3, 0.3, 0.1))),
-        "gust_freq": Param("Hz", 0.0, (0.1, 0.3, 0.7), "frequency of each gust component", (3,), plausible=(0.0, 2.0)),
-        "gust_phase": Param("rad", 0.0, 0.0, "phase of each gust component", (3,), plausible=(-np.inf, np.inf)),
+                          "amplitude vector of each gust component", (3, 3), plausible=((-0.3, -0.3, -0.1), (0.3, 0.3, 0.1)),
+                          fit_scale=0.0),
+        "gust_freq": Param("Hz", 0.0, (0.1, 0.3, 0.7), "frequency of each gust component", (3,), plausible=(0.0, 2.0),
+                           fit_scale=0.0),
+        "gust_phase": Param("rad", 0.0, 0.0, "phase of each gust component", (3,), plausible=(-np.inf, np.inf),
+                            fit_scale=0.0),
         "time_origin": Param("s", 0.0, 0.0, "session time at simulation time 0", plausible=(-np.inf, np.inf)),
     }
 
@@ -144,12 +149,16 @@ class TableUnevenness(Effect):
     DESCRIPTION = "local unevenness of the playing surface (mm-high bumps and dips, 0.1-0.5 m wide)"
     SCOPE = "dataset"
     N_BUMPS = 6
+    # the diagnosis fits the bumps' heights and moves their centres from the typical ones; the
+    # widths start at theirs, held (freed by its second descent)
     PARAMS = {
         "center": Param("m", 0.0, ((0.9, 0.3), (-0.9, -0.3), (0.5, -0.5), (-0.5, 0.5), (1.2, 0.0), (-1.2, 0.0)),
                         "(x, y) of each bump", (6, 2), plausible=((-TABLE_HALF_LENGTH - 0.1, -TABLE_HALF_WIDTH - 0.1),
-                                                                     (TABLE_HALF_LENGTH + 0.1, TABLE_HALF_WIDTH + 0.1))),
+                                                                     (TABLE_HALF_LENGTH + 0.1, TABLE_HALF_WIDTH + 0.1)),
+                        fit_scale=0.3, fit_start="typical"),
         "amplitude": Param("m", 0.0, (0.0015, -0.001, 0.001, -0.0015, 0.001, -0.001), "height of each bump", (6,), plausible=(-0.008, 0.008)),
-        "width": Param("m", 0.25, 0.25, "standard deviation of each bump's Gaussian", (6,), plausible=(0.05, 1.0)),
+        "width": Param("m", 0.25, 0.25, "standard deviation of each bump's Gaussian", (6,), plausible=(0.05, 1.0),
+                       fit_scale=0.0, fit_start="typical"),
     }
 
     @classmethod
@@ -235,12 +244,16 @@ class Buckling(Effect):
     NAME = "buckling"
     DESCRIPTION = "ball buckling: restitution drops non-linearly above an impact speed (table and racket)"
     SCOPE = "dataset"
+    # the diagnosis fits the onsets too; the widths are held (freed by its second descent)
     PARAMS = {
-        "table_onset": Param("m/s", 5.0, 5.0, "table impact speed where the loss starts", plausible=(0.0, 40.0)),
-        "table_width": Param("m/s", 3.0, 3.0, "speed scale of the table loss", plausible=(0.1, 40.0)),
+        "table_onset": Param("m/s", 5.0, 5.0, "table impact speed where the loss starts", plausible=(0.0, 40.0),
+                             fit_scale=1.0),
+        "table_width": Param("m/s", 3.0, 3.0, "speed scale of the table loss", plausible=(0.1, 40.0), fit_scale=0.0),
         "table_depth": Param("1", 0.0, 0.06, "largest loss of the table e_n", plausible=(0.0, 0.3)),
-        "racket_onset": Param("m/s", 15.0, 15.0, "racket impact speed where the loss starts", plausible=(0.0, 40.0)),
-        "racket_width": Param("m/s", 10.0, 10.0, "speed scale of the racket loss", plausible=(0.1, 40.0)),
+        "racket_onset": Param("m/s", 15.0, 15.0, "racket impact speed where the loss starts", plausible=(0.0, 40.0),
+                              fit_scale=3.0),
+        "racket_width": Param("m/s", 10.0, 10.0, "speed scale of the racket loss", plausible=(0.1, 40.0),
+                              fit_scale=0.0),
         "racket_depth": Param("1", 0.0, 0.1, "largest loss of the racket e_n", plausible=(0.0, 0.3)),
     }
 
