@@ -13,8 +13,9 @@ Each tree runs its own copy of the benchmark script (a path relative to the tree
 ``PYTHONPATH`` at that tree's root and the tree's root as its working folder: a script that puts
 its own repository first on ``sys.path`` (``peers.py`` does), or starts ``python -m ttsim_jax.cli``
 (``diagnose_sample.py`` does), then still imports its tree's package. Its ``--out`` is added here.
-``--metric`` names the key read from each entry of the JSON's ``results`` (the median over all
-of them when there are several, e.g. one per batch: pass one batch).
+``--metric`` names the key read from each entry of the JSON's ``results``, or a dotted path into
+a nested entry (``result.ball_steps_per_s`` for ``throughput.py``); the median over all of them
+when there are several, e.g. one per batch: pass one batch.
 """
 
 from __future__ import annotations
@@ -41,8 +42,16 @@ def run_once(tree: Path, script: list, metric: str, log) -> float:
         # from the tree's root: a child the benchmark starts as `python -m` or `-c` puts its working
         # folder first on sys.path, ahead of PYTHONPATH, and would import the caller's package
         subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, cwd=tree.resolve())
-        values = [r[metric] for r in json.loads(out.read_text())["results"]]
+        values = [read_metric(r, metric) for r in json.loads(out.read_text())["results"]]
     return float(statistics.median(values))
+
+
+def read_metric(entry: dict, metric: str) -> float:
+    """``metric`` of one entry of a benchmark's results: a key, or a dotted path into nested
+    entries (``result.ball_steps_per_s`` for ``throughput.py``)."""
+    for key in metric.split("."):
+        entry = entry[key]
+    return float(entry)
 
 
 def main(argv=None) -> int:
@@ -50,7 +59,9 @@ def main(argv=None) -> int:
     p.add_argument("--old", type=Path, required=True, help="source tree of the old code (its root folder)")
     p.add_argument("--new", type=Path, required=True, help="source tree of the new code (its root folder)")
     p.add_argument("--rounds", type=int, default=3, help="runs per tree, alternating old, new (default: %(default)s)")
-    p.add_argument("--metric", required=True, help="key of each entry of the JSON's results, e.g. env_steps_per_s")
+    p.add_argument("--metric", required=True,
+                   help="key of each entry of the JSON's results, e.g. env_steps_per_s, or a dotted path into a "
+                        "nested entry, e.g. result.ball_steps_per_s")
     p.add_argument("--out", type=Path, required=True, help="summary JSON")
     p.add_argument("script", nargs=argparse.REMAINDER,
                    help="-- then the benchmark script (its path relative to each tree's root) and its arguments")

@@ -17,7 +17,8 @@ a = p.parse_args()
 # a child process, as diagnose_sample.py starts the CLI: it must import the same tree's package
 child = float(subprocess.check_output([sys.executable, "-c", "import fakepkg; print(fakepkg.RATE)"]))
 assert child == fakepkg.RATE, (child, fakepkg.RATE)
-pathlib.Path(a.out).write_text(json.dumps({"results": [{"rate": fakepkg.RATE}, {"rate": fakepkg.RATE + 2.0}]}))
+pathlib.Path(a.out).write_text(json.dumps({"results": [{"result": {"rate": fakepkg.RATE}},
+                                                      {"result": {"rate": fakepkg.RATE + 2.0}}]}))
 '''
 
 
@@ -30,10 +31,10 @@ def test_interleaved_runs_each_tree_and_takes_medians(tmp_path):
         (tmp_path / name / "benchmarks" / "bench.py").write_text(FAKE)
     out = tmp_path / "ab.json"
     subprocess.run([sys.executable, str(REPO / "benchmarks" / "interleaved.py"), "--old", str(tmp_path / "old"),
-                    "--new", str(tmp_path / "new"), "--rounds", "2", "--metric", "rate", "--out", str(out), "--",
+                    "--new", str(tmp_path / "new"), "--rounds", "2", "--metric", "result.rate", "--out", str(out), "--",
                     "benchmarks/bench.py"], check=True, capture_output=True, text=True, cwd=tmp_path / "caller")
     got = json.loads(out.read_text())
-    # each run: the median of its two results (rate, rate + 2)
+    # each run: the median of its two results (rate, rate + 2), read through the dotted path
     assert got["runs"] == {"old": [11.0, 11.0], "new": [31.0, 31.0]}
     assert got["median"] == {"old": 11.0, "new": 31.0}
     assert abs(got["ratio_new_over_old"] - 31.0 / 11.0) < 1e-12

@@ -209,12 +209,12 @@ def _run(model, state: RallyState, schedule, policy, dt, key, plan: _Plan):
     def run_fused(model, carry, ball_id, schedule):
         """The rollout on the fused path: the balls' clocks meet at every recorded step."""
         length = record_every or n_steps
+        drive = fused_path.Drive(schedule=schedule, policy=policy, t0=t0, dt=dt, step0=step0,
+                                 key=key if sample else None, rackets_batched=rackets_batched)
+        launch = fused_path.Launch(substeps=fused)
 
         def segment(carry: Carry, n):
-            drive = fused_path.Drive(schedule=schedule, policy=policy, t0=t0, dt=dt, step0=step0,
-                                     key=key if sample else None, rackets_batched=rackets_batched)
-            balls = fused_path.advance(model, axes, carry.balls, ball_id, carry.step, n, drive, stepper,
-                                       launch=fused_path.Launch(substeps=fused))
+            balls = fused_path.advance(model, axes, carry.balls, ball_id, carry.step, n, drive, stepper, launch=launch)
             return Carry(balls, carry.step + n)
 
         def chunk(carry, _):
