@@ -261,9 +261,7 @@ class Verdict:
 
     def to_json(self) -> dict:
         """The verdict as the JSON report holds it."""
-        return dict(effects=list(self.effects), redundant=list(self.redundant), implausible=list(self.implausible),
-                    shares=self.shares, gaps=list(self.gaps), open=list(self.open), where=list(self.where),
-                    level=self.level, explained=self.explained, text=self.text)
+        return dict(dataclasses.asdict(self), explained=self.explained)
 
 
 def verdict(out: dict, significant: list, redundant: list = (), beyond: list = ()) -> Verdict:
