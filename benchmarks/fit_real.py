@@ -104,7 +104,7 @@ def main(argv=None) -> int:
         for name, ds in datasets.items():
             test = split_sessions(ds.segments["session_id"], args.test_fraction, seed)
             out = flight_stage(ds, models, EvaluateSettings(sessions=tuple(int(s) for s in test)))
-            rmse = out["rmse"]
+            rmse = out.rmse
             per = {m: _stats(rmse[m]) for m, _ in models}
             for label, _ in fitted:
                 for ref in ("conti2026", "nakashima2011"):
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
                                                                               per[ref]["median_mm"])
                 per[ref]["median_reduction_vs_nakashima2011_ci95"] = reduction_ci(rmse["nakashima2011"], rmse[ref], 50,
                                                                                   seed=seed)
-            scores[name] = dict(segments=int(len(out["segment_id"])), spin_measured=bool(out["spin_measured"]),
+            scores[name] = dict(segments=int(len(out.segment_id)), spin_measured=bool(out.spin_measured),
                                 test_sessions=int(len(test)), models=per)
         # the floor of any coefficient form on SpinDOE's held-out segments: a constant C_D, C_M per segment
         ds = datasets["spindoe"]

@@ -61,9 +61,9 @@ def public_bounces(real: Path, model) -> dict:
         ds = import_source(real / folder, source)
         r = table_stage(ds, [("conti2026", model)], EvaluateSettings())
         row_of = {int(e): i for i, e in enumerate(ds.events["event_id"])}
-        rows = np.array([row_of[int(e)] for e in r["event_id"]], np.int64)
+        rows = np.array([row_of[int(e)] for e in r.event_id], np.int64)
         pos = np.stack([np.asarray(ds.events[k], np.float64)[rows] for k in "xyz"], -1)
-        out[source] = (pos, r["pre"], r["post"])
+        out[source] = (pos, r.pre, r.post)
     return out
 
 

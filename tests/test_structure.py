@@ -20,7 +20,7 @@ MAX_LINES = 600
 # Lowest first; a package may import its own layer and those below it. A top-level module is its
 # own "package" here.
 LAYERS = (
-    ("lazy", "registration", "sizes", "errors", "files", "bundled"),
+    ("lazy", "registration", "sizes", "errors", "results", "files", "bundled"),
     ("physics", "state"),
     ("effects", "params"),
     ("data",),

@@ -57,7 +57,7 @@ def test_the_diagnosis_is_typed_and_its_json_is_the_file(run):
     ``diagnosis.json`` holds (the verdict as a dict, the sections that do not apply left out), and
     the report renders the same from either."""
     from ttsim_jax.diagnose import Diagnosis, Verdict
-    from ttsim_jax.diagnose.diagnosis import jsonable
+    from ttsim_jax.results import jsonable
     from ttsim_jax.diagnose.report import markdown
 
     out, _, folder = run

@@ -123,7 +123,8 @@ def test_floor_matches_the_true_models_error(truth_runs, phase, tolerance):
 
 
 def test_floor_in_the_diagnosis_and_report(tmp_path):
-    from ttsim_jax.diagnose.diagnosis import Settings, diagnose, jsonable
+    from ttsim_jax.diagnose.diagnosis import Settings, diagnose
+    from ttsim_jax.results import jsonable
     from ttsim_jax.diagnose.report import floor_lines, write_report
 
     model = load_model("durr2026", dtype=jnp.float32)

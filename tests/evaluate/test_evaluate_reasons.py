@@ -5,14 +5,18 @@ import json
 import numpy as np
 
 from ttsim_jax.evaluate.report import FIGURES, markdown, summarise
+from ttsim_jax.evaluate.result import Evaluation
+from ttsim_jax.fit.flight import FlightStage
 
 
-def result(rmse: dict, spin) -> dict:
+def result(rmse: dict, spin) -> Evaluation:
     """What evaluate_models returns for the flight stage alone (no simulation needed to judge the report)."""
     names = list(rmse)
-    return dict(models=names, reference=names[0], settings={},
-                flight=dict(segment_id=np.arange(len(spin)), spin_measured=True, n_without_spin=0,
-                            rmse={k: np.asarray(v, float) for k, v in rmse.items()}, spin=np.asarray(spin, float)))
+    return Evaluation(models=names, reference=names[0], settings={},
+                      flight=FlightStage(segment_id=np.arange(len(spin)), spin_measured=True, n_without_spin=0,
+                                         rmse={k: np.asarray(v, float) for k, v in rmse.items()},
+                                         spin=np.asarray(spin, float), spin_source=np.full(len(spin), "measured"),
+                                         latent_spin={}))
 
 
 def test_a_model_without_finite_flights_is_reported_with_the_reason():

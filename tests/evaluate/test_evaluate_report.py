@@ -19,6 +19,7 @@ from ttsim_jax.data import load
 from ttsim_jax.evaluate.report import FIGURES, markdown, summarise
 from ttsim_jax.evaluate.stages import STAGES, evaluate_models, reference_name
 from ttsim_jax.params import config_dir
+from ttsim_jax.results import Skipped
 
 DATA = Path(__file__).parent / "data" / "clean"
 TRUTH = "durr2026"  # the generator's truth model for DATA
@@ -122,7 +123,11 @@ def test_stages_without_data_are_skipped_with_the_reason():
     ds = load(DATA)
     ds = ds.replace(rackets=empty_table("rackets"))
     result = evaluate_models(ds, [TRUTH], stages=("racket", "landing"))
-    assert "racket states" in result["racket"]["skipped"] and "racket states" in result["landing"]["skipped"]
+    assert isinstance(result.racket, Skipped) and isinstance(result.landing, Skipped)
+    assert "racket states" in result.racket.reason and "racket states" in result.landing.reason
+    assert result.flight is None and result.table is None and list(result.stages()) == ["racket", "landing"]
+    assert result.ran() == {}
+    assert result.to_json()["racket"] == {"skipped": result.racket.reason} and "flight" not in result.to_json()
     report = markdown(summarise(result), FIGURES)
     assert report.count("Skipped: no racket states") == 2 and "](racket_errors.png)" not in report
     assert reference_name(["conti2026", "nakashima2011"]) == "nakashima2011"
@@ -169,36 +174,41 @@ def test_bounces_and_landings_without_measured_spin_take_the_incoming_latent_spi
     blind = _without_spin(load(DATA))
     latent = evaluate_models(blind, [TRUTH], EvaluateSettings(spin="auto"), stages=("table", "landing"))
     zero = evaluate_models(blind, [TRUTH], EvaluateSettings(spin="zero"), stages=("table", "landing"))
-    t_m, t_l, t_z = measured["table"], latent["table"], zero["table"]
-    n = len(t_l["event_id"])
-    assert n == len(t_m["event_id"]) >= 10 and list(t_l["spin_source"]) == ["latent"] * n
-    assert list(t_z["spin_source"]) == ["zero"] * n
+    t_m, t_l, t_z = measured.table, latent.table, zero.table
+    n = len(t_l.event_id)
+    assert n == len(t_m.event_id) >= 10 and list(t_l.spin_source) == ["latent"] * n
+    assert list(t_z.spin_source) == ["zero"] * n
+    # The typed stages' JSON: every field, strict JSON (no NaN), the arrays' values as lists.
+    body = json.loads(json.dumps(latent.to_json(), allow_nan=False))
+    assert set(body) == {"models", "reference", "settings", "table", "landing"}
+    assert body["table"]["event_id"] == t_l.event_id.tolist() and body["table"]["n_bounces"] == t_l.n_bounces
+    assert [[None if np.isnan(v) else v for v in row] for row in t_l.error[TRUTH].tolist()] == body["table"]["error"][TRUTH]
     # From the latent spin the truth's bounce meets the measured outgoing velocity far better than
     # from spin 0 (the spin turns into velocity through the table's friction), though not as well
     # as from the true spin: the positions show the spin across the flight well, its size less.
-    tangential = lambda t: np.median(np.abs(t["error"][TRUTH][:, :2]))  # noqa: E731
+    tangential = lambda t: np.median(np.abs(t.error[TRUTH][:, :2]))  # noqa: E731
     # (measured 0.0006, latent 0.040, spin 0 0.47 m/s when written)
     assert tangential(t_l) < 0.15 * tangential(t_z) and tangential(t_m) < 0.01
-    err = np.linalg.norm(t_l["spin_in"][TRUTH] - t_m["spin_in"][TRUTH], axis=1) / np.linalg.norm(t_m["spin_in"][TRUTH], axis=1)
+    err = np.linalg.norm(t_l.spin_in[TRUTH] - t_m.spin_in[TRUTH], axis=1) / np.linalg.norm(t_m.spin_in[TRUTH], axis=1)
     assert np.median(err) < 0.3  # 0.21 when written
     # A racket contact without a measured spin is flown at its latent spin, not skipped.
-    g_l, g_z = latent["landing"], zero["landing"]
-    assert len(g_l["event_id"]) == len(measured["landing"]["event_id"]) >= 5 and set(g_l["spin_source"]) == {"latent"}
+    g_l, g_z = latent.landing, zero.landing
+    assert len(g_l.event_id) == len(measured.landing.event_id) >= 5 and set(g_l.spin_source) == {"latent"}
     from ttsim_jax.evaluate.stages import landing_cases
 
     only_measured = landing_cases(blind, EvaluateSettings(spin="measured"), 0.02)
     assert len(only_measured["event_id"]) == 0  # measured only: no spin, no landing
-    assert only_measured["skip_counts"]["low_spin_conf_in"] >= len(g_l["event_id"])
+    assert only_measured["skip_counts"]["low_spin_conf_in"] >= len(g_l.event_id)
     # After a bounce the segment into the racket is short, and under durr2026's Magnus law a small
     # and a large spin bend a flight alike (427 rad/s read as 37 from the segment alone); a racket
     # turns spin into velocity, so such a spin lands metres off (a median of 1.1 m, against 1.8 m
     # from spin 0, when fitted from that segment alone). Fitted across the bounce before it, the
     # spin's size is told: 10 of 13 landings come that way, their median error 3 mm and the worst
     # 23 cm when written.
-    assert np.all(g_l["hit"][TRUTH]) and g_l["through_bounce"].sum() >= 0.5 * len(g_l["event_id"])
-    through = g_l["through_bounce"]
-    assert np.median(g_l["error"][TRUTH][through]) < 0.01 and np.max(g_l["error"][TRUTH][through]) < 0.3
-    assert np.nanmedian(g_l["error"][TRUTH]) < 0.1 * np.nanmedian(g_z["error"][TRUTH])
+    assert np.all(g_l.hit[TRUTH]) and g_l.through_bounce.sum() >= 0.5 * len(g_l.event_id)
+    through = g_l.through_bounce
+    assert np.median(g_l.error[TRUTH][through]) < 0.01 and np.max(g_l.error[TRUTH][through]) < 0.3
+    assert np.nanmedian(g_l.error[TRUTH]) < 0.1 * np.nanmedian(g_z.error[TRUTH])
     text = markdown(summarise(latent), FIGURES)
     assert f"pre-bounce spin: {n} latent" in text and "incoming spin: " in text
     assert f"({int(through.sum())} of the latent spins fitted across the bounce before the contact" in text

@@ -121,12 +121,12 @@ def test_segment_rmse_flies_the_latent_spin_where_a_record_has_none(model):
     ds = Dataset.from_arrays(sid, t, np.concatenate(positions))
     assert len(ds.segments["segment_id"]) == len(times)
     out = {mode: segment_rmse(ds, [("m", model)], spin=mode) for mode in ("auto", "zero", "measured", "latent")}
-    assert list(out["auto"]["spin_source"]) == ["latent"] * 4 and list(out["zero"]["spin_source"]) == ["zero"] * 4
-    assert list(out["measured"]["spin_source"]) == ["zero"] * 4
-    auto, zero = out["auto"]["rmse"]["m"], out["zero"]["rmse"]["m"]
+    assert list(out["auto"].spin_source) == ["latent"] * 4 and list(out["zero"].spin_source) == ["zero"] * 4
+    assert list(out["measured"].spin_source) == ["zero"] * 4
+    auto, zero = out["auto"].rmse["m"], out["zero"].rmse["m"]
     assert (auto < 2.0 * NOISE * np.sqrt(3)).all()
     assert (zero[:3] > 3 * auto[:3]).all()  # the spinning ones
-    np.testing.assert_allclose(out["latent"]["rmse"]["m"], auto)
+    np.testing.assert_allclose(out["latent"].rmse["m"], auto)
     with pytest.raises(ValueError, match="spin = 'maybe'"):
         segment_rmse(ds, [("m", model)], spin="maybe")
 

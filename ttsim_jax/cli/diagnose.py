@@ -188,7 +188,8 @@ def cmd_selfcheck(args) -> int:
     from tqdm import tqdm
 
     from ttsim_jax.diagnose.candidates import candidate_names
-    from ttsim_jax.diagnose.diagnosis import Settings, jsonable
+    from ttsim_jax.diagnose.diagnosis import Settings
+    from ttsim_jax.results import jsonable
     from ttsim_jax.diagnose.outside import outside_cases
     from ttsim_jax.diagnose.selfcheck import (GAMES, PAIRS, QUICK, SEGMENTS, ResumeError, cases, plot, selfcheck,
                                               stored_cases, table)

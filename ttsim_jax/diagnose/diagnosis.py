@@ -29,7 +29,6 @@ import math
 import time
 from typing import Callable
 
-import jax
 import numpy as np
 
 from ttsim_jax.data.contact_states import ContactFit
@@ -42,6 +41,7 @@ from ttsim_jax.diagnose.result import Diagnosis
 from ttsim_jax.diagnose.verdict import (EXPLAINED_SHARE, IMPLAUSIBLE_SESSIONS,  # noqa: F401 (public here too)
                                         gap_shares, implausible, interchangeable, open_gaps, verdict)
 from ttsim_jax.errors import UserError
+from ttsim_jax.results import Skipped
 
 
 class NoData(UserError, ValueError):
@@ -135,9 +135,9 @@ def _landing_before_after(ds, model, best, fit, radius):
         neutral = tuple(type(e).neutral(dtype=model.ball.radius.dtype) for e in extra)
         models = [("model", model.replace(effects=tuple(model.effects) + neutral)), ("after", fitted)]
     res = landing_stage(ds, models, st)
-    if "skipped" in res:
+    if isinstance(res, Skipped):
         return res, None, None
-    return res, res["error"].get("after"), landing_cases(ds, st, radius)
+    return res, res.error.get("after"), landing_cases(ds, st, radius)
 
 
 def _with_effects(model, cand) -> object:
@@ -283,12 +283,12 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
     if settings.landing:
         landing, after, cases = _landing_before_after(ds, model, best, settings.fit, radius)
         if cases is None:
-            out["skipped"]["landing"] = landing["skipped"]
+            out["skipped"]["landing"] = landing.reason
         else:
-            it = where.landing_items(cases, landing["error"]["model"], radius)
+            it = where.landing_items(cases, landing.error["model"], radius)
             out["where"]["landing"] = where.summarise(it, settings.seed, floor_of.get("landing"))
             out["dependence"]["landing"] = residuals.dependence(it, None)
-            before = landing["error"]["model"]
+            before = landing.error["model"]
             arrays["before_landing"] = before[np.isfinite(before)]
             entry = dict(before_median=float(np.nanmedian(before)), n=int(np.isfinite(before).sum()))
             if after is not None:
@@ -430,16 +430,3 @@ def _candidate_json(c: candidates.Candidate, rank: int) -> dict:
                 best_reduction_pct=c.best, heldout=c.heldout, params=c.params,
                 loss=dict(start=float(c.history[0]) if len(c.history) else math.nan,
                           end=float(c.history[-1]) if len(c.history) else math.nan))
-
-
-def jsonable(obj):
-    """``obj`` with numpy and JAX values turned into plain Python (NaN stays a float)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, (np.ndarray, jax.Array)):
-        return np.asarray(obj).tolist()
-    if isinstance(obj, (np.floating, np.integer, np.bool_)):
-        return obj.item()
-    return obj

@@ -230,21 +230,22 @@ def contact_times(ds, event_ids) -> dict:
 def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[ContactItems | None, str]:
     """The usable table bounces (see :class:`ContactItems`), or (None, reason)."""
     from ttsim_jax.evaluate.stages import EvaluateSettings, table_stage
+    from ttsim_jax.results import Skipped
 
     res = table_stage(ds, [("model", model)], EvaluateSettings(fit=fit))
-    if "skipped" in res:
-        return None, res["skipped"]
-    ids = res["event_id"]
+    if isinstance(res, Skipped):
+        return None, res.reason
+    ids = res.event_id
     ev = ds.events
     rows = ds.event_rows(ids)
     pos = np.stack([np.asarray(ev[k], np.float64)[rows] for k in "xyz"], -1)
     sess = np.array([session_index[int(s)] for s in np.asarray(ev["session_id"])[rows]], np.int64)
     n = len(ids)
-    x = np.concatenate([res["pre"], np.zeros((n, 2))], 1)
+    x = np.concatenate([res.pre, np.zeros((n, 2))], 1)
     times = contact_times(ds, ids)
-    return ContactItems(event_id=ids, session=sess, pos=pos, x=x, y_obs=res["post"], spin_known=res["spin_known"].all(1),
-                    spin_in_known=res["spin_known"][:, 0], correction=np.zeros((n, 6)),
-                    rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res["pre"], world_out=res["post"],
+    return ContactItems(event_id=ids, session=sess, pos=pos, x=x, y_obs=res.post, spin_known=res.spin_known.all(1),
+                    spin_in_known=res.spin_known[:, 0], correction=np.zeros((n, 6)),
+                    rot=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), world_in=res.pre, world_out=res.post,
                     since=times["since"], t=times["t"], spin_dt=times["spin_dt"]), ""
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ttsim_jax.diagnose.diagnosis import jsonable
+from ttsim_jax.results import jsonable
 from ttsim_jax.diagnose.phases import REGIMES
 from ttsim_jax.diagnose.result import Diagnosis
 from ttsim_jax.diagnose.spin_record import text as correction_text

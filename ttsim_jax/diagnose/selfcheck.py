@@ -448,7 +448,7 @@ class ResumeError(UserError, ValueError):
 
 def _case_key(kind: str, names, seed: int, games: int, settings, present) -> dict:
     """What a case's result depends on, besides the code: stored with it, compared on resume."""
-    from ttsim_jax.diagnose.diagnosis import jsonable
+    from ttsim_jax.results import jsonable
 
     params, scene = case_inputs(names, seed, present)
     return jsonable(dict(kind=kind, effects=list(names), seed=int(seed), games=int(games), present=list(present),
@@ -540,7 +540,8 @@ def selfcheck(plan=None, settings=None, seed: int = 0, progress: Callable | None
         {"cases": rows, "summary", "seconds" (wall, this call), "cpu_seconds", "resumed" (cases
         taken from ``store``)}; each row's ``wall_seconds`` is its case's own wall time.
     """
-    from ttsim_jax.diagnose.diagnosis import Settings, jsonable
+    from ttsim_jax.diagnose.diagnosis import Settings
+    from ttsim_jax.results import jsonable
     from ttsim_jax.files.atomic import atomic_write
 
     settings = settings or Settings.quick(max_segments=SEGMENTS["quick"])

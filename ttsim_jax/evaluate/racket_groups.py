@@ -32,16 +32,16 @@ def _label(lo, hi, unit) -> str:
     return f">= {lo:g} {unit}" if math.isinf(hi) else f"{lo:g}-{hi:g} {unit}"
 
 
-def groups(r: dict) -> dict:
-    """{grouping: {group label: {"n": n, model: {quantity: median}}}} of a racket stage result
-    ``r`` (:func:`ttsim_jax.evaluate.stages.racket_stage`): "config" and "rubber_type" where the
+def groups(r) -> dict:
+    """{grouping: {group label: {"n": n, model: {quantity: median}}}} of a racket stage's
+    :class:`~ttsim_jax.evaluate.result.RacketStage` ``r``: "config" and "rubber_type" where the
     contacts name configurations, then the bands of :data:`BANDS`."""
     keys = {}
-    config = np.asarray(r.get("config", np.full(len(r["event_id"]), "", object)), object)
+    config = np.asarray(r.config, object)
     if any(config != ""):
         keys["config"] = config
-        keys["rubber_type"] = np.asarray(r["rubber_type"], object)
-    for name, value in incoming(r["x"]).items():
+        keys["rubber_type"] = np.asarray(r.rubber_type, object)
+    for name, value in incoming(r.x).items():
         edges, unit = BANDS[name]
         cuts = (-math.inf,) + tuple(edges) + (math.inf,)
         labels = np.array([_label(cuts[k], cuts[k + 1], unit) for k in range(len(cuts) - 1)], object)
@@ -53,7 +53,7 @@ def groups(r: dict) -> dict:
             continue
         order = keys.get(name + " order")
         labels = [g for g in (order if order is not None else sorted(set(key.tolist()))) if np.any(key == g)]
-        out[name] = {g: dict(n=int(np.sum(key == g)), **{m: error_medians(e[key == g]) for m, e in r["error"].items()})
+        out[name] = {g: dict(n=int(np.sum(key == g)), **{m: error_medians(e[key == g]) for m, e in r.error.items()})
                      for g in labels}
     return out
 

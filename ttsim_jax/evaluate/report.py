@@ -16,11 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from ttsim_jax.evaluate import racket_groups
-from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, STAGES, TABLE_SKIP_REASONS, counts_text
+from ttsim_jax.evaluate.result import STAGES, Evaluation
+from ttsim_jax.evaluate.stages import LANDING_SKIP_REASONS, TABLE_SKIP_REASONS, counts_text
 from ttsim_jax.data.contact_states import SKIP_REASONS
 from ttsim_jax.fit.flight import spin_source_counts
 from ttsim_jax.files.atomic import atomic_write
 from ttsim_jax.fit.network_evaluation import COMPONENTS, DISTANCE_BANDS, ERROR_NAMES, distance_bands
+from ttsim_jax.results import Skipped, jsonable
 
 
 def reduction(ref: float, value: float) -> float:
@@ -101,84 +103,57 @@ def _abs_stats(e) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- summary
-def summarise(result: dict) -> dict:
-    """The numbers of the report (JSON-ready): per stage and model, medians, 75th percentiles,
-    means and reductions in % against the reference model."""
-    names, ref = result["models"], result["reference"]
-    out = dict(models=names, reference=ref, settings=result["settings"])
-    clean = lambda v: None if isinstance(v, float) and not math.isfinite(v) else v  # noqa: E731
+def summarise(result: Evaluation) -> dict:
+    """The numbers of the report (``metrics.json``, JSON-ready): per stage and model, medians, 75th
+    percentiles, means and reductions in % against the reference model; a skipped stage's reason."""
+    names, ref = result.models, result.reference
+    out = dict(models=names, reference=ref, settings=result.settings)
+    for stage, r in result.stages().items():
+        out[stage] = r.to_json() if isinstance(r, Skipped) else _SUMMARY[stage](r, names, ref)
+    return jsonable(out, finite=True)
 
-    def tidy(d):
-        if isinstance(d, dict):
-            return {k: tidy(v) for k, v in d.items()}
-        if isinstance(d, list):
-            return [tidy(v) for v in d]
-        return clean(d)
 
-    if "flight" in result:
-        f = result["flight"]
-        if "skipped" in f:
-            out["flight"] = dict(skipped=f["skipped"])
-        else:
-            per = _headline(f["rmse"], names, ref)
-            source = np.asarray(f.get("spin_source", np.full(len(f["segment_id"]), "measured")), str)
-            out["flight"] = dict(n_segments=len(f["segment_id"]), spin_measured=f["spin_measured"],
-                                 n_without_spin=f["n_without_spin"], unit="m", models=per,
-                                 spin_sources=spin_source_counts(source),
-                                 not_finite=_not_finite(f["rmse"], f.get("spin")))
-    if "table" in result:
-        t = result["table"]
-        if "skipped" in t:
-            out["table"] = dict(skipped=t["skipped"])
-        else:
-            per = {}
-            for n in names:
-                e = t["error"][n]
-                per[n] = {c: _abs_stats(e[:, k]) for k, c in enumerate(COMPONENTS)}
-            for n in names:
-                for c in COMPONENTS:
-                    per[n][c]["reduction_median_pct"] = reduction(per[ref][c]["median"], per[n][c]["median"])
-            out["table"] = dict(n_bounces=t["n_bounces"], n_used=len(t["event_id"]),
-                                n_with_spin_in=int(np.sum(t["spin_known"][:, 0])),
-                                spin_sources=spin_source_counts(t.get("spin_source", np.where(
-                                    t["spin_known"][:, 0], "measured", "zero"))),
-                                n_with_spin=int(np.sum(t["spin_known"].all(1))), skip_counts=t["skip_counts"],
-                                units=dict(velocity="m/s", spin="rad/s"), models=per)
-    if "racket" in result:
-        r = result["racket"]
-        if "skipped" in r:
-            out["racket"] = dict(skipped=r["skipped"])
-        else:
-            bands = [(label, sel) for label, _, _, sel in distance_bands(r["distance"], DISTANCE_BANDS)]
-            bands.append(("all", np.ones(len(r["distance"]), bool)))
-            per = {}
-            for n in names:
-                e = r["error"][n]
-                per[n] = {label: dict(n=int(sel.sum()), **{c: _abs_stats(e[sel, k]) for k, c in enumerate(ERROR_NAMES)})
-                          for label, sel in bands}
-            for n in names:
-                for label, _ in bands:
-                    for c in ERROR_NAMES:
-                        cell = per[n][label][c]
-                        cell["reduction_median_pct"] = reduction(per[ref][label][c]["median"], cell["median"])
-            out["racket"] = dict(n_contacts=r["n_contacts"], n_used=len(r["event_id"]), skip_counts=r["skip_counts"],
-                                 frame="racket (x = face normal)", units=dict(velocity="m/s", spin="rad/s"),
-                                 bands=[label for label, _ in bands], models=per, groups=racket_groups.groups(r))
-    if "landing" in result:
-        g = result["landing"]
-        if "skipped" in g:
-            out["landing"] = dict(skipped=g["skipped"])
-        else:
-            per = _headline(g["error"], names, ref)
-            for n in names:
-                per[n].update(not_hit=int(np.sum(~g["hit"][n])),
-                              no_landing=int(np.sum(g["hit"][n] & ~np.isfinite(g["error"][n]))))
-            out["landing"] = dict(n_contacts=g["n_contacts"], n_used=len(g["event_id"]), skip_counts=g["skip_counts"],
-                                  spin_sources=spin_source_counts(g.get("spin_source", np.full(len(g["event_id"]),
-                                                                                               "measured"))),
-                                  through_bounce=int(np.sum(g.get("through_bounce", 0))),
-                                  unit="m", models=per)
-    return tidy(out)
+def _flight_summary(f, names: list, ref: str) -> dict:
+    return dict(n_segments=len(f.segment_id), spin_measured=f.spin_measured, n_without_spin=f.n_without_spin,
+                unit="m", models=_headline(f.rmse, names, ref), spin_sources=spin_source_counts(f.spin_source),
+                not_finite=_not_finite(f.rmse, f.spin))
+
+
+def _table_summary(t, names: list, ref: str) -> dict:
+    per = {n: {c: _abs_stats(t.error[n][:, k]) for k, c in enumerate(COMPONENTS)} for n in names}
+    for n in names:
+        for c in COMPONENTS:
+            per[n][c]["reduction_median_pct"] = reduction(per[ref][c]["median"], per[n][c]["median"])
+    return dict(n_bounces=t.n_bounces, n_used=len(t.event_id), n_with_spin_in=int(np.sum(t.spin_known[:, 0])),
+                spin_sources=spin_source_counts(t.spin_source), n_with_spin=int(np.sum(t.spin_known.all(1))),
+                skip_counts=t.skip_counts, units=dict(velocity="m/s", spin="rad/s"), models=per)
+
+
+def _racket_summary(r, names: list, ref: str) -> dict:
+    bands = [(label, sel) for label, _, _, sel in distance_bands(r.distance, DISTANCE_BANDS)]
+    bands.append(("all", np.ones(len(r.distance), bool)))
+    per = {n: {label: dict(n=int(sel.sum()), **{c: _abs_stats(r.error[n][sel, k]) for k, c in enumerate(ERROR_NAMES)})
+               for label, sel in bands} for n in names}
+    for n in names:
+        for label, _ in bands:
+            for c in ERROR_NAMES:
+                cell = per[n][label][c]
+                cell["reduction_median_pct"] = reduction(per[ref][label][c]["median"], cell["median"])
+    return dict(n_contacts=r.n_contacts, n_used=len(r.event_id), skip_counts=r.skip_counts,
+                frame="racket (x = face normal)", units=dict(velocity="m/s", spin="rad/s"),
+                bands=[label for label, _ in bands], models=per, groups=racket_groups.groups(r))
+
+
+def _landing_summary(g, names: list, ref: str) -> dict:
+    per = _headline(g.error, names, ref)
+    for n in names:
+        per[n].update(not_hit=int(np.sum(~g.hit[n])), no_landing=int(np.sum(g.hit[n] & ~np.isfinite(g.error[n]))))
+    return dict(n_contacts=g.n_contacts, n_used=len(g.event_id), skip_counts=g.skip_counts,
+                spin_sources=spin_source_counts(g.spin_source), through_bounce=int(np.sum(g.through_bounce)),
+                unit="m", models=per)
+
+
+_SUMMARY = dict(flight=_flight_summary, table=_table_summary, racket=_racket_summary, landing=_landing_summary)
 
 
 # ---------------------------------------------------------------------------------------------- files
@@ -304,29 +279,12 @@ def markdown(summary: dict, figures: dict, data: str = "") -> str:
     return "\n".join(lines)
 
 
-def _samples(result: dict) -> dict:
-    """Flat per-item arrays for ``samples.npz`` (stage/quantity[/model])."""
-    out = {}
-    for stage in STAGES:
-        r = result.get(stage)
-        if not r or "skipped" in r:
-            continue
-        for key, value in r.items():
-            if isinstance(value, dict):
-                if key == "skip_counts":
-                    continue
-                for name, arr in value.items():
-                    out[f"{stage}/{key}/{name}"] = np.asarray(arr)
-            elif isinstance(value, np.ndarray):
-                out[f"{stage}/{key}"] = value.astype(str) if value.dtype == object else value
-    return out
-
-
-def write_report(result: dict, out_dir, data: str = "") -> dict:
+def write_report(result: Evaluation, out_dir, data: str = "") -> dict:
     """Writes ``report.md``, ``metrics.json``, ``samples.npz`` and the figures to ``out_dir``.
 
     Arguments:
-        result: from :func:`ttsim_jax.evaluate.stages.evaluate_models`.
+        result: the :class:`~ttsim_jax.evaluate.result.Evaluation` of
+            :func:`ttsim_jax.evaluate.stages.evaluate_models`.
         out_dir: output directory (created).
         data: the dataset's name or path, for the report's title.
 
@@ -337,47 +295,48 @@ def write_report(result: dict, out_dir, data: str = "") -> dict:
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    names = result["models"]
+    names = result.models
     summary = summarise(result)
+    ran = result.ran()
     paths = {}
-    if "flight" in result and "skipped" not in result["flight"]:
-        paths["flight"] = plots.plot_violins({"": {n: 1e3 * result["flight"]["rmse"][n] for n in names}},
+    if "flight" in ran:
+        paths["flight"] = plots.plot_violins({"": {n: 1e3 * ran["flight"].rmse[n] for n in names}},
                                              out / FIGURES["flight"], ylabel="3-D position RMSE [mm]",
                                              title="flight segments: position RMSE per model")
-    if "table" in result and "skipped" not in result["table"]:
-        e = result["table"]["error"]
+    if "table" in ran:
+        e = ran["table"].error
         paths["table"] = plots.plot_violins({c: {n: e[n][:, k] for n in names} for k, c in enumerate(COMPONENTS)},
                                             out / FIGURES["table"], ylabel="predicted - measured (m/s | rad/s)",
                                             title="table contact: post-bounce errors per component",
                                             panels=(COMPONENTS[:3], COMPONENTS[3:]))
-    if "racket" in result and "skipped" not in result["racket"]:
-        r = result["racket"]
-        bands = distance_bands(r["distance"], DISTANCE_BANDS)
+    if "racket" in ran:
+        r = ran["racket"]
+        bands = distance_bands(r.distance, DISTANCE_BANDS)
         groups = {}
         for k, q in ((6, "|v| [m/s]"), (7, "|w| [rad/s]")):
             for label, _, _, sel in bands:
-                groups[f"{q} {label}"] = {n: r["error"][n][sel, k] for n in names}
+                groups[f"{q} {label}"] = {n: r.error[n][sel, k] for n in names}
         keys = list(groups)
         paths["racket"] = plots.plot_violins(groups, out / FIGURES["racket"], ylabel="magnitude error (predicted - measured)",
                                              title="racket contact: speed and spin magnitude errors by contact distance",
                                              panels=(keys[:len(bands)], keys[len(bands):]))
-        k = 3 + racket_groups.spin_component(r["y_obs"])
-        by = np.asarray(r["rubber_type"] if any(np.asarray(r["config"]) != "") else np.full(len(r["y_obs"]), "all"), object)
-        panels = {str(g): (r["y_obs"][by == g, k], {n: r["predicted"][n][by == g, k] for n in names})
+        k = 3 + racket_groups.spin_component(r.y_obs)
+        by = np.asarray(r.rubber_type if any(np.asarray(r.config) != "") else np.full(len(r.y_obs), "all"), object)
+        panels = {str(g): (r.y_obs[by == g, k], {n: r.predicted[n][by == g, k] for n in names})
                   for g in dict.fromkeys(by.tolist())}
         axis = "xyz"[k - 3]
         paths["racket_spin"] = plots.plot_predicted_vs_measured(
             panels, out / FIGURES["racket_spin"], xlabel=f"measured outgoing spin w~_{axis} [rad/s]",
             ylabel=f"predicted w~_{axis} [rad/s]", title="racket contact: outgoing spin, predicted against measured"
             + (" per rubber type" if len(panels) > 1 or "all" not in panels else ""))
-    if "landing" in result and "skipped" not in result["landing"]:
-        g = result["landing"]
+    if "landing" in ran:
+        g = ran["landing"]
         paths["landing_hist"], paths["landing_xy"] = plots.plot_landing(
-            g["error"], g["landing"], g["measured"], out / FIGURES["landing_hist"], out / FIGURES["landing_xy"])
+            g.error, g.landing, g.measured, out / FIGURES["landing_hist"], out / FIGURES["landing_xy"])
     atomic_write(out / "metrics.json", (json.dumps(summary, indent=1, allow_nan=False) + "\n").encode(), "the metrics")
     paths["metrics"] = out / "metrics.json"
     buf = io.BytesIO()
-    np.savez_compressed(buf, **_samples(result))
+    np.savez_compressed(buf, **{f"{stage}/{k}": v for stage, r in ran.items() for k, v in r.arrays().items()})
     atomic_write(out / "samples.npz", buf.getvalue(), "the samples")
     paths["samples"] = out / "samples.npz"
     atomic_write(out / "report.md", markdown(summary, FIGURES, data).encode(), "the report")

@@ -50,9 +50,10 @@ from ttsim_jax.files.programs import stored_jit
 from ttsim_jax.fit.network_evaluation import contact_errors
 from ttsim_jax.fit.racket_arrays import contact_arrays
 
-from .spins import incoming_spins
+from ttsim_jax.results import Skipped
 
-STAGES = ("flight", "table", "racket", "landing")
+from .result import STAGES, Evaluation, LandingStage, RacketStage, TableStage
+from .spins import incoming_spins
 REFERENCE = "nakashima2011"
 #: Face semi-axes [m] of the racket in the landing rollouts: larger than any real blade, so that a
 #: measured contact is never lost to an outline the data does not give.
@@ -154,14 +155,14 @@ def reference_name(names: Sequence[str]) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- flight
-def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
+def flight_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None):
     """Flight-segment 3-D position RMSE per model (see the module docstring): the segments of
     ``settings.sessions`` with at least ``settings.min_samples`` observations, those with a spin
     confidence >= ``settings.fit.min_spin_conf`` when the data has any.
 
     Returns:
-        dict of :func:`ttsim_jax.fit.flight.segment_rmse`: ``skipped`` (a reason) or
-        ``segment_id``, ``spin_measured``, ``n_without_spin``, ``rmse`` {name: (S,) [m]}, ``spin``.
+        What :func:`ttsim_jax.fit.flight.segment_rmse` returns: a
+        :class:`~ttsim_jax.fit.flight.FlightStage` or :class:`~ttsim_jax.results.Skipped`.
     """
     from ttsim_jax.fit.flight import segment_rmse
 
@@ -183,23 +184,19 @@ def _table_response(model, pos, vel, spin):
     return jax.vmap(one)(pos, vel, spin)
 
 
-def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
+def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> TableStage | Skipped:
     """Table-contact errors per model (see the module docstring).
 
     Returns:
-        dict: ``skipped`` (a reason) or ``event_id`` (N,), ``spin_known`` (N, 2) bool (before,
-        after), ``pre``, ``post`` (N, 6) estimated world-frame (v, w) before / after (the pre-bounce
-        spin 0 where not measured), ``spin_in`` {name: (N, 3) the pre-bounce spin each model was
-        given} and ``spin_source`` (N,) where it came from (:func:`~ttsim_jax.evaluate.spins.incoming_spins`), ``error``
-        {name: (N, 6) predicted minus measured, NaN spin unless both spins are measured},
-        ``skip_counts`` {reason: n}.
+        A :class:`~ttsim_jax.evaluate.result.TableStage`, or :class:`~ttsim_jax.results.Skipped`
+        without a usable table bounce.
     """
     ev = ds.events
     rows = np.flatnonzero((np.asarray(ev["kind"]).astype(str) == "table") & settings.keep(ev["session_id"]))
     if not len(rows):
         for _ in models:
             tick()
-        return dict(skipped="no table bounce (event kind 'table') in the dataset")
+        return Skipped("no table bounce (event kind 'table') in the dataset")
     ids = np.asarray(ev["event_id"], np.int64)[rows]
     c = ds.contacts(settings.fit)
     at = c.rows(ids)
@@ -212,7 +209,7 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
     if not len(good):
         for _ in models:
             tick()
-        return dict(skipped=f"none of the {len(rows)} table bounces is usable ({counts_text(skip_counts, TABLE_SKIP_REASONS)})")
+        return Skipped(f"none of the {len(rows)} table bounces is usable ({counts_text(skip_counts, TABLE_SKIP_REASONS)})")
     g = at[good]
     spin_known = c.spin_known[g]
     p_c = c.pos[at]
@@ -228,8 +225,8 @@ def table_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = l
         e[~spin_known.all(1), 3:] = np.nan
         error[name] = e
         tick()
-    return dict(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, spin_in=spin_in, spin_source=source,
-                error=error, skip_counts=skip_counts, n_bounces=len(rows))
+    return TableStage(event_id=ids[good], spin_known=spin_known, pre=pre, post=post, spin_in=spin_in, spin_source=source,
+                      error=error, skip_counts=skip_counts, n_bounces=len(rows))
 
 
 def counts_text(counts: dict, reasons: dict) -> str:
@@ -238,16 +235,12 @@ def counts_text(counts: dict, reasons: dict) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- racket
-def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
+def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> RacketStage | Skipped:
     """Racket-contact errors per model, in the racket frame, on the contacts usable for every model.
 
     Returns:
-        dict: ``skipped`` (a reason) or ``event_id`` (N,), ``distance`` (N,) [m], ``x`` (N, 8)
-        the pre-contact racket-frame state (v~, w~, d) of the first model's frame, ``error``
-        {name: (N, 8) signed errors (:data:`~ttsim_jax.fit.network_evaluation.ERROR_NAMES`)},
-        ``predicted`` {name: (N, 6)} and ``y_obs`` (N, 6) the post-contact (v~+, w~+), ``config``,
-        ``rubber_type`` (N,) str and ``tilt`` (N,) [deg] (:func:`ttsim_jax.data.racket_configs.of_events`),
-        ``skip_counts`` {reason: n} (of the first model's conversion), ``n_contacts``.
+        A :class:`~ttsim_jax.evaluate.result.RacketStage`, or :class:`~ttsim_jax.results.Skipped`
+        without racket states or a contact usable for every model.
     """
     from ttsim_jax.fit.network_evaluation import predict
 
@@ -255,7 +248,7 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     if n_states == 0:
         for _ in models:
             tick()
-        return dict(skipped="no racket states (the dataset's rackets table is empty)")
+        return Skipped("no racket states (the dataset's rackets table is empty)")
     arrays = {}
     for name, model in models:
         a = contact_arrays(ds, model, n_inputs=8, fit=settings.fit, validate=False)
@@ -272,8 +265,8 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     if not common:
         for _ in models:
             tick()
-        return dict(skipped=f"none of the {first.n_contacts} racket contacts is usable "
-                    f"({counts_text(first.counts(), SKIP_REASONS)})")
+        return Skipped(f"none of the {first.n_contacts} racket contacts is usable "
+                       f"({counts_text(first.counts(), SKIP_REASONS)})")
     event_ids = np.array(sorted(common), np.int64)
     error, predicted, x, y_obs = {}, {}, None, None
     for name, _ in models:
@@ -285,9 +278,9 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
             x, y_obs = np.asarray(a.x[rows], np.float64), np.asarray(a.y_obs[rows], np.float64)
         tick()
     config, rubber_type, tilt = racket_configs.of_events(ds, event_ids)
-    return dict(event_id=event_ids, distance=np.linalg.norm(x[:, 6:8], axis=1), x=x, error=error,
-                predicted=predicted, y_obs=y_obs, config=config, rubber_type=rubber_type, tilt=tilt,
-                skip_counts=first.counts(), n_contacts=first.n_contacts)
+    return RacketStage(event_id=event_ids, distance=np.linalg.norm(x[:, 6:8], axis=1), x=x, error=error,
+                       predicted=predicted, y_obs=y_obs, config=config, rubber_type=rubber_type, tilt=tilt,
+                       skip_counts=first.counts(), n_contacts=first.n_contacts)
 
 
 # ---------------------------------------------------------------------------------------------- landing
@@ -471,28 +464,25 @@ def simulate_landing(model, cases: dict, settings: EvaluateSettings) -> tuple[np
     return landing, hit
 
 
-def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> dict:
+def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> LandingStage | Skipped:
     """Landing-position errors per model (see the module docstring).
 
     Returns:
-        dict: ``skipped`` (a reason) or ``event_id`` (N,), ``measured`` (N, 2), ``landing``
-        {name: (N, 2)}, ``error`` {name: (N,) distance [m], NaN where the simulated ball was not
-        hit or did not land}, ``hit`` {name: (N,) bool}, ``spin_source`` (N,) where each incoming
-        spin came from and ``through_bounce`` (N,) whether a latent one was fitted across the
-        bounce before (:func:`~ttsim_jax.evaluate.spins.incoming_spins`), ``skip_counts``, ``n_contacts``.
+        A :class:`~ttsim_jax.evaluate.result.LandingStage`, or :class:`~ttsim_jax.results.Skipped`
+        without racket states or a usable contact.
     """
     from ttsim_jax.kernel.ball_step import ball_properties
 
     if len(ds.rackets["event_id"]) == 0:
         for _ in models:
             tick()
-        return dict(skipped="no racket states (the dataset's rackets table is empty): the rollouts need the racket")
+        return Skipped("no racket states (the dataset's rackets table is empty): the rollouts need the racket")
     cases = landing_cases(ds, settings, float(ball_properties(models[0][1])[0]))
     if not len(cases["t0"]):
         for _ in models:
             tick()
-        return dict(skipped=f"none of the {cases['n_contacts']} racket contacts is usable "
-                    f"({counts_text(cases['skip_counts'], LANDING_SKIP_REASONS)})")
+        return Skipped(f"none of the {cases['n_contacts']} racket contacts is usable "
+                       f"({counts_text(cases['skip_counts'], LANDING_SKIP_REASONS)})")
     spins, source, bounce = incoming_spins(ds, models, cases["in_row"], cases["spin_known"], cases["ball"][:, 6:],
                                            settings.spin, through_bounce=True)
     landing, hit, error = {}, {}, {}
@@ -502,14 +492,14 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
         landing[name], hit[name] = simulate_landing(model, dict(cases, ball=ball), settings)
         error[name] = np.linalg.norm(landing[name] - cases["measured"], axis=1)
         tick()
-    return dict(event_id=cases["event_id"], measured=cases["measured"], landing=landing, error=error, hit=hit,
-                spin_source=source, through_bounce=bounce, skip_counts=cases["skip_counts"],
-                n_contacts=cases["n_contacts"])
+    return LandingStage(event_id=cases["event_id"], measured=cases["measured"], landing=landing, error=error, hit=hit,
+                        spin_source=source, through_bounce=bounce, skip_counts=cases["skip_counts"],
+                        n_contacts=cases["n_contacts"])
 
 
 # ---------------------------------------------------------------------------------------------- all
 def evaluate_models(ds, models: Sequence, settings: EvaluateSettings = EvaluateSettings(), *,
-                    stages: Sequence[str] = STAGES, progress: bool = False) -> dict:
+                    stages: Sequence[str] = STAGES, progress: bool = False) -> Evaluation:
     """Every stage of the evaluation for every model.
 
     Arguments:
@@ -520,8 +510,8 @@ def evaluate_models(ds, models: Sequence, settings: EvaluateSettings = EvaluateS
         progress: show a progress bar over stages x models.
 
     Returns:
-        dict: ``models`` (names), ``reference`` (name), ``settings``, and per stage the dict of
-        its ``*_stage`` function.
+        An :class:`~ttsim_jax.evaluate.result.Evaluation`: per stage asked for, what its
+        ``*_stage`` function returned.
     """
     from tqdm import tqdm
 
@@ -530,11 +520,11 @@ def evaluate_models(ds, models: Sequence, settings: EvaluateSettings = EvaluateS
         raise ValueError(f"stages: unknown {sorted(unknown)}; known: {list(STAGES)}")
     resolved = resolve_models(models, jnp.float64 if settings.float64 else jnp.float32)
     names = [n for n, _ in resolved]
-    result = dict(models=names, reference=reference_name(names),
-                  settings=dict(dataclasses.asdict(settings), fit=dataclasses.asdict(settings.fit)))
     run = dict(flight=flight_stage, table=table_stage, racket=racket_stage, landing=landing_stage)
+    done = {}
     with tqdm(total=len(stages) * len(resolved), desc="evaluate", unit="model", disable=not progress) as bar:
         for stage in stages:
             bar.set_postfix_str(stage)
-            result[stage] = run[stage](ds, resolved, settings, bar.update)
-    return result
+            done[stage] = run[stage](ds, resolved, settings, bar.update)
+    return Evaluation(models=names, reference=reference_name(names),
+                      settings=dict(dataclasses.asdict(settings), fit=dataclasses.asdict(settings.fit)), **done)

@@ -36,24 +36,25 @@ def flight_comparisons(ds, base_model, fitted_model, sessions, held: bool, setti
     (its ``min_spin_conf`` and ``spin``)."""
     from ttsim_jax.data.tables import id_index, rows_of
     from ttsim_jax.fit.flight import segment_rmse, spin_source_counts
+    from ttsim_jax.results import Skipped
 
     out = segment_rmse(ds, [("base", base_model), ("fitted", fitted_model)], min_spin_conf=settings.min_spin_conf,
                        sessions=None if sessions is None else tuple(int(s) for s in sessions), spin=settings.spin)
-    if "skipped" in out:
+    if isinstance(out, Skipped):
         return {}
-    rows = rows_of(id_index(ds.segments["segment_id"]), out["segment_id"])
+    rows = rows_of(id_index(ds.segments["segment_id"]), out.segment_id)
     session = np.asarray(ds.segments["session_id"])[rows]
     groups = {"aero": np.ones(len(session), bool)}
     if parts and len(parts) > 1:  # a pooled fit can serve one dataset at another's cost: each is compared
         groups.update({f"aero on {label}": np.isin(session, list(p)) for label, p in parts.items()})
-    source = np.asarray(out["spin_source"]).astype(str)
+    source = np.asarray(out.spin_source).astype(str)
     comparisons = {}
     for key, rows in groups.items():
         if not rows.any():
             continue
         stats = {}
         for name in ("base", "fitted"):
-            e = np.asarray(out["rmse"][name])[rows] * 1e3
+            e = np.asarray(out.rmse[name])[rows] * 1e3
             stats[name] = dict(median=float(np.nanmedian(e)), p75=float(np.nanpercentile(e, 75)))
         c = comparison("held_out" if held else "training", int(rows.sum()), stats["base"], stats["fitted"],
                         dict(median="mm", p75="mm"))

@@ -12,6 +12,7 @@ one compilation per model family.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Sequence
 
 import jax
@@ -23,10 +24,36 @@ from ttsim_jax.fit.segment_batches import BATCH, batches, dataset_segments
 from ttsim_jax.fit.choices import LATENT_MIN_SAMPLES, SPIN_SOURCES  # noqa: F401 (re-exported)
 from ttsim_jax.fit.latent_spin import fit_latent_spin
 from ttsim_jax.physics.linalg import spd_solve
+from ttsim_jax.results import ItemArrays, Skipped
 
 ITERATIONS = 6
 #: Where a flown segment's spin came from (:func:`segment_rmse`'s ``spin_source``).
 FLOWN = ("measured", "latent", "zero")
+
+
+@dataclasses.dataclass(frozen=True)
+class FlightStage(ItemArrays):
+    """Models scored on flight segments (:func:`segment_rmse`; ``ttsim evaluate``'s flight stage).
+
+    Attributes:
+        segment_id: (S,) the segments scored.
+        spin_measured: whether they have a measured spin.
+        n_without_spin: segments left out for want of one.
+        rmse: {model name: (S,) 3-D position RMSE [m]}, NaN where the model's flight gave no finite
+            position.
+        spin: (S, 3) the measured spins [rad/s] (zeros where none).
+        spin_source: (S,) where each segment's spin came from (:data:`FLOWN`).
+        latent_spin: {model name: (S, 3) the spins it flew [rad/s]} of the models that fitted a
+            latent spin.
+    """
+
+    segment_id: np.ndarray
+    spin_measured: bool
+    n_without_spin: int
+    rmse: dict
+    spin: np.ndarray
+    spin_source: np.ndarray
+    latent_spin: dict
 
 
 def spin_source_counts(source) -> dict:
@@ -109,12 +136,8 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
         tick: called once per model when it is scored.
 
     Returns:
-        dict: ``skipped`` (a reason) or ``segment_id`` (S,), ``spin_measured`` (whether the
-        segments have a measured spin), ``n_without_spin`` (segments left out for want of one),
-        ``rmse`` {name: (S,) [m]} (NaN where the model's flight gave no finite position),
-        ``spin`` (S, 3) the measured spins (zeros where none), ``spin_source`` (S,) where each
-        segment's spin came from (``"measured"``, ``"latent"``, ``"zero"``) and ``latent_spin``
-        {name: (S, 3) the spins each model flew, for the models that fitted a latent spin}.
+        A :class:`FlightStage`, or :class:`~ttsim_jax.results.Skipped` without a segment of
+        ``min_samples`` observations.
     """
     if spin not in SPIN_SOURCES:
         raise ValueError(f"spin = {spin!r}: must be one of {SPIN_SOURCES}")
@@ -126,7 +149,7 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
     if not n_keep:
         for _ in models:
             tick()
-        return dict(skipped=f"no flight segment with at least {min_samples} observations")
+        return Skipped(f"no flight segment with at least {min_samples} observations")
     spin_known = conf >= min_spin_conf
     with_spin = bool((keep & spin_known).any())
     if spin == "measured" and with_spin:  # a flight flown with spin 0 for want of a measurement says little
@@ -154,5 +177,5 @@ def segment_rmse(ds, models: list, *, min_samples: int = 5, min_spin_conf: float
             latent[name] = spins_m
         rmse[name] = flight_rmse(model, times, positions, spins_m)
         tick()
-    return dict(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse,
-                spin=measured, spin_source=source, latent_spin=latent)
+    return FlightStage(segment_id=ids[keep], spin_measured=with_spin, n_without_spin=int(n_keep - keep.sum()), rmse=rmse,
+                       spin=measured, spin_source=source, latent_spin=latent)
