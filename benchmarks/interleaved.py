@@ -16,6 +16,11 @@ its own repository first on ``sys.path`` (``peers.py`` does), or starts ``python
 ``--metric`` names the key read from each entry of the JSON's ``results``, or a dotted path into
 a nested entry (``result.ball_steps_per_s`` for ``throughput.py``); the median over all of them
 when there are several, e.g. one per batch: pass one batch.
+
+Rounds run old then new, and new then old in the next (so that a steady drift of the machine's
+speed over two rounds falls on both trees alike); besides the ratio of the medians, the summary
+holds each round's ratio new / old (``paired_ratios``), their median and range: on a machine whose
+speed wanders between rounds, the paired ratios are the steadier figure.
 """
 
 from __future__ import annotations
@@ -58,7 +63,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--old", type=Path, required=True, help="source tree of the old code (its root folder)")
     p.add_argument("--new", type=Path, required=True, help="source tree of the new code (its root folder)")
-    p.add_argument("--rounds", type=int, default=3, help="runs per tree, alternating old, new (default: %(default)s)")
+    p.add_argument("--rounds", type=int, default=3, help="runs per tree: old then new, then new then old, and so on (default: %(default)s)")
     p.add_argument("--metric", required=True,
                    help="key of each entry of the JSON's results, e.g. env_steps_per_s, or a dotted path into a "
                         "nested entry, e.g. result.ball_steps_per_s")
@@ -70,20 +75,26 @@ def main(argv=None) -> int:
     if not script:
         p.error("give the benchmark after --, e.g. -- benchmarks/env_throughput.py --envs 4096")
     runs = {"old": [], "new": []}
-    for _ in range(args.rounds):
-        for name in ("old", "new"):
+    for k in range(args.rounds):
+        # old, new, then new, old: a drift of the machine's speed across a pair of rounds falls on
+        # both trees alike
+        for name in ("old", "new") if k % 2 == 0 else ("new", "old"):
             runs[name].append(run_once(getattr(args, name), script, args.metric, print))
     med = {k: statistics.median(v) for k, v in runs.items()}
+    paired = [n / o for n, o in zip(runs["new"], runs["old"])]
     summary = dict(benchmark="interleaved", metric=args.metric, script=script,
                    old=str(args.old), new=str(args.new), rounds=args.rounds, runs=runs, median=med,
-                   ratio_new_over_old=med["new"] / med["old"], load_average=list(os.getloadavg()))
+                   ratio_new_over_old=med["new"] / med["old"], paired_ratios=paired,
+                   paired_ratio_median=statistics.median(paired), paired_ratio_range=[min(paired), max(paired)],
+                   load_average=list(os.getloadavg()))
     for name in ("old", "new"):
         head = subprocess.run(["git", "-C", str(getattr(args, name)), "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True)
         summary[f"{name}_commit"] = head.stdout.strip() or None
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=1) + "\n")
-    print(json.dumps(dict(median=med, ratio_new_over_old=summary["ratio_new_over_old"]), indent=1))
+    print(json.dumps(dict(median=med, ratio_new_over_old=summary["ratio_new_over_old"],
+                          paired_ratio_median=summary["paired_ratio_median"]), indent=1))
     return 0
 
 

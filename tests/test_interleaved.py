@@ -2,6 +2,7 @@
 and their ratio from those figures; the package each run imports is its own tree's."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -9,8 +10,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 FAKE = '''
-import argparse, json, pathlib, subprocess, sys
+import argparse, json, os, pathlib, subprocess, sys
 import fakepkg
+with open(os.environ["ORDER_LOG"], "a") as f:
+    f.write(f"{fakepkg.RATE}\n")
 p = argparse.ArgumentParser()
 p.add_argument("--out")
 a = p.parse_args()
@@ -32,9 +35,13 @@ def test_interleaved_runs_each_tree_and_takes_medians(tmp_path):
     out = tmp_path / "ab.json"
     subprocess.run([sys.executable, str(REPO / "benchmarks" / "interleaved.py"), "--old", str(tmp_path / "old"),
                     "--new", str(tmp_path / "new"), "--rounds", "2", "--metric", "result.rate", "--out", str(out), "--",
-                    "benchmarks/bench.py"], check=True, capture_output=True, text=True, cwd=tmp_path / "caller")
+                    "benchmarks/bench.py"], check=True, capture_output=True, text=True, cwd=tmp_path / "caller",
+                   env=dict(os.environ, ORDER_LOG=str(tmp_path / "order.log")))
+    # old, new, then new, old
+    assert (tmp_path / "order.log").read_text().split() == ["10.0", "30.0", "30.0", "10.0"]
     got = json.loads(out.read_text())
     # each run: the median of its two results (rate, rate + 2), read through the dotted path
     assert got["runs"] == {"old": [11.0, 11.0], "new": [31.0, 31.0]}
     assert got["median"] == {"old": 11.0, "new": 31.0}
     assert abs(got["ratio_new_over_old"] - 31.0 / 11.0) < 1e-12
+    assert got["paired_ratios"] == [31.0 / 11.0] * 2 and got["paired_ratio_range"] == [31.0 / 11.0] * 2
