@@ -13,7 +13,7 @@ FAKE = '''
 import argparse, json, os, pathlib, subprocess, sys
 import fakepkg
 with open(os.environ["ORDER_LOG"], "a") as f:
-    f.write(f"{fakepkg.RATE}\n")
+    f.write(f"{fakepkg.RATE}\\n")
 p = argparse.ArgumentParser()
 p.add_argument("--out")
 a = p.parse_args()
