@@ -1,5 +1,6 @@
-"""The ball axis sharded over 4 forced host devices gives the unsharded results (run in a
-subprocess: the device count is fixed when JAX starts)."""
+"""The ball axis sharded over 4 forced host devices gives the unsharded results, the sampled
+residual network's draws at a racket policy's contacts included (run in a subprocess: the device
+count is fixed when JAX starts)."""
 
 import os
 import subprocess
@@ -21,20 +22,33 @@ SCRIPT = textwrap.dedent("""
     balls = Ball.create(np.stack([rng.uniform(-1.6, -1.2, n), rng.uniform(-.5, .5, n), rng.uniform(.1, .4, n)], -1),
                         np.stack([rng.uniform(3, 12, n), rng.uniform(-1, 1, n), rng.uniform(-2, 2, n)], -1),
                         rng.uniform(-400, 400, (n, 3)))
-    m = load_model("conti2026")
+    from ttsim_jax.physics.events import RACKET
+    from ttsim_jax.physics.network import ResidualConfig, init_model
+    from ttsim_jax.policies import tracking_rackets
+
+    # a sampled residual network at the rackets of a policy: a ball's draw depends on the key, its
+    # step and its id, never on which device holds it
+    net = init_model(ResidualConfig(trunk=(16, 16), head_width=8, n_clusters=4), jax.random.key(0))
+    net = net.replace(beta_coef=jnp.array([1.0, 0.0, 0.0]), y_scale=jnp.full(6, 0.3))
+    m = load_model("conti2026").replace(residual=net)
     e0 = jnp.linspace(0.85, 0.99, n)
     mb = m.replace(table=m.table.replace(e0=e0))
     axes = per_ball_axes(m, "table.e0")
-    s1, o1 = rollout(mb, init_state(balls), 300, 1e-3, model_axes=axes)
-    s2, o2 = sharded_rollout(mb, init_state(balls), 300, 1e-3, model_axes=axes)
+    policy, key = tracking_rackets(), jax.random.key(5)
+    s1, o1 = rollout(mb, init_state(balls), 600, 1e-3, policy, model_axes=axes, sample_key=key)
+    s2, o2 = sharded_rollout(mb, init_state(balls), 600, 1e-3, policy, model_axes=axes, sample_key=key)
     assert len(s2.ball.pos.sharding.device_set) == 4
     np.testing.assert_allclose(np.asarray(s2.ball.as_array()), np.asarray(s1.ball.as_array()), rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(o2.events.kind), np.asarray(o1.events.kind))
+    np.testing.assert_allclose(np.asarray(o2.events.post.vel), np.asarray(o1.events.post.vel), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(o2.events.sigma), np.asarray(o1.events.sigma), rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(s2.status), np.asarray(s1.status))
     assert int((np.asarray(o1.events.kind) > 0).sum()) >= n // 2
+    assert int((np.asarray(o1.events.kind) == RACKET).sum()) >= 4, np.asarray(o1.events.kind)
+    assert float(np.abs(np.asarray(o1.events.sigma)).max()) > 0.0  # the network was sampled
     # resumes from a sharded state (same length: the compiled programs are reused)
-    s3, _ = sharded_rollout(mb, s2, 300, 1e-3, model_axes=axes)
-    s4, _ = rollout(mb, s1, 300, 1e-3, model_axes=axes)
+    s3, _ = sharded_rollout(mb, s2, 600, 1e-3, policy, model_axes=axes, sample_key=key)
+    s4, _ = rollout(mb, s1, 600, 1e-3, policy, model_axes=axes, sample_key=key)
     np.testing.assert_allclose(np.asarray(s3.ball.as_array()), np.asarray(s4.ball.as_array()), rtol=1e-12, atol=1e-12)
     print("SHARDED-OK", int((np.asarray(o1.events.kind) > 0).sum()))
 """)
