@@ -96,10 +96,12 @@ def test_fused_equals_reference_with_per_ball_parameters_and_rackets(model):
     _fused_matches_reference(model, batched, axes, 5, rng, apart=1e-3)
 
 
-def _fused_matches_reference(model, batched, axes, seed, rng, apart):
+def _fused_matches_reference(model, batched, axes, seed, rng, apart, plain=None):
     """With a racket schedule per ball, the fused path's rollout of ``batched`` is the reference
     path's (and bounces and meets rackets); ``model``'s (the shared parameters, no effects) ends
-    more than ``apart`` [m] elsewhere: what ``batched`` changes matters."""
+    more than ``apart`` [m] elsewhere: what ``batched`` changes matters. ``plain``: ``model``
+    written in ``batched``'s structure (``model_axes`` included), whose rollout reuses the
+    compiled program of ``batched``'s."""
     assert fused.unsupported(batched, axes, integrator="rk4", policy=None, rackets_batched=True) is None
     state, sched = init_state(shots(B, seed=seed)), per_ball_rackets(N, rng)
     ref = rollout(batched, state, N, 1e-3, sched, model_axes=axes)
@@ -107,8 +109,21 @@ def _fused_matches_reference(model, batched, axes, seed, rng, apart):
     _assert_same_rollout(ref, fus, atol=1e-9)
     kinds = np.asarray(ref[1].events.kind)
     assert (kinds == TABLE).sum() > 40 and (kinds == RACKET).sum() > 5
-    shared = rollout(model, state, N, 1e-3, sched, execution=Execution(fused=True))
+    if plain is None:
+        shared = rollout(model, state, N, 1e-3, sched, execution=Execution(fused=True))
+    else:
+        shared = rollout(plain, state, N, 1e-3, sched, model_axes=axes, execution=Execution(fused=True))
     assert float(jnp.max(jnp.abs(shared[0].ball.pos - fus[0].ball.pos))) > apart
+
+
+def neutral_effects(batched, axes, n=B):
+    """``batched`` with every effect at its neutral values (which reproduce the model without
+    them: tests/effects), the per-ball ones broadcast to ``n`` balls: the same structure, shapes
+    and axes, so its rollouts reuse ``batched``'s compiled programs."""
+    dtype = batched.ball.radius.dtype
+    neutral = batched.replace(effects=tuple(type(e).neutral(dtype=dtype) for e in batched.effects))
+    return jax.tree.map(lambda ax, leaf: jnp.broadcast_to(leaf, (n,) + leaf.shape) if ax == 0 else leaf,
+                        axes, neutral, is_leaf=lambda x: x is None)
 
 
 def flight_effects(model, rng, n=B):
@@ -133,7 +148,8 @@ def test_fused_equals_reference_with_effects_in_flight(model):
     rng = np.random.default_rng(23)
     batched, axes = flight_effects(model, rng)
     assert fused.in_flight(batched) and not fused.in_flight(model)
-    _fused_matches_reference(model, batched, axes, 9, rng, apart=1e-2)
+    # the effects matter: against the same program with every effect neutral (the model without them)
+    _fused_matches_reference(model, batched, axes, 9, rng, apart=1e-2, plain=neutral_effects(batched, axes))
     # a table_surface effect moves the table the kernel stops balls at: refused
     tilted = model.replace(effects=(fx.make("table_tilt"),))
     why = fused.unsupported(tilted, per_ball_axes(tilted), integrator="rk4", policy=None, rackets_batched=False)
