@@ -19,8 +19,8 @@ when there are several, e.g. one per batch: pass one batch.
 
 Rounds run old then new, and new then old in the next (so that a steady drift of the machine's
 speed over two rounds falls on both trees alike); besides the ratio of the medians, the summary
-holds each round's ratio new / old (``paired_ratios``), their median and range: on a machine whose
-speed wanders between rounds, the paired ratios are the steadier figure.
+holds each round's ratio new / old (``paired_ratios``), their median and range: the range shows
+how far one round can be trusted on this machine.
 """
 
 from __future__ import annotations
