@@ -64,16 +64,15 @@ class ItemArrays:
 
     def arrays(self) -> dict:
         """The per-item arrays, flat: ``{quantity: array}`` and ``{quantity/model: array}`` for the
-        dict fields (what ``samples.npz`` holds under the stage's name); counts and flags are left
-        out, and so are ``{reason: count}`` fields (``skip_counts``)."""
+        dict fields of arrays (what ``samples.npz`` holds under the stage's name); counts and flags
+        are left out, and so are dicts of counts (``skip_counts``: {reason: count})."""
         out = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, dict):
-                if f.name == "skip_counts":
-                    continue
                 for name, arr in value.items():
-                    out[f"{f.name}/{name}"] = np.asarray(arr)
+                    if isinstance(arr, (np.ndarray, jax.Array)):
+                        out[f"{f.name}/{name}"] = np.asarray(arr)
             elif isinstance(value, np.ndarray):
                 out[f.name] = value.astype(str) if value.dtype == object else value
         return out

@@ -57,13 +57,12 @@ def test_the_diagnosis_is_typed_and_its_json_is_the_file(run):
     ``diagnosis.json`` holds (the verdict as a dict, the sections that do not apply left out), and
     the report renders the same from either."""
     from ttsim_jax.diagnose import Diagnosis, Verdict
-    from ttsim_jax.results import jsonable
     from ttsim_jax.diagnose.report import markdown
 
     out, _, folder = run
     assert isinstance(out, Diagnosis) and isinstance(out.verdict, Verdict)
     assert out.verdict.explained == (out.verdict.level == "explained")
-    body = jsonable(out.to_json())
+    body = out.to_json()
     stored = json.loads((folder / "diagnosis.json").read_text())
     assert body == stored
     assert stored["verdict"]["text"] == out.verdict.text and stored["verdict"]["level"] == out.verdict.level

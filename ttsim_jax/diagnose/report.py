@@ -373,7 +373,7 @@ def write_report(out: Diagnosis, out_dir, data: str = "", model: str = "") -> di
              "before_after": plot_before_after(out.arrays, d / FIGURES["before_after"])}
     body = out.to_json()
     js = d / "diagnosis.json"
-    atomic_write(js, json.dumps(jsonable(body), indent=1).encode(), "the diagnosis")
+    atomic_write(js, json.dumps(body, indent=1).encode(), "the diagnosis")
     md = d / "report.md"
     atomic_write(md, markdown(body, data, model).encode(), "the report")
     return dict(paths, json=js, report=md)

@@ -11,9 +11,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import numpy as np
-
 from ttsim_jax.diagnose.verdict import Verdict
+from ttsim_jax.results import jsonable
 
 #: Sections present only where they apply, left out of the JSON where they do not.
 OPTIONAL = ("spin_sources", "spin_correction", "combined", "landing")
@@ -78,10 +77,11 @@ class Diagnosis:
     landing: dict | None = None
 
     def to_json(self) -> dict:
-        """The content of ``diagnosis.json``: every section but the arrays (the optional ones
-        only where they apply), the verdict as a dict and each fit's loss history as a list."""
+        """The content of ``diagnosis.json``, JSON-ready (:func:`~ttsim_jax.results.jsonable`):
+        every section but the arrays (the optional ones only where they apply), the verdict as a
+        dict and each fit's loss history as a list."""
         body = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if f.name not in ("arrays", "histories") and not (f.name in OPTIONAL and getattr(self, f.name) is None)}
         body["verdict"] = self.verdict.to_json()
-        body["loss_history"] = {k: np.asarray(v).tolist() for k, v in self.histories.items()}
-        return body
+        body["loss_history"] = self.histories
+        return jsonable(body)

@@ -527,4 +527,4 @@ def evaluate_models(ds, models: Sequence, settings: EvaluateSettings = EvaluateS
             bar.set_postfix_str(stage)
             done[stage] = run[stage](ds, resolved, settings, bar.update)
     return Evaluation(models=names, reference=reference_name(names),
-                      settings=dict(dataclasses.asdict(settings), fit=dataclasses.asdict(settings.fit)), **done)
+                      settings=dataclasses.asdict(settings), **done)
