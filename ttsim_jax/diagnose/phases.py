@@ -251,16 +251,16 @@ def table_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[Con
 
 def racket_contacts(ds, model, session_index: dict, fit: ContactFit) -> tuple[ContactItems | None, str]:
     """The usable racket contacts in the racket frame (see :class:`ContactItems`), or (None, reason)."""
-    from ttsim_jax.evaluate.stages import SKIP_REASONS, counts_text
+    from ttsim_jax.evaluate.stages import NO_RACKET_STATES, no_usable_contacts
     from ttsim_jax.fit.network_evaluation import predict
     from ttsim_jax.fit.racket_arrays import contact_arrays
     from ttsim_jax.physics.rotations import quat_to_matrix
 
     if len(ds.rackets["event_id"]) == 0:
-        return None, "no racket states (the dataset's rackets table is empty)"
+        return None, NO_RACKET_STATES
     a = contact_arrays(ds, model, n_inputs=8, fit=fit, validate=False)
     if not len(a):
-        return None, f"none of the {a.n_contacts} racket contacts is usable ({counts_text(a.counts(), SKIP_REASONS)})"
+        return None, no_usable_contacts(a.n_contacts, a.counts()).reason
     corr = np.zeros((len(a), 6))
     if model.residual is not None:
         y, _, _ = predict(model.residual, a.x[:, :model.residual.config.n_inputs], a.y_base)

@@ -234,6 +234,16 @@ def counts_text(counts: dict, reasons: dict) -> str:
     return "; ".join(f"{n} {k}: {reasons.get(k, k)}" for k, n in counts.items()) or "none skipped"
 
 
+#: Why a stage that needs racket states has none.
+NO_RACKET_STATES = "no racket states (the dataset's rackets table is empty)"
+
+
+def no_usable_contacts(n_contacts: int, counts: dict, reasons: dict = SKIP_REASONS) -> Skipped:
+    """The reason a stage skips when none of ``n_contacts`` racket contacts is usable, with the
+    counts of what left each out (``reasons``: their descriptions)."""
+    return Skipped(f"none of the {n_contacts} racket contacts is usable ({counts_text(counts, reasons)})")
+
+
 # ---------------------------------------------------------------------------------------------- racket
 def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = lambda: None) -> RacketStage | Skipped:
     """Racket-contact errors per model, in the racket frame, on the contacts usable for every model.
@@ -248,7 +258,7 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     if n_states == 0:
         for _ in models:
             tick()
-        return Skipped("no racket states (the dataset's rackets table is empty)")
+        return Skipped(NO_RACKET_STATES)
     arrays = {}
     for name, model in models:
         a = contact_arrays(ds, model, n_inputs=8, fit=settings.fit, validate=False)
@@ -265,8 +275,7 @@ def racket_stage(ds, models: list, settings: EvaluateSettings, tick: Callable = 
     if not common:
         for _ in models:
             tick()
-        return Skipped(f"none of the {first.n_contacts} racket contacts is usable "
-                       f"({counts_text(first.counts(), SKIP_REASONS)})")
+        return no_usable_contacts(first.n_contacts, first.counts())
     event_ids = np.array(sorted(common), np.int64)
     error, predicted, x, y_obs = {}, {}, None, None
     for name, _ in models:
@@ -476,13 +485,12 @@ def landing_stage(ds, models: list, settings: EvaluateSettings, tick: Callable =
     if len(ds.rackets["event_id"]) == 0:
         for _ in models:
             tick()
-        return Skipped("no racket states (the dataset's rackets table is empty): the rollouts need the racket")
+        return Skipped(f"{NO_RACKET_STATES}: the rollouts need the racket")
     cases = landing_cases(ds, settings, float(ball_properties(models[0][1])[0]))
     if not len(cases["t0"]):
         for _ in models:
             tick()
-        return Skipped(f"none of the {cases['n_contacts']} racket contacts is usable "
-                       f"({counts_text(cases['skip_counts'], LANDING_SKIP_REASONS)})")
+        return no_usable_contacts(cases["n_contacts"], cases["skip_counts"], LANDING_SKIP_REASONS)
     spins, source, bounce = incoming_spins(ds, models, cases["in_row"], cases["spin_known"], cases["ball"][:, 6:],
                                            settings.spin, through_bounce=True)
     landing, hit, error = {}, {}, {}
