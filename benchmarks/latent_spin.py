@@ -37,6 +37,32 @@ from pathlib import Path
 import numpy as np
 
 
+#: Trajectories per block of SpinDOE's files (in file order) in the table of sign disagreement by block.
+BLOCK = 15
+
+
+def evenness_p(blocks, permutations: int = 20000, seed: int = 0) -> float:
+    """Permutation p-value of the blocks' counts of segments bent opposite to their measured spin
+    under the hypothesis that those segments are spread evenly over the files (the chi-square of
+    the counts against their shares, its flags shuffled over the segments)."""
+    n = np.array([b["n"] for b in blocks])
+    o = np.array([b["opposite"] for b in blocks])
+    share = o.sum() / max(n.sum(), 1)
+    if share in (0.0, 1.0):
+        return 1.0
+    expected = n * share
+
+    def chi2(counts):
+        return np.sum((counts - expected) ** 2 / (expected * (1.0 - share)), axis=-1)
+
+    rng = np.random.default_rng(seed)
+    flags = np.zeros((permutations, n.sum()), bool)
+    flags[:, :o.sum()] = True
+    flags = rng.permuted(flags, axis=1)
+    counts = np.add.reduceat(flags, np.concatenate([[0], np.cumsum(n)[:-1]]), axis=1)
+    return float((np.sum(chi2(counts) >= chi2(o)) + 1) / (permutations + 1))
+
+
 def real_root() -> Path:
     return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
@@ -128,7 +154,7 @@ def main(argv=None) -> int:
     # ------------------------------------------------------------------ SpinDOE: spin withheld
     print("SpinDOE: importing, fitting the latent spin ...", file=sys.stderr)
     ds = import_source(args.real / "spindoe", "spindoe")
-    ids, times, positions, spins, conf, _ = segments(ds, args.min_samples)
+    ids, times, positions, spins, conf, session = segments(ds, args.min_samples)
     keep = np.flatnonzero(conf >= 0.5)
     keep = cut(keep)
     times = [times[i] for i in keep]
@@ -162,7 +188,23 @@ def main(argv=None) -> int:
         spin_rows[f"|w| >= 100, {lo}-{hi} samples"] = summary((w >= 100) & (n >= lo) & (n < hi))
     check = check_spin(measured, ls)
     spin_rows["|w| >= 100 rad/s, size not flagged ambiguous"] = summary((w >= 100) & ~ls.ambiguous)
+    # the files in recording order, in blocks of BLOCK trajectories: is the sign disagreement spread
+    # evenly over the recording, or does it come in batches?
+    file_of = dict(zip(np.asarray(ds.sessions["session_id"]).tolist(), [str(x) for x in np.asarray(ds.sessions["name"])]))
+    files = np.array([file_of[int(x)] for x in session[keep]])
+    order = np.argsort(files, kind="stable")
+    blocks = []
+    for start in range(0, len(order), BLOCK):
+        rows = order[start:start + BLOCK]
+        rows = rows[ok[rows]]
+        if not len(rows):
+            continue
+        flipped = ang[rows] > 120.0
+        blocks.append(dict(first=files[rows[0]], last=files[rows[-1]], n=int(len(rows)), opposite=int(flipped.sum()),
+                           median_angle_rest_deg=float(np.median(ang[rows][~flipped])) if (~flipped).any() else None,
+                           median_spin=float(np.median(w[rows]))))
     results["spindoe"] = dict(segments=int(len(keep)), fitted=int(ok.sum()), fit_seconds=fit_s, rows=spin_rows,
+                              by_file_block=blocks, by_file_block_evenness_p=evenness_p(blocks),
                               ambiguous_share=float(ls.ambiguous[ok].mean()), spin_check=check.to_json(),
                               spin_check_summary=check.summary(),
                               per_segment=dict(angle_deg=ang.round(2).tolist(), magnitude_error=mag.round(4).tolist(),
@@ -240,6 +282,13 @@ def main(argv=None) -> int:
         if r["n"]:
             print(f"| {k} | {r['n']} | {r['median_angle_deg']:.1f} deg | {100 * r['median_abs_magnitude_error']:.0f} % |")
     print("\nSpinDOE " + results["spindoe"]["spin_check_summary"])
+    print(f"\nSpinDOE by file, blocks of {BLOCK} trajectories in file order:\n"
+          "| files | segments | bent opposite to the measured spin (angle > 120°) | median angle of the others | median spin |\n"
+          "|---|---|---|---|---|")
+    for b in results["spindoe"]["by_file_block"]:
+        rest = "-" if b["median_angle_rest_deg"] is None else f"{b['median_angle_rest_deg']:.1f}°"
+        print(f"| {b['first']} - {b['last']} | {b['n']} | {b['opposite']} | {rest} | {b['median_spin']:.0f} rad/s |")
+    print(f"(evenly spread over the files: permutation p = {results['spindoe']['by_file_block_evenness_p']:.3f})")
     print("\nSpinDOE across the bounce (" + str(results["spindoe_bounce"]["pairs"]) + " bounces):")
     print("| fit | segments | n | median angle | median magnitude error across the flight (signed) | median size error |")
     print("|---|---|---|---|---|---|")
