@@ -21,8 +21,9 @@ def model():
     return load_model("conti2026")
 
 
-def flights(model, spins, seed=0):
-    """Sampled noisy positions of flights from the near end at 5-20 m/s with the given spins."""
+def flights(model, spins, seed=0, noise=NOISE):
+    """Sampled positions of flights from the near end at 5-20 m/s with the given spins, with
+    ``noise`` [m] (standard deviation per axis)."""
     rng = np.random.default_rng(seed)
     s = len(spins)
     p = np.stack([rng.uniform(-1.4, -1.0, s), rng.uniform(-0.3, 0.3, s), rng.uniform(0.2, 0.4, s)], -1)
@@ -34,7 +35,7 @@ def flights(model, spins, seed=0):
         if k % every == 0:
             samples.append(np.asarray(y[0]))
         y = step(*y)
-    pos = np.stack(samples, 1) + rng.normal(0.0, NOISE, (s, len(samples), 3))
+    pos = np.stack(samples, 1) + rng.normal(0.0, noise, (s, len(samples), 3))
     t = np.arange(len(samples)) / RATE
     return [t] * s, list(pos), v
 
@@ -151,3 +152,26 @@ def test_sidespun_flights_are_fitted_near_the_noise(model):
     floor = NOISE * np.sqrt(3.0 * (n - 2) / n)  # what a fit of the initial state leaves of the noise
     assert ls.ok.all()
     assert np.sqrt(np.mean((ls.rmse / floor) ** 2)) < 1.25
+
+
+def test_a_latent_fit_takes_its_spin_across_the_flight_out_of_the_noise(model):
+    """What the noise floor counts (:func:`ttsim_jax.diagnose.floor.flight_params_per_axis`): fitted
+    to one short flight (16 samples, where the count shows most) under 192 draws of 2 mm noise, the
+    latent fit of (p0, v0, w) leaves a mean square residual of (n - k) / n of the noise's, k
+    parameters per axis: 2 2/3 (the two spin components across the flight besides the initial
+    state; the one along it is held by its prior), not the 2 of a fit of the initial state alone."""
+    from ttsim_jax.diagnose.floor import flight_params_per_axis
+
+    times, clean, _ = flights(model, np.array([[0.0, 300.0, 0.0]]), noise=0.0)
+    t, p = times[0][:16], clean[0][:16]
+    n = len(t)
+    rng = np.random.default_rng(3)
+    ratio = []
+    for _ in range(3):  # 64 segments a call: their two starts fill one compiled batch
+        ls = fit_latent_spin([t] * 64, [p + rng.normal(0.0, NOISE, p.shape) for _ in range(64)], model, noise=NOISE)
+        assert ls.ok.all()
+        ratio.append(np.mean(ls.rmse**2) / (3.0 * NOISE**2))  # rmse: 3-D, over the three axes' noise
+    measured = n * (1.0 - float(np.mean(ratio)))  # parameters per axis the fits took
+    k = float(flight_params_per_axis(np.array(["latent"]))[0])
+    assert float(flight_params_per_axis(np.array(["measured"]))[0]) == 2.0
+    assert abs(measured - k) < 0.2 and measured > 2.4, (measured, k)

@@ -30,8 +30,9 @@ all items, every segment and contact, not only the held-out ones):
   minus its projection on the fit's 6 free parameters; the flight is close to separable per axis
   (each axis' positions depend mainly on its own initial position and velocity), so a segment of n
   samples leaves sum over axes of (n - 2) sigma_a^2 of squared residual: floor^2 =
-  sum_a sigma_a^2 sum_s (n_s - 2) / sum_s n_s. The measured spin is held in the fit; its noise is
-  not propagated into the flight floor.
+  sum_a sigma_a^2 sum_s (n_s - k_s) / sum_s n_s, with k_s = 2, or 2 2/3 where the segment flies
+  its latent spin, fitted to the same samples (:func:`flight_params_per_axis`). A measured spin is held
+  in the fit; its noise is not propagated into the flight floor.
 * *table* and *racket*: the contact-state estimates are linear in the positions: the velocity is
   the derivative at the contact time of a least-squares polynomial over the nearest samples
   (:func:`ttsim_jax.data.contact_states.fit_contact_state`), so its variance per axis is
@@ -75,9 +76,21 @@ from ttsim_jax.files.programs import stored_jit
 MAD_SCALE = 1.4826
 #: Parameters per axis of a flight segment's fit (initial position and velocity).
 FLIGHT_PARAMS_PER_AXIS = 2
+#: Parameters per axis that a latent spin adds (:func:`flight_params_per_axis`).
+LATENT_PARAMS_PER_AXIS = 2.0 / 3.0
 #: Fewest third differences for a noise estimate, and fewest items of a phase with a floor.
 MIN_DIFFERENCES = 30
 MIN_ITEMS = 2
+
+
+def flight_params_per_axis(spin_source) -> np.ndarray:
+    """Parameters per axis that each flight segment's fit takes out of its samples' noise:
+    :data:`FLIGHT_PARAMS_PER_AXIS`, and where the segment flies its latent spin, fitted to the same
+    samples, 2/3 more: its two components across the flight, over the three axes (the one along it
+    is held by its prior; what the positions show of it adds up to a further 1/3 on long
+    segments: 2.6 measured on 16 samples, tests/fit/test_latent_spin.py, and 2.8 on 45).
+    ``spin_source``: (S,) as :attr:`~ttsim_jax.diagnose.phases.Flights.spin_source`."""
+    return FLIGHT_PARAMS_PER_AXIS + LATENT_PARAMS_PER_AXIS * (np.asarray(spin_source) == "latent")
 #: Longest span of the 4 samples of a third difference, in median sampling intervals of the segment
 #: (3 at even spacing; a missing frame or jittered times allowed).
 MAX_SPAN = 4.5
@@ -357,7 +370,8 @@ def floors(ds, ph, pb, model, fit, seed: int = 0, n_boot: int = DRAWS) -> dict:
             continue
         sse, count = (a[:real] for a in item_sums(pb, p, pb.base[p]))
         if p == "flight":
-            fpos = np.repeat(np.maximum(count - FLIGHT_PARAMS_PER_AXIS, 0.0)[:, None], 3, 1)
+            source = ph.flights.spin_source[:real] if ph.flights.spin_source is not None else np.full(real, "")
+            fpos = np.repeat(np.maximum(count - flight_params_per_axis(source), 0.0)[:, None], 3, 1)
             fspin = np.zeros(real)
         else:
             c = getattr(ph, p)

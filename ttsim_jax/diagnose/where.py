@@ -34,7 +34,7 @@ import numpy as np
 
 from ttsim_jax.diagnose.bootstrap import group_weights, ratio_ci
 from ttsim_jax.diagnose.defaults import FLAG_RATIO
-from ttsim_jax.diagnose.floor import FLIGHT_PARAMS_PER_AXIS
+from ttsim_jax.diagnose.floor import flight_params_per_axis
 from ttsim_jax.diagnose.phases import AXES, REGIMES, contact_regimes, kinematic_regimes
 
 #: Fewest items of a bin (smaller bins are merged by using fewer quantiles).
@@ -78,14 +78,13 @@ def flight_items(fl, residuals, states, radius: float, rows=None) -> dict:
 
 def null_scale(fl, rows) -> np.ndarray:
     """(len(rows),) per flight segment, the RMS residual a perfect model leaves of unit noise: a
-    segment's fit takes :data:`~ttsim_jax.diagnose.floor.FLIGHT_PARAMS_PER_AXIS` parameters per axis
-    out of its n samples (one more where its spin is latent, fitted to the same samples), so
-    sqrt((n - k) / n). Short segments' residuals are smaller for it, so an error compared across
+    segment's fit takes k parameters per axis out of its n samples
+    (:func:`~ttsim_jax.diagnose.floor.flight_params_per_axis`), so sqrt((n - k) / n). Short segments' residuals are smaller for it, so an error compared across
     segments of different lengths (:func:`ttsim_jax.diagnose.residuals.dependence`: the time since
     the contact is a segment's length) is divided by it first."""
     n = np.sum(fl.mask[rows] > 0, axis=1).astype(np.float64)
     source = fl.spin_source[rows] if fl.spin_source is not None else np.full(len(rows), "")
-    k = FLIGHT_PARAMS_PER_AXIS + (source == "latent")
+    k = flight_params_per_axis(source)
     return np.sqrt(np.clip((n - k) / np.maximum(n, 1.0), 0.05, 1.0))
 
 
