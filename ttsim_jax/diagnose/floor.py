@@ -31,8 +31,8 @@ all items, every segment and contact, not only the held-out ones):
   (each axis' positions depend mainly on its own initial position and velocity), so a segment of n
   samples leaves sum over axes of (n - 2) sigma_a^2 of squared residual: floor^2 =
   sum_a sigma_a^2 sum_s (n_s - k_s) / sum_s n_s, with k_s = 2, or 2 2/3 where the segment flies
-  its latent spin, fitted to the same samples (:func:`flight_params_per_axis`). A measured spin is held
-  in the fit; its noise is not propagated into the flight floor.
+  its latent spin, fitted to the same samples (:func:`flight_params_per_axis`). A measured spin
+  is held in the fit; its noise is not propagated into the flight floor.
 * *table* and *racket*: the contact-state estimates are linear in the positions: the velocity is
   the derivative at the contact time of a least-squares polynomial over the nearest samples
   (:func:`ttsim_jax.data.contact_states.fit_contact_state`), so its variance per axis is
@@ -81,6 +81,11 @@ LATENT_PARAMS_PER_AXIS = 2.0 / 3.0
 #: Fewest third differences for a noise estimate, and fewest items of a phase with a floor.
 MIN_DIFFERENCES = 30
 MIN_ITEMS = 2
+#: Longest span of the 4 samples of a third difference, in median sampling intervals of the segment
+#: (3 at even spacing; a missing frame or jittered times allowed).
+MAX_SPAN = 4.5
+#: Draws of the bootstrap processed at once (bounds the memory of the weighted medians).
+CHUNK = 50
 
 
 def flight_params_per_axis(spin_source) -> np.ndarray:
@@ -91,11 +96,6 @@ def flight_params_per_axis(spin_source) -> np.ndarray:
     segments: 2.6 measured on 16 samples, tests/fit/test_latent_spin.py, and 2.8 on 45).
     ``spin_source``: (S,) as :attr:`~ttsim_jax.diagnose.phases.Flights.spin_source`."""
     return FLIGHT_PARAMS_PER_AXIS + LATENT_PARAMS_PER_AXIS * (np.asarray(spin_source) == "latent")
-#: Longest span of the 4 samples of a third difference, in median sampling intervals of the segment
-#: (3 at even spacing; a missing frame or jittered times allowed).
-MAX_SPAN = 4.5
-#: Draws of the bootstrap processed at once (bounds the memory of the weighted medians).
-CHUNK = 50
 
 
 # ---------------------------------------------------------------------------------------------- noise

@@ -79,9 +79,10 @@ def flight_items(fl, residuals, states, radius: float, rows=None) -> dict:
 def null_scale(fl, rows) -> np.ndarray:
     """(len(rows),) per flight segment, the RMS residual a perfect model leaves of unit noise: a
     segment's fit takes k parameters per axis out of its n samples
-    (:func:`~ttsim_jax.diagnose.floor.flight_params_per_axis`), so sqrt((n - k) / n). Short segments' residuals are smaller for it, so an error compared across
-    segments of different lengths (:func:`ttsim_jax.diagnose.residuals.dependence`: the time since
-    the contact is a segment's length) is divided by it first."""
+    (:func:`~ttsim_jax.diagnose.floor.flight_params_per_axis`), so sqrt((n - k) / n). Short
+    segments' residuals are smaller for it, so an error compared across segments of different
+    lengths (:func:`ttsim_jax.diagnose.residuals.dependence`: the time since the contact is a
+    segment's length) is divided by it first."""
     n = np.sum(fl.mask[rows] > 0, axis=1).astype(np.float64)
     source = fl.spin_source[rows] if fl.spin_source is not None else np.full(len(rows), "")
     k = flight_params_per_axis(source)
