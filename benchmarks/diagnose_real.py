@@ -72,7 +72,8 @@ def main(argv=None) -> int:
 
     from ttsim_jax import load_model
     from ttsim_jax.data.importers import import_source
-    from ttsim_jax.diagnose.diagnosis import Settings, diagnose, jsonable, work_units
+    from ttsim_jax.diagnose.diagnosis import Settings, diagnose, work_units
+    from ttsim_jax.results import jsonable
     from ttsim_jax.diagnose.report import FIGURES, write_report
 
     sources = [s.strip() for s in args.sources.split(",") if s.strip()]

@@ -43,7 +43,8 @@ def plan_parts(singles=(), pairs=None) -> list:
 def main(argv=None) -> int:
     from ttsim_jax.diagnose import candidates as C
     from ttsim_jax.diagnose import selfcheck as SC
-    from ttsim_jax.diagnose.diagnosis import Settings, jsonable
+    from ttsim_jax.diagnose.diagnosis import Settings
+    from ttsim_jax.results import jsonable
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="run folder (cases, one JSON per part)")
