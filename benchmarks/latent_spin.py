@@ -145,7 +145,7 @@ def main(argv=None) -> int:
     from ttsim_jax.data.importers import import_source
     from ttsim_jax.fit.bounce_spin import bounce_pairs, fit_bounce_spin
     from ttsim_jax.fit.latent_spin import fit_latent_spin
-    from ttsim_jax.fit.spin_check import check_spin
+    from ttsim_jax.fit.spin_check import OPPOSITE_DEG, check_spin
 
     model = load_model(args.model)
     results, started = {}, time.time()
@@ -199,7 +199,7 @@ def main(argv=None) -> int:
         rows = rows[ok[rows]]
         if not len(rows):
             continue
-        flipped = ang[rows] > 120.0
+        flipped = ang[rows] > OPPOSITE_DEG
         blocks.append(dict(first=files[rows[0]], last=files[rows[-1]], n=int(len(rows)), opposite=int(flipped.sum()),
                            median_angle_rest_deg=float(np.median(ang[rows][~flipped])) if (~flipped).any() else None,
                            median_spin=float(np.median(w[rows]))))
@@ -283,7 +283,8 @@ def main(argv=None) -> int:
             print(f"| {k} | {r['n']} | {r['median_angle_deg']:.1f} deg | {100 * r['median_abs_magnitude_error']:.0f} % |")
     print("\nSpinDOE " + results["spindoe"]["spin_check_summary"])
     print(f"\nSpinDOE by file, blocks of {BLOCK} trajectories in file order:\n"
-          "| files | segments | bent opposite to the measured spin (angle > 120°) | median angle of the others | median spin |\n"
+          f"| files | segments | bent opposite to the measured spin (angle > {OPPOSITE_DEG:.0f}°) | median angle of the "
+          "others | median spin |\n"
           "|---|---|---|---|---|")
     for b in results["spindoe"]["by_file_block"]:
         rest = "-" if b["median_angle_rest_deg"] is None else f"{b['median_angle_rest_deg']:.1f}°"
