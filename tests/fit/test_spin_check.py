@@ -75,6 +75,21 @@ def test_a_flipped_sign_is_named_on_every_segment_or_on_some(record):
     assert lo <= 0.25 <= hi and abs(share - 0.25) < 0.1
     assert set(c.opposite_rows.tolist()) <= set(np.flatnonzero(flip).tolist()) | set(np.flatnonzero(~ls.ok).tolist())
     assert c.rotation_deg[0] < 5.0  # the others are as they were
+    assert c.opposite_above is None  # flipped whatever their size: they gather nowhere
+
+
+def test_signs_flipped_on_the_largest_spins_are_placed_at_their_size(record):
+    """An estimator that reads large spins backwards: the check says above which size."""
+    spins, ls = record
+    size = np.linalg.norm(spins, axis=1)
+    flip = size > 340.0
+    c = check_spin(np.where(flip[:, None], -spins, spins), ls)
+    g = c.opposite_above
+    assert g is not None and g["p"] < 0.01
+    assert 330.0 < g["size"] < 350.0, g
+    assert g["opposite"] >= g["n"] - 1 and g["rest_share"] <= 0.05
+    assert f"gather at measured spins of {g['size']:.0f} rad/s and more" in c.summary()
+    assert c.to_json()["opposite_above"] == g
 
 
 def test_nothing_to_compare_says_so(record):

@@ -15,7 +15,16 @@ measured spin's part across the direction of flight with the latent spin's
   95 % interval of the angle: an axis turned by a frame error reads its
   angle, a consistent record a few degrees (the noise's own);
 * **angle**: the median angle between the parts over those segments, before and after that
-  rotation.
+  rotation;
+* **where the opposite ones gather**: an estimator that fails at large spins (a rotation per frame
+  past half a turn reads backwards, motion blur hides the pattern) flips the sign of the largest
+  readings only, so the check asks whether the segments bent opposite gather above some size of
+  the measured spin: the size whose segments above it most exceed the rest's opposite share (two
+  proportions' z, over the sizes of the opposite segments with :data:`MIN_ABOVE` or more above),
+  named when a permutation of the opposite flags beats it in under :data:`GATHER_P` of
+  :data:`PERMUTATIONS` (the scan over sizes included). On SpinDOE the 3 compared segments measured
+  above 800 rad/s (2,224-2,362 rad/s, beyond what a launcher or a player puts on a ball) are all
+  bent opposite, against 15 % of the others (``docs/measurements/spin.md``).
 
 The spin's size is not compared segment by segment: under the paper's C_M the Magnus force hardly
 grows with the spin above a few hundred rad/s, so a flight shows the spin's direction far better than
@@ -38,6 +47,9 @@ OPPOSITE_DEG = 120.0
 MIN_ACROSS = 50.0
 #: Bootstrap resamples of the rotation's angle and of the scale.
 BOOTSTRAP = 200
+#: Where the opposite segments gather: the least segments above a size, the permutations, and the
+#: permutation p below which the size is named.
+MIN_ABOVE, PERMUTATIONS, GATHER_P = 3, 2000, 0.01
 #: Factors on the measured spin that :func:`spin_scale` tries (refined between grid points).
 SCALES = tuple(np.round(np.linspace(0.5, 1.5, 21), 3))
 #: Widest interval of the factor :func:`spin_scale` finds that is read as a size [1].
@@ -75,6 +87,57 @@ def _rotation_axis(r) -> np.ndarray:
     return np.real(v[:, np.argmin(np.abs(w - 1.0))])
 
 
+def _two_proportions_z(flags, order, min_above):
+    """(P, K) z of the opposite share above each size against below, the segments sorted by size
+    (``order``), for flags (P, N) of P permutations; -inf where fewer than ``min_above`` lie above."""
+    f = flags[:, order].astype(np.float64)
+    n = f.shape[1]
+    above_n = np.arange(n, 0, -1, dtype=np.float64)  # segments at or above the k-th smallest
+    above_k = np.cumsum(f[:, ::-1], axis=1)[:, ::-1]
+    below_n = n - above_n
+    below_k = f.sum(1, keepdims=True) - above_k
+    pooled = f.mean(1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        se = np.sqrt(pooled * (1 - pooled) * (1 / above_n + 1 / np.maximum(below_n, 1)))
+        z = (above_k / above_n - below_k / np.maximum(below_n, 1)) / se
+    z[:, (above_n < min_above) | (below_n < 1)] = -np.inf
+    return np.where(np.isfinite(z), z, -np.inf)
+
+
+def opposite_gather(sizes, opposite, *, min_above: int = MIN_ABOVE, permutations: int = PERMUTATIONS,
+                    seed: int = 0) -> dict | None:
+    """Whether the segments bent opposite gather above a size of the measured spin (module
+    docstring): None when none do; else ``size`` (the least measured size of the group above
+    [rad/s]), ``n`` and ``opposite`` (segments above it and those of them opposite), ``rest_share``
+    (the opposite share of the others) and ``p`` (the permutation p, the scan over sizes included).
+
+    Arguments:
+        sizes: (N,) sizes of the compared segments' measured spins [rad/s]; opposite: (N,) bools.
+    """
+    sizes, opposite = np.asarray(sizes, np.float64), np.asarray(opposite, bool)
+    if opposite.sum() == 0 or opposite.all() or len(sizes) < min_above + 1:
+        return None
+    order = np.argsort(sizes, kind="stable")
+    z = _two_proportions_z(opposite[None], order, min_above)[0]
+    # only sizes at an opposite segment: a group above that starts with an agreeing one is beaten by the next
+    at_opposite = opposite[order]
+    z = np.where(at_opposite, z, -np.inf)
+    if not np.isfinite(z).any():
+        return None
+    k = int(np.argmax(z))
+    rng = np.random.default_rng(seed)
+    perm = np.stack([rng.permutation(opposite) for _ in range(permutations)])
+    zp = _two_proportions_z(perm, order, min_above)
+    zp = np.where(perm[:, order], zp, -np.inf).max(1)
+    p = float((np.sum(zp >= z[k]) + 1) / (permutations + 1))
+    if p >= GATHER_P:
+        return None
+    above = order[k:]
+    rest = order[:k]
+    return dict(size=float(sizes[order[k]]), n=int(len(above)), opposite=int(opposite[above].sum()),
+                rest_share=float(opposite[rest].mean()) if len(rest) else 0.0, p=p)
+
+
 def _wilson(k: int, n: int) -> tuple[float, float]:
     if n == 0:
         return 0.0, 1.0
@@ -93,7 +156,9 @@ class SpinCheck:
             measured spin; opposite_rows: their rows among the segments given;
         rotation_deg: (angle, (low, high)) of the best rotation over the others; rotation_axis: (3,);
         angle_deg: median angle between the parts over the others; angle_after_deg: the same after
-            the rotation.
+            the rotation;
+        opposite_above: where the opposite ones gather above a size of the measured spin
+            (:func:`opposite_gather`), or None.
     """
 
     n: int
@@ -103,6 +168,7 @@ class SpinCheck:
     rotation_axis: np.ndarray
     angle_deg: float
     angle_after_deg: float
+    opposite_above: dict | None = None
 
     def summary(self) -> str:
         """One line a reader can act on."""
@@ -115,13 +181,18 @@ class SpinCheck:
                  f"the others' measured spin {self.angle_deg:.0f} deg (median) from what the flights show, "
                  f"best turned by {angle:.0f} deg (95 % {alo:.0f}-{ahi:.0f}) about {np.round(self.rotation_axis, 2).tolist()}"
                  f" to {self.angle_after_deg:.0f} deg"]
+        g = self.opposite_above
+        if g:
+            parts.insert(1, f"they gather at measured spins of {g['size']:.0f} rad/s and more ({g['opposite']} of "
+                            f"{g['n']}; {100 * g['rest_share']:.0f} % of the rest; permutation p {g['p']:.3f}): the "
+                            f"spin estimator's reading of large spins")
         return "; ".join(parts)
 
     def to_json(self) -> dict:
         return dict(n=self.n, opposite=self.opposite[0], opposite_interval=list(self.opposite[1]),
                     opposite_rows=self.opposite_rows.tolist(), rotation_deg=self.rotation_deg[0],
                     rotation_interval_deg=list(self.rotation_deg[1]), rotation_axis=self.rotation_axis.tolist(),
-                    angle_deg=self.angle_deg, angle_after_deg=self.angle_after_deg)
+                    angle_deg=self.angle_deg, angle_after_deg=self.angle_after_deg, opposite_above=self.opposite_above)
 
 
 def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 0) -> SpinCheck:
@@ -155,8 +226,10 @@ def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 
     opp = ang > OPPOSITE_DEG
     same = rows[~opp]
     k, n = int(opp.sum()), len(rows)
+    gather = opposite_gather(np.linalg.norm(measured[rows], axis=1), opp, seed=seed)
     if len(same) < 3:
-        return dataclasses.replace(empty, n=n, opposite=(k / n, _wilson(k, n)), opposite_rows=rows[opp])
+        return dataclasses.replace(empty, n=n, opposite=(k / n, _wilson(k, n)), opposite_rows=rows[opp],
+                                   opposite_above=gather)
     r = _rotation(m[same], est[same])
     rng = np.random.default_rng(seed)
     boot = [_rotation_angle(_rotation(m[b], est[b])) for b in (rng.choice(same, len(same)) for _ in range(BOOTSTRAP))]
@@ -164,7 +237,7 @@ def check_spin(measured, latent, *, min_across: float = MIN_ACROSS, seed: int = 
     return SpinCheck(n=n, opposite=(k / n, _wilson(k, n)), opposite_rows=rows[opp],
                      rotation_deg=(_rotation_angle(r), tuple(float(x) for x in np.percentile(boot, [2.5, 97.5]))),
                      rotation_axis=axis, angle_deg=float(np.median(ang[~opp])),
-                     angle_after_deg=float(np.median(_angles(m[same] @ r.T, est[same]))))
+                     angle_after_deg=float(np.median(_angles(m[same] @ r.T, est[same]))), opposite_above=gather)
 
 
 def _grid_min(scales, cost) -> float:
