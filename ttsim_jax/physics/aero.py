@@ -251,9 +251,10 @@ def _through_partials(fn: Callable) -> Callable:
     return f
 
 
-#: The coefficient functions whose JVP goes through their two partials (:func:`_through_partials`).
+#: The coefficient functions whose JVP goes through their two partials (:func:`_through_partials`);
+#: the closed forms (a few operations) keep their own JVP, as cheap.
 TABLE_FUNCTIONS = frozenset({drag_table, drag_table_blended, magnus_table, magnus_table_values})
-_PARTIALS: dict = {}
+_PARTIALS = {fn: _through_partials(fn) for fn in TABLE_FUNCTIONS}
 
 
 def _lookup(models: dict, p, what: str) -> Callable:
@@ -262,11 +263,7 @@ def _lookup(models: dict, p, what: str) -> Callable:
     except KeyError:
         raise TypeError(f"no {what} coefficient function for {type(p).__name__}; known: "
                         f"{[t.__name__ for t in models]}") from None
-    if fn not in TABLE_FUNCTIONS:  # a closed form of a few operations: its own JVP is as cheap
-        return fn
-    if fn not in _PARTIALS:
-        _PARTIALS[fn] = _through_partials(fn)
-    return _PARTIALS[fn]
+    return _PARTIALS.get(fn, fn)
 
 
 # --------------------------------------------------------------------------- parameters
