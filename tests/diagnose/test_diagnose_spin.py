@@ -4,7 +4,9 @@ noise; tests/diagnose/data/README.md):
 * recorded without any spin (as most trackers record), the flights fly their latent spin
   (``Settings.spin = "auto"``), the report counts them, and buckling is still found;
 * with every measured spin 25 % high, the record section's spin check says so, its correction is
-  accepted and buckling is found on the corrected record.
+  accepted and buckling is found on the corrected record;
+* with the spin true and the model's air 25 % denser than the record's, the flights read as a spin
+  20 % high, but the correction makes the bounces worse: it is refused, and the air is found.
 """
 
 import jax.numpy as jnp
@@ -47,6 +49,12 @@ def reads_high(model):
     return diagnose(with_spin(load(BUCKLING), 1.25), model, Settings.quick(effects=CANDIDATES, spin_check=True))
 
 
+@pytest.fixture(scope="module")
+def dense_air(model):
+    denser = model.replace(aero=model.aero.replace(rho_air=model.aero.rho_air * 1.25))
+    return diagnose(load(BUCKLING), denser, Settings.quick(effects=("buckling", "air_density"), spin_check=True))
+
+
 def test_a_record_without_spin_flies_latent_spin_and_still_finds_the_cause(unmeasured):
     src = unmeasured.spin_sources
     assert src["measured"] == 0 and src["latent"] >= 0.9 * unmeasured.counts["flight"], src
@@ -80,6 +88,23 @@ def test_a_spin_reading_high_is_named_corrected_and_the_cause_still_found(reads_
     assert "corrected as the spin check reads it" in v.text and "spin check" in v.text
     text = markdown(reads_high)
     assert "spin_check: " in text and "- spin correction: " in text
+
+
+def test_thinner_air_that_reads_as_spin_is_not_put_on_the_record(dense_air):
+    """Thinner air than modelled bends the flights as a spin read high would, and the spin check
+    reads it so; but the bounces take the measured spin through the contact laws, not the air, and
+    the correction moves them away from the record: refused, the verdict names the air (and the
+    record's buckling), not the spin."""
+    sc = dense_air.record["spin_check"]
+    assert any(f.startswith("spin reads") and f.endswith("high") for f in sc["findings"]), sc["findings"]
+    corr = dense_air.spin_correction
+    assert corr["heldout"]["ci95"][0] > 0  # the flights alone would have taken it
+    assert not corr["accepted"] and "table" in corr["contradicted"], corr
+    assert corr["contacts"]["table"]["after_rms"] > 2 * corr["contacts"]["table"]["before_rms"]
+    v = dense_air.verdict
+    assert "spin_record" not in v.effects and {"air_density", "buckling"} <= set(v.effects), v.effects
+    assert "The bounces agree with the measured spin" in v.text and "correct the record's spin" not in v.text
+    assert "- spin correction: " in markdown(dense_air)
 
 
 @pytest.mark.slow  # 24 s: the command-line door of the record check that the fixtures above run in the diagnosis

@@ -77,6 +77,19 @@ def test_an_insignificant_gain_below_the_phase_resolution_is_not_detectable():
     assert not r["detectable"]
 
 
+def test_a_true_spin_corrected_as_if_wrong_is_scored_as_a_wrong_cause():
+    """The games record their spin true: a verdict that puts the gap on the record's spin (thinner
+    air read as a spin read high) names a wrong cause beside the right one, and the case says so."""
+    oracle = {"flight": held(40.0, before=0.003)}
+    cands = [cand("air_density", flight=held(38.0, before=0.003))]
+    on_record = dict(level="partly explained", effects=["spin_record", "air_density"], gaps=[])
+    r = SC.score("single", ["air_density"], cands, NO_WHERE, oracle, on_record)
+    assert r["rank1"] and r["spin_wrong"] and r["outcome"] == "found, the record's spin wrongly corrected"
+    clean = SC.score("single", ["air_density"], cands, NO_WHERE, oracle, dict(on_record, effects=["air_density"]))
+    assert not clean["spin_wrong"] and clean["outcome"] == "found"
+    assert SC.summary([dict(r, kind="single"), dict(clean, kind="single")])["spin_wrong"] == 1
+
+
 def test_pair_scores_both_effects():
     oracle = {"flight": held(10.0, before=0.003), "table": held(30.0), "racket": held(5.0)}
     both = [cand("buckling", table=held(25.0)), cand("air_flow", flight=held(9.0, before=0.003))]

@@ -297,6 +297,11 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         out["outcome"] = "both found" if out["both"] else "one found" if out["rank1"] else "missed"
     else:
         out["outcome"] = ("found" if top in names else f"found as interchangeable with {top}") if out["rank1"] else "missed"
+    # the record's spin corrected where the games' spin was recorded true: a wrong cause named
+    # beside the right one (a flight effect read as the spin estimator's error)
+    out["spin_wrong"] = bool(verdict) and SPIN_RECORD in verdict.get("effects", []) and not set(names) & SPIN_EFFECTS
+    if out["spin_wrong"]:
+        out["outcome"] += ", the record's spin wrongly corrected"
     return out
 
 
@@ -335,6 +340,7 @@ def summary(rows: list) -> dict:
                     if math.isfinite(r.get("bound_share", math.nan))),
                 outside_bound_named_rate=rate(resolved, "bound_named") if all("bound_named" in r for r in resolved) else math.nan,
                 n_control=len(control), control_false_alarms=sum(bool(r["false_alarm"]) for r in control),
+                spin_wrong=sum(bool(r.get("spin_wrong")) for r in ok),
                 control_bound_significant=sorted({p for r in control for p in r.get("bound_significant", ())}),
                 errors=len(rows) - len(ok))
 

@@ -114,6 +114,7 @@ def table(result: dict) -> str:
                  f"variables {s.get('outside_bound_named_rate', math.nan):.2f}; effect-free control: "
                  f"{s.get('n_control', 0)} cases, a false alarm in {s.get('control_false_alarms', 0)}, the model-free "
                  f"bound significant in {', '.join(s.get('control_bound_significant', [])) or 'no phase'}; "
+                 f"the record's true spin corrected as if wrong in {s.get('spin_wrong', 0)} cases; "
                  f"{result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU"
                  + (f" ({result['resumed']} cases taken from an earlier, interrupted run)" if result.get("resumed") else ""))
     return "\n".join(lines)

@@ -8,10 +8,18 @@ the spin estimator's error. So the check is the first candidate, one on the reco
 correction (:func:`ttsim_jax.fit.spin_check.corrected_spins`) is applied to every measured spin
 of the record (segments and observations), the phases are collected again (the contacts' states
 read the corrected spins too), and the correction is accepted when it lowers the held-out flight
-error significantly (the candidates' own test, :func:`ttsim_jax.diagnose.candidates.significant`,
-on the split of the uncorrected problem: the flights are where the check read it). Once accepted,
-every later stage (the noise floor, the bounds, the candidates, the limits, the landing) works on
-the corrected record.
+error significantly and makes no contact phase materially worse (the candidates' own tests,
+:func:`~ttsim_jax.diagnose.candidates.significant` and :func:`~ttsim_jax.diagnose.candidates.worse`,
+on the split of the uncorrected problem). Once
+accepted, every later stage (the noise floor, the bounds, the candidates, the limits, the landing)
+works on the corrected record.
+
+The contacts are the check on the check: the flights alone cannot tell a spin read 25 % high from
+air 20 % thinner than modelled (both bend the flight less than the model with that spin expects),
+but a bounce reads the incoming spin through the table's and the racket's laws, not through the
+air. Where the record's spin is right and the air or the ball is off, its "correction" moves the
+bounces away from the measured ones; that contradiction is reported, and the spin check's
+finding is then read as a flight effect, not as the record's.
 """
 
 from __future__ import annotations
@@ -71,11 +79,27 @@ def correct(ds, ph, pb, check: dict, collect, seed: int = 0) -> tuple:
     ph2, pb2 = collect(ds2)
     if ph2.flights is None or not np.array_equal(ph2.flights.segment_id, fl.segment_id):
         return ds, ph, pb, dict(skipped="the corrected record gives other flight segments: not compared")
-    h = candidates.score(pb, {"flight": pb2.base["flight"]}, seed)["flight"]
-    accepted = bool(np.isfinite(np.asarray(pb2.base["flight"])).all() and candidates.significant("flight", h))
+    # the contacts are compared where the corrected record gives the same contacts (their split is
+    # the uncorrected problem's, as the flights': the split is stratified by the errors, so it moves)
+    same = [p for p in pb.phases if p != "flight" and p in pb2.base
+            and np.shape(pb2.base[p]) == np.shape(pb.base[p])
+            and np.array_equal(np.asarray(pb2.data[p]["t"]), np.asarray(pb.data[p]["t"]))]
+    scores = candidates.score(pb, {"flight": pb2.base["flight"], **{p: pb2.base[p] for p in same}}, seed)
+    h = scores.pop("flight")
+    finite = all(np.isfinite(np.asarray(pb2.base[p])).all() for p in ["flight", *same])
+    contradicted = [p for p, c in scores.items() if candidates.worse(p, c)]
+    # the flights are where the check read it: they must gain; no contact may lose
+    accepted = bool(finite and candidates.significant("flight", h) and not contradicted)
     entry = dict(applied=applied, segments=int(np.sum(fl.spin_source[: fl.n] == "measured")), heldout=h,
-                 accepted=accepted)
+                 contacts=scores, contradicted=contradicted, accepted=accepted)
     return (ds2, ph2, pb2, entry) if accepted else (ds, ph, pb, entry)
+
+
+def contradicted(entry: dict) -> list:
+    """The contact phases that the spin check's correction made materially worse (``entry``: of
+    :func:`correct`), [] when none or when nothing was tried: there the bounces agree with the
+    record's spin, and what the check read in the flights lies in the flight's physics."""
+    return list((entry or {}).get("contradicted", []))
 
 
 def text(entry: dict) -> str:
@@ -89,4 +113,12 @@ def text(entry: dict) -> str:
     if entry["accepted"]:
         return (f" The record's measured spin, corrected as the spin check reads it ({what}, on {entry['segments']} "
                 f"flight segments), brings {change}: every later stage and candidate works on the corrected spin.")
+    against = contradicted(entry)
+    if against:
+        worse = "; ".join(f"the {p} error {c['before_rms']:.3g} -> {c['after_rms']:.3g} m/s RMS, "
+                          f"{-c['pct']:.1f} % higher (95 % interval {-c['ci95'][1]:.1f} to {-c['ci95'][0]:.1f} %)"
+                          for p, c in entry["contacts"].items() if p in against)
+        return (f" The spin check's correction ({what}) was tried and not accepted: it brings {change}, but {worse}. "
+                "The bounces agree with the measured spin, so the flights bend otherwise for a reason in the flight "
+                "(the air or the ball), not in the record.")
     return f" The spin check's correction ({what}) was tried and not accepted: {change}."

@@ -12,7 +12,7 @@ import dataclasses
 import math
 
 from ttsim_jax.diagnose.candidates import MIN_GAIN
-from ttsim_jax.diagnose.spin_record import NAME as NAME_SPIN, text as correction_text
+from ttsim_jax.diagnose.spin_record import NAME as NAME_SPIN, contradicted, text as correction_text
 from ttsim_jax.diagnose.specs import PHASES
 from ttsim_jax.diagnose.where import shown
 
@@ -192,12 +192,20 @@ def spin_corrected(out: dict) -> bool:
     return bool(out.get("spin_correction", {}).get("accepted"))
 
 
+def spin_doubted(out: dict) -> bool:
+    """Whether the spin check found the record's spin off and nothing since cleared it: its
+    correction neither accepted nor contradicted by the contacts
+    (:func:`~ttsim_jax.diagnose.spin_record.contradicted`). Then every candidate was fitted to a
+    spin that may be wrong, and the verdict says "partly" at most."""
+    return bool(spin_findings(out)) and not spin_corrected(out) and not contradicted(out.get("spin_correction"))
+
+
 def _spin_text(out: dict) -> str:
     found = spin_findings(out)
     if not found:
         return ""
     lead = " The record's measured spin disagrees with its flights (spin check: " + "; ".join(found) + ")."
-    if spin_corrected(out):
+    if spin_corrected(out) or contradicted(out.get("spin_correction")):
         return lead + correction_text(out["spin_correction"])
     return (lead + correction_text(out.get("spin_correction", {})) + " Every candidate was fitted with that spin, so correct the "
             "record's spin (or run with --spin latent) before reading them as physics.")
@@ -276,8 +284,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
       one of them changes the errors only as a reading that needs no candidate does
       (``out["reads_as"]``, :func:`~ttsim_jax.diagnose.ambiguity.reads_as`: buckling fitted with
       its onset below the impacts is a restitution change at every speed), so the data show the
-      change and not its cause; or the record's measured spin disagrees with its flights
-      (:func:`spin_findings`), so the candidates were fitted to a wrong spin;
+      change and not its cause; or the record's measured spin disagrees with its flights and
+      nothing cleared it (:func:`spin_doubted`), so the candidates may have been fitted to a wrong spin;
     * *unexplained*: no candidate with plausible parameters is significant.
 
     Phases with a gap above their floor that no accepted effect acts in are named in every case.
@@ -333,7 +341,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
         readings = {c.spec.name: out.get("reads_as", {}).get(c.spec.name) for c in significant}
         readings = {n: r for n, r in readings.items() if r}
         level = ("partly explained" if short or untouched or more or readings or
-                 (spin_findings(out) and not spin_corrected(out)) else "explained")
+                 spin_doubted(out) else "explained")
         closes = []
         for p, g in shares.items():
             if g["share"] is None:
