@@ -104,6 +104,9 @@ def test_thinner_air_that_reads_as_spin_is_not_put_on_the_record(dense_air):
     v = dense_air.verdict
     assert "spin_record" not in v.effects and {"air_density", "buckling"} <= set(v.effects), v.effects
     assert "The bounces agree with the measured spin" in v.text and "correct the record's spin" not in v.text
+    # without the joint fit (quick settings) the before/after holds both, each in its own phases
+    assert set(dense_air.combined["name"].split("+")) == {"air_density", "buckling"}
+    assert "buckling + air_density close" in v.text and "of the flight gap" in v.text
     assert "- spin correction: " in markdown(dense_air)
 
 

@@ -67,7 +67,7 @@ class Settings:
         combine: forward selection among the significant candidates (:func:`select`): each fitted
             jointly with those accepted before it, kept when it adds significantly; the accepted
             ones' joint fit is the before/after (else every significant candidate is reported and
-            the first alone is the before/after).
+            the before/after is the first with those after it that act in other phases).
         max_segments: flight segments used at most (a seeded random subset of more; None: every one).
         fit: contact state estimation.
         spin: where a flight segment's spin comes from (:func:`ttsim_jax.diagnose.phases.flights`):
@@ -268,8 +268,14 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
                 entry["adds"] = adds[entry["name"]]
         out["combined"] = _candidate_json(best, 0 if len(accepted) > 1 else 1)
     elif significant:
-        best = significant[0]
-        out["combined"] = _candidate_json(best, 1)
+        # no joint fit: the first, with those after it that act in phases of their own (fits in
+        # disjoint phases are their joint fit), so each phase's share is of a fit made for it
+        blocks = []
+        for c in significant:
+            if not any(set(b.heldout) & set(c.heldout) for b in blocks):
+                blocks.append(c)
+        best = _merged(blocks, blocks)
+        out["combined"] = _candidate_json(best, 0 if len(blocks) > 1 else 1)
     lap("ranking and forward selection")
     tick("landing rollouts" if settings.landing else "verdict", 1)
     arrays = {f"before_{p}": _items(ph, pb, p, pb.base[p], radius, _test_rows(pb, p))["error"] for p in pb.phases}
