@@ -88,6 +88,12 @@ def test_a_true_spin_corrected_as_if_wrong_is_scored_as_a_wrong_cause():
     clean = SC.score("single", ["air_density"], cands, NO_WHERE, oracle, dict(on_record, effects=["air_density"]))
     assert not clean["spin_wrong"] and clean["outcome"] == "found"
     assert SC.summary([dict(r, kind="single"), dict(clean, kind="single")])["spin_wrong"] == 1
+    # outside the catalogue too (thinner air withheld, put on the record), and the figure calls it wrong;
+    # a spin estimator's own error put on the record is right
+    thin = SC.score("outside", ["air_density"], [], NO_WHERE, oracle, dict(on_record, effects=["spin_record"]))
+    assert thin["spin_wrong"] and thin["outcome"].endswith(", the record's spin wrongly corrected")
+    assert SC.verdict_of(dict(thin, kind="outside")) == "wrong"
+    assert not SC.score("outside", ["spin_calibration"], [], NO_WHERE, {}, dict(on_record, effects=["spin_record"]))["spin_wrong"]
 
 
 def test_pair_scores_both_effects():

@@ -272,7 +272,7 @@ def diagnose(ds, model, settings: Settings = Settings(), progress: Callable[[str
         # disjoint phases are their joint fit), so each phase's share is of a fit made for it
         blocks = []
         for c in significant:
-            if not any(set(b.heldout) & set(c.heldout) for b in blocks):
+            if not any(_share_a_phase(b, c) for b in blocks):
                 blocks.append(c)
         best = _merged(blocks, blocks)
         out["combined"] = _candidate_json(best, 0 if len(blocks) > 1 else 1)
@@ -373,7 +373,7 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
     for c in significant[1:]:
         if len(accepted) >= TOP:
             break
-        near = [b for b in blocks if set(b.heldout) & set(c.heldout)]
+        near = [b for b in blocks if _share_a_phase(b, c)]
         neighbours = [n for b in near for n in b.params]  # the accepted effects it shares a phase with
         block = c
         if near:
@@ -400,6 +400,11 @@ def select(pb, significant: list, model, group_of: dict, settings: Settings) -> 
             accepted.append(c)
             blocks = [b for b in blocks if not any(b is n for n in near)] + [block]
     return accepted, _merged(blocks, accepted), adds
+
+
+def _share_a_phase(a: candidates.Candidate, b: candidates.Candidate) -> bool:
+    """Whether two fits act in a phase in common (else each is the other's joint fit's part)."""
+    return bool(set(a.heldout) & set(b.heldout))
 
 
 def _group(group_of: dict, names: list):

@@ -233,9 +233,19 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
 
     Returns:
         dict: detectable, top, rank1, both (pairs), phase, phase_right, located (outside: flagged
-        phases), unexplained, found_pct, oracle_pct, shrink, outcome (one word for the table).
+        phases), unexplained, found_pct, oracle_pct, shrink, spin_wrong, outcome (one word for the
+        table).
     """
-    names = tuple(names)
+    out = _scores(kind, tuple(names), candidates, where, oracle, verdict)
+    # of every kind: the record's spin corrected where the games recorded it true names a wrong
+    # cause (a flight effect read as the spin estimator's error), beside the right one or alone
+    out["spin_wrong"] = bool(verdict) and SPIN_RECORD in verdict.get("effects", []) and not set(names) & SPIN_EFFECTS
+    if out["spin_wrong"]:
+        out["outcome"] += ", the record's spin wrongly corrected"
+    return out
+
+
+def _scores(kind: str, names: tuple, candidates: list, where: dict, oracle: dict, verdict: dict | None) -> dict:
     true_phases = effect_phases(names)
     # the diagnosis's accepted effects: significant, and not redundant on top of those before them
     # (a significant fit beyond the plausible ranges stands in for something else and is not accepted)
@@ -297,11 +307,6 @@ def score(kind: str, names, candidates: list, where: dict, oracle: dict, verdict
         out["outcome"] = "both found" if out["both"] else "one found" if out["rank1"] else "missed"
     else:
         out["outcome"] = ("found" if top in names else f"found as interchangeable with {top}") if out["rank1"] else "missed"
-    # the record's spin corrected where the games' spin was recorded true: a wrong cause named
-    # beside the right one (a flight effect read as the spin estimator's error)
-    out["spin_wrong"] = bool(verdict) and SPIN_RECORD in verdict.get("effects", []) and not set(names) & SPIN_EFFECTS
-    if out["spin_wrong"]:
-        out["outcome"] += ", the record's spin wrongly corrected"
     return out
 
 

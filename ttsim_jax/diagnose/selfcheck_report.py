@@ -16,6 +16,8 @@ OUTCOME_COLOURS = {"right": "#2ca02c", "wrong": "#d62728", "undetectable": "#7f7
 
 def verdict_of(r: dict) -> str:
     """A case's outcome class for the figure: "right", "wrong" or "undetectable"."""
+    if r.get("spin_wrong"):  # a wrong cause named, whatever else is right
+        return "wrong"
     if r["kind"] == "control":
         return "wrong" if r["false_alarm"] else "right"
     if r["kind"] in OUTSIDE_KINDS:

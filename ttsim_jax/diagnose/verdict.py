@@ -334,7 +334,8 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
                  implausible=[c.spec.name for c in beyond], shares=shares, gaps=gaps, open=untouched, where=where)
     if significant:
         # the shares are of the before/after fit (out["combined"]): name the effects it holds
-        who = " + ".join(out.get("combined", {}).get("name", "+".join(c.spec.name for c in significant)).split("+"))
+        held = list(out.get("combined", {}).get("params") or [c.spec.name for c in significant])
+        who = " + ".join(held)
         # a phase whose error does not stand above its floor has nothing to explain: no share is asked there
         short = [p for p, g in shares.items() if g["share"] is not None and g["share"] < EXPLAINED_SHARE
                  and (p in gaps or not isinstance(out.get("floor", {}).get(p), dict))]
@@ -349,7 +350,7 @@ def verdict(out: dict, significant: list, redundant: list = (), beyond: list = (
                 closes.append(f"{gap(p, g)}: no gap above the noise floor beyond the phase's resolution")
                 continue
             pct, lo, hi = (100.0 * min(v, 1.0) for v in (g["share"], *g["ci95"]))
-            closes.append(f"{who} close{'s' if ' + ' not in who else ''} {pct:.0f} % (95 % interval {lo:.0f} "
+            closes.append(f"{who} close{'s' if len(held) == 1 else ''} {pct:.0f} % (95 % interval {lo:.0f} "
                           f"to {hi:.0f} %) of {gap(p, g)}" + (f", {100.0 - pct:.0f} % is left" if p in short else ""))
         text = ("Explained by: " if level == "explained" else "Partly explained by: ") + (
             "the record's measured spin (corrected: below); " if spin_corrected(out) else "") + "; ".join(
